@@ -1,0 +1,47 @@
+"""The camera record shared by data, model, rasterizer wrappers and viewer.
+
+Conventions (DESIGN.md): OpenCV axes (x right, y down, z forward), world-to-camera
+``viewmat [4, 4]``, pinhole intrinsics ``K [3, 3]``, pixel centres at +0.5.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import Tensor
+
+
+@dataclass(frozen=True)
+class Camera:
+    """One pinhole camera.
+
+    viewmat: [4, 4] world-to-camera (OpenCV axes).
+    K: [3, 3] intrinsics in pixels for an image of ``width`` x ``height``.
+    """
+
+    viewmat: Tensor
+    K: Tensor
+    width: int
+    height: int
+    name: str = ""
+
+    @property
+    def camera_center(self) -> Tensor:
+        """World position of the camera centre: [3] = -R^T t."""
+        rot = self.viewmat[:3, :3]
+        return -(rot.transpose(0, 1) @ self.viewmat[:3, 3])
+
+    def to(self, dtype: torch.dtype) -> "Camera":
+        return Camera(self.viewmat.to(dtype), self.K.to(dtype), self.width, self.height, self.name)
+
+    def scaled(self, factor: float) -> "Camera":
+        """The same camera for an image resized by ``factor`` (e.g. 0.5 halves each side)."""
+        width = max(1, int(round(self.width * factor)))
+        height = max(1, int(round(self.height * factor)))
+        sx, sy = width / self.width, height / self.height
+        K = self.K.clone()
+        K[0, :] *= sx
+        K[1, :] *= sy
+        K[2, :] = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype)
+        return Camera(self.viewmat, K, width, height, self.name)

@@ -1,0 +1,107 @@
+"""Config plumbing shared by every part: YAML round trip of nested dataclass configs.
+
+A run folder's ``config.yml`` must rebuild exactly the config that trained it, including
+strategies and methods that come from other installed packages. Each dataclass is therefore
+written with its import path (``_type: module:QualName``) and rebuilt by importing it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import importlib
+from pathlib import Path, PurePath
+from typing import Any
+
+import yaml
+
+_TYPE_KEY = "_type"
+
+
+def config_to_dict(value: Any) -> Any:
+    """Plain YAML-able structure for a (nested) dataclass config."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        cls = type(value)
+        out: dict[str, Any] = {_TYPE_KEY: f"{cls.__module__}:{cls.__qualname__}"}
+        for f in dataclasses.fields(value):
+            out[f.name] = config_to_dict(getattr(value, f.name))
+        return out
+    if isinstance(value, PurePath):
+        return {_TYPE_KEY: "path", "value": str(value)}
+    if isinstance(value, enum.Enum):
+        cls = type(value)
+        return {_TYPE_KEY: f"{cls.__module__}:{cls.__qualname__}", "value": value.value}
+    if isinstance(value, tuple):
+        return {_TYPE_KEY: "tuple", "value": [config_to_dict(v) for v in value]}
+    if isinstance(value, list):
+        return [config_to_dict(v) for v in value]
+    if isinstance(value, dict):
+        return {str(k): config_to_dict(v) for k, v in value.items()}
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    raise TypeError(f"cannot write config value of type {type(value).__name__}: {value!r}")
+
+
+def _import_type(spec: str) -> Any:
+    module_name, _, qualname = spec.partition(":")
+    try:
+        obj: Any = importlib.import_module(module_name)
+    except ImportError as err:
+        raise ValueError(
+            f"config names type {spec!r}, but module {module_name!r} cannot be imported "
+            f"(is the package that provides it installed?): {err}"
+        ) from err
+    for part in qualname.split("."):
+        if not hasattr(obj, part):
+            raise ValueError(f"config names type {spec!r}, which does not exist")
+        obj = getattr(obj, part)
+    return obj
+
+
+def config_from_dict(value: Any) -> Any:
+    """Inverse of :func:`config_to_dict`."""
+    if isinstance(value, list):
+        return [config_from_dict(v) for v in value]
+    if not isinstance(value, dict):
+        return value
+    if _TYPE_KEY not in value:
+        return {k: config_from_dict(v) for k, v in value.items()}
+    spec = value[_TYPE_KEY]
+    if spec == "path":
+        return Path(value["value"])
+    if spec == "tuple":
+        return tuple(config_from_dict(v) for v in value["value"])
+    cls = _import_type(spec)
+    if isinstance(cls, type) and issubclass(cls, enum.Enum):
+        return cls(value["value"])
+    if not dataclasses.is_dataclass(cls):
+        raise ValueError(f"config type {spec!r} is not a dataclass")
+    names = {f.name for f in dataclasses.fields(cls) if f.init}
+    unknown = set(value) - names - {_TYPE_KEY}
+    if unknown:
+        raise ValueError(f"config for {spec} has unknown fields: {sorted(unknown)}")
+    kwargs = {k: config_from_dict(v) for k, v in value.items() if k in names}
+    return cls(**kwargs)
+
+
+def save_config(config: Any, path: Path) -> None:
+    """Write ``config`` as YAML to ``path`` (atomically: temporary file, then rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(yaml.safe_dump(config_to_dict(config), sort_keys=False))
+    tmp.replace(path)
+
+
+def load_config(path: Path) -> Any:
+    """Read a config written by :func:`save_config`."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"config file not found: {path}")
+    try:
+        data = yaml.safe_load(path.read_text())
+    except yaml.YAMLError as err:
+        raise ValueError(f"{path} is not valid YAML: {err}") from err
+    if not isinstance(data, dict) or _TYPE_KEY not in data:
+        raise ValueError(f"{path} is not an ExploreGS config (no top-level {_TYPE_KEY!r})")
+    return config_from_dict(data)

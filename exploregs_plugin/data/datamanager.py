@@ -1,0 +1,225 @@
+"""DataManager: the train/test split, images in memory as uint8, a seeded camera order,
+background, and ground-truth depths and region masks when the dataset has them."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image
+from torch import Tensor
+
+from ..cameras import Camera
+from .cache import cache_root
+from .errors import DataError
+from .images import read_image
+from .parsed import REGION_LABELS, ImageRecord, ParsedScene, ParseOptions
+from .dataparser import parse_dataset
+
+
+@dataclass
+class DataManagerConfig:
+    """Which dataset to load and how."""
+
+    data: str = "builtin:default"
+    """Dataset: builtin:NAME (tiny, default, farside, nearside, combined, *-large), a COLMAP
+    folder (images/ + sparse/0), or a transforms.json (or its folder)."""
+    data_factor: int = 1
+    """Downscale images by this integer factor (uses images_N/ when present, else caches a resize)."""
+    test_every: int = 8
+    """Every N-th image in name order is a test image (0: no test images). Ignored when the
+    dataset has its own split and use_dataset_split is set."""
+    use_dataset_split: bool = True
+    """Use the dataset's own train/test lists (split.json, train_filenames, Blender files)."""
+    seed: int = 0
+    """Seed of the training camera order and of random initial points."""
+    normalize: bool = True
+    """Translate and uniformly scale the scene so camera centres have mean 0 and max radius 1."""
+    undistort: bool = True
+    """Undistort images of distorted camera models with pycolmap into a cache (False: refuse them)."""
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    """RGB in [0, 1] that transparent images are composited on; also the render background."""
+    n_random_points: int = 10_000
+    """Random initial points when the dataset has no point cloud."""
+    cache_dir: str | None = None
+    """Cache root for built-in scenes and derived images (default: $EXPLOREGS_CACHE or ~/.cache/exploregs)."""
+
+    def setup(self) -> "DataManager":
+        return DataManager(self)
+
+    def parse_options(self) -> ParseOptions:
+        if self.data_factor < 1:
+            raise DataError("--data-factor", f"must be an integer >= 1, got {self.data_factor}")
+        if self.test_every < 0:
+            raise DataError("--test-every", f"must be >= 0, got {self.test_every}")
+        if len(self.background) != 3 or not all(0.0 <= c <= 1.0 for c in self.background):
+            raise DataError("--background", f"must be three values in [0, 1], got {self.background}")
+        if self.n_random_points < 1:
+            raise DataError("--n-random-points", f"must be >= 1, got {self.n_random_points}")
+        root = Path(self.cache_dir).expanduser() if self.cache_dir else cache_root()
+        return ParseOptions(
+            data_factor=self.data_factor,
+            undistort=self.undistort,
+            cache_root=root,
+            background=np.asarray(self.background, dtype=np.float64),
+            seed=self.seed,
+            n_random_points=self.n_random_points,
+        )
+
+
+def split_indices(names: list[str], test_every: int, split: dict[str, list[str]] | None) -> tuple[list[int], list[int]]:
+    """(train, test) indices into ``names`` (sorted): the dataset's split, or every
+    ``test_every``-th name (0, k, 2k, ...)."""
+    if split is not None:
+        index = {n: i for i, n in enumerate(names)}
+        test = sorted(index[n] for n in split["test"])
+        train = sorted(index[n] for n in split["train"])
+        return train, test
+    test = [i for i in range(len(names)) if test_every > 0 and i % test_every == 0]
+    train = [i for i in range(len(names)) if test_every <= 0 or i % test_every != 0]
+    return train, test
+
+
+@dataclass
+class _Item:
+    camera: Camera
+    image: Tensor  # uint8 [H, W, 3]
+    depth: Tensor | None  # float32 [H, W, 1], normalised units
+    labels: Tensor | None  # uint8 [H, W]
+
+
+class DataManager:
+    """Holds the parsed dataset; see the contract in the project brief."""
+
+    def __init__(self, config: DataManagerConfig) -> None:
+        self.config = config
+        options = config.parse_options()
+        self.parsed: ParsedScene = parse_dataset(config.data, options, normalize=config.normalize)
+        self.scene_name = self.parsed.name
+        names = [im.name for im in self.parsed.images]
+        split = self.parsed.split if config.use_dataset_split else None
+        train_ids, test_ids = split_indices(names, config.test_every, split)
+        if not train_ids:
+            raise DataError(f"--data {config.data}", "no training images after the train/test split")
+        background = options.background
+        self._train = [self._load(self.parsed.images[i], background) for i in train_ids]
+        self._test = [self._load(self.parsed.images[i], background) for i in test_ids]
+        self.train_cameras: list[Camera] = [it.camera for it in self._train]
+        self.test_cameras: list[Camera] = [it.camera for it in self._test]
+        self.points: Tensor | None = _tensor(self.parsed.points)
+        self.points_rgb: Tensor | None = _tensor(self.parsed.points_rgb)
+        self.scene_extent: float = float(self.parsed.scene_extent)
+        norm = self.parsed.normalization
+        self.normalization: tuple[Tensor, float] = (
+            torch.tensor(norm.translation, dtype=torch.float32), float(norm.scale))
+        self.background: Tensor = torch.tensor(config.background, dtype=torch.float32)
+        self._generator = torch.Generator().manual_seed(config.seed)
+        self._order: Tensor = torch.randperm(len(self._train), generator=self._generator)
+        self._position = 0
+        self._epoch = 0
+
+    def _load(self, record: ImageRecord, background: np.ndarray) -> _Item:
+        pixels = read_image(record.path, background)
+        if pixels.shape[:2] != (record.height, record.width):
+            raise DataError(record.path, f"image is {pixels.shape[1]}x{pixels.shape[0]}, expected "
+                            f"{record.width}x{record.height}")
+        camera = Camera(
+            torch.tensor(record.viewmat, dtype=torch.float32),
+            torch.tensor(record.K, dtype=torch.float32),
+            record.width, record.height, record.name,
+        )
+        depth = labels = None
+        size = (record.width, record.height)
+        if record.depth_path is not None:
+            depth_np = _load_depth(record.depth_path, size) * self.parsed.depth_scale
+            depth = torch.from_numpy(depth_np.astype(np.float32))[..., None]
+        if record.mask_path is not None:
+            labels = torch.from_numpy(_load_labels(record.mask_path, size))
+        return _Item(camera, torch.from_numpy(np.ascontiguousarray(pixels).copy()), depth, labels)
+
+    @staticmethod
+    def _item(item: _Item) -> tuple[Camera, Tensor, dict[str, Any]]:
+        extras: dict[str, Any] = {}
+        if item.depth is not None:
+            extras["depth"] = item.depth
+        if item.labels is not None:
+            extras["masks"] = {name: item.labels == value for name, value in REGION_LABELS.items()}
+        return item.camera, item.image.to(torch.float32) / 255.0, extras
+
+    def train_item(self, index: int) -> tuple[Camera, Tensor, dict[str, Any]]:
+        """(camera, image [H, W, 3] float32 in [0, 1], extras) of training image ``index``."""
+        return self._item(self._train[index])
+
+    def test_item(self, index: int) -> tuple[Camera, Tensor, dict[str, Any]]:
+        """(camera, image [H, W, 3] float32 in [0, 1], extras) of test image ``index``."""
+        return self._item(self._test[index])
+
+    def next_train(self) -> tuple[int, Camera, Tensor, dict[str, Any]]:
+        """The next training image in a seeded random order; a fresh permutation each epoch."""
+        if self._position >= len(self._order):
+            self._order = torch.randperm(len(self._train), generator=self._generator)
+            self._position = 0
+            self._epoch += 1
+        index = int(self._order[self._position])
+        self._position += 1
+        return (index, *self.train_item(index))
+
+    def state_dict(self) -> dict[str, Any]:
+        """Everything needed to continue the same camera order after a resume."""
+        return {
+            "order": self._order.clone(),
+            "position": self._position,
+            "epoch": self._epoch,
+            "generator": self._generator.get_state(),
+            "train_names": [c.name for c in self.train_cameras],
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        names = [c.name for c in self.train_cameras]
+        if list(state["train_names"]) != names:
+            raise DataError("data manager state", "the checkpoint was made with different training images")
+        order = torch.as_tensor(state["order"], dtype=torch.int64)
+        if sorted(order.tolist()) != list(range(len(names))) or not 0 <= int(state["position"]) <= len(names):
+            raise DataError("data manager state", "camera order does not match the training images")
+        self._order = order.clone()
+        self._position = int(state["position"])
+        self._epoch = int(state["epoch"])
+        self._generator.set_state(state["generator"])
+
+    @property
+    def epoch(self) -> int:
+        return self._epoch
+
+
+def _tensor(array: np.ndarray | None) -> Tensor | None:
+    return None if array is None else torch.tensor(array, dtype=torch.float32)
+
+
+def _load_depth(path: Path, size: tuple[int, int]) -> np.ndarray:
+    """float [H, W] depth resized (nearest) to ``size`` = (width, height)."""
+    try:
+        depth = np.load(path)
+    except (OSError, ValueError) as err:
+        raise DataError(path, f"depth file is unreadable ({err})") from err
+    if depth.ndim != 2 or not np.all(np.isfinite(depth)):
+        raise DataError(path, f"depth must be a finite [H, W] array, got shape {depth.shape}")
+    if depth.shape != (size[1], size[0]):
+        depth = np.asarray(Image.fromarray(depth.astype(np.float32)).resize(size, Image.Resampling.NEAREST))
+    return depth
+
+
+def _load_labels(path: Path, size: tuple[int, int]) -> np.ndarray:
+    """uint8 [H, W] region labels resized (nearest) to ``size`` = (width, height)."""
+    try:
+        with Image.open(path) as im:
+            if im.size != size:
+                im = im.resize(size, Image.Resampling.NEAREST)
+            labels = np.asarray(im, dtype=np.uint8)
+    except OSError as err:
+        raise DataError(path, f"mask file is unreadable ({err})") from err
+    if labels.ndim != 2 or labels.max(initial=0) > max(REGION_LABELS.values()):
+        raise DataError(path, "mask must be a single-channel image of region labels 0, 1, 2")
+    return labels.copy()

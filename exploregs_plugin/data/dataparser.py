@@ -1,0 +1,48 @@
+"""Pick the parser for a ``--data`` argument and normalise the result.
+
+``builtin:NAME`` -> generated (or cached) built-in scene, read as COLMAP;
+a folder with ``sparse/`` -> COLMAP; a ``transforms.json`` file, or a folder holding one -> transforms.json.
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+from pathlib import Path
+
+from .builtin import ensure_builtin
+from .colmap import read_colmap
+from .errors import DataError
+from .parsed import ParsedScene, ParseOptions, normalize_scene
+from .transforms_json import read_transforms
+
+BUILTIN_PREFIX = "builtin:"
+
+
+def resolve_data(data: str, cache_dir: Path) -> tuple[str, Path]:
+    """(format, path) for a data argument; format is "colmap" or "transforms".
+
+    Built-in scenes are generated into (or reused from) ``cache_dir/scenes``."""
+    if data.startswith(BUILTIN_PREFIX):
+        name = data[len(BUILTIN_PREFIX):]
+        return "colmap", ensure_builtin(name, Path(cache_dir).expanduser() / "scenes")
+    path = Path(data).expanduser()
+    if not path.exists():
+        raise DataError(f"--data {data}", "path does not exist (and is not builtin:NAME)")
+    if path.is_file():
+        if path.suffix.lower() == ".json":
+            return "transforms", path
+        raise DataError(path, "a data file must be a transforms.json; otherwise pass the dataset folder")
+    if (path / "sparse").is_dir():
+        return "colmap", path
+    if (path / "transforms.json").is_file():
+        return "transforms", path / "transforms.json"
+    raise DataError(path, "not a dataset: expected sparse/0 (COLMAP) or transforms.json")
+
+
+def parse_dataset(data: str, options: ParseOptions, normalize: bool = True) -> ParsedScene:
+    """Parse ``data`` and return it normalised (see :mod:`exploregs_plugin.data.parsed`)."""
+    kind, path = resolve_data(data, options.cache_root)
+    scene = read_colmap(path, options) if kind == "colmap" else read_transforms(path, options)
+    if data.startswith(BUILTIN_PREFIX):
+        scene = replace(scene, name=data[len(BUILTIN_PREFIX):])
+    return normalize_scene(scene, enabled=normalize)

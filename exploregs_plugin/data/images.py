@@ -1,0 +1,106 @@
+"""Image files: size checks, reading (RGBA composited on a background), resize and cache paths."""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import stat
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, UnidentifiedImageError
+
+from .errors import DataError
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".JPG", ".JPEG", ".PNG")
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the file header; DataError when missing or unreadable."""
+    if not path.is_file():
+        raise DataError(path, "image file is missing")
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (UnidentifiedImageError, OSError) as err:
+        raise DataError(path, f"image file is unreadable ({err})") from err
+
+
+def read_image(path: Path, background: np.ndarray | None = None) -> np.ndarray:
+    """uint8 [H, W, 3]. An alpha channel is composited over ``background`` [3] in [0, 1]
+    (black when None): rgb = a * rgb + (1 - a) * background."""
+    try:
+        with Image.open(path) as im:
+            im.load()
+            has_alpha = im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info)
+            if has_alpha:
+                rgba = np.asarray(im.convert("RGBA"), dtype=np.float32) / 255.0
+                bg = np.zeros(3, np.float32) if background is None else np.asarray(background, np.float32)
+                alpha = rgba[..., 3:4]
+                rgb = rgba[..., :3] * alpha + bg * (1.0 - alpha)
+                return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
+            return np.asarray(im.convert("RGB"), dtype=np.uint8)
+    except FileNotFoundError as err:
+        raise DataError(path, "image file is missing") from err
+    except (UnidentifiedImageError, OSError) as err:
+        raise DataError(path, f"image file is unreadable ({err})") from err
+
+
+def resized_size(width: int, height: int, factor: int) -> tuple[int, int]:
+    """Size of an image downscaled by an integer ``factor`` (rounded, at least 1 pixel)."""
+    return max(1, int(round(width / factor))), max(1, int(round(height / factor)))
+
+
+def resize_to_cache(src: Path, dst: Path, size: tuple[int, int]) -> Path:
+    """Resize ``src`` to ``size`` (area filter) into ``dst`` once; later calls reuse ``dst``."""
+    if dst.is_file():
+        return dst
+    try:
+        with Image.open(src) as im:
+            # JPEG can decode at 1/2, 1/4, 1/8 scale directly (never below ``size``): much faster.
+            im.draft("RGB", size)
+            im.load()
+            out = im.resize(size, Image.Resampling.BOX)
+    except FileNotFoundError as err:
+        raise DataError(src, "image file is missing") from err
+    except (UnidentifiedImageError, OSError) as err:
+        raise DataError(src, f"image file is unreadable ({err})") from err
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp{dst.suffix}")
+    out.save(tmp, format="PNG" if dst.suffix.lower() == ".png" else None)
+    os.replace(tmp, dst)  # atomic: a crash never leaves a half-written cached image
+    return dst
+
+
+def _writable(folder: Path) -> bool:
+    """Writable by us and not marked read-only by its mode bits (root ignores the bits, but a
+    dataset someone made read-only should stay untouched)."""
+    try:
+        mode = folder.stat().st_mode
+    except OSError:
+        return False
+    return os.access(folder, os.W_OK) and bool(mode & (stat.S_IWUSR | stat.S_IWGRP | stat.S_IWOTH))
+
+
+def cache_file_name(rel: str, suffix: str, tag: str = "") -> Path:
+    """A path inside a cache folder for dataset image ``rel``: the same relative path when it
+    stays inside the dataset, else a hashed flat name (never escapes the cache with ``..``)."""
+    path = Path(os.path.normpath(rel))
+    stem = path.with_suffix("")
+    if path.is_absolute() or ".." in path.parts:
+        digest = hashlib.sha1(str(path).encode()).hexdigest()[:10]
+        stem = Path(f"{digest}-{path.stem}")
+    return stem.with_name(f"{stem.name}{tag}{suffix}")
+
+
+def derived_cache_dir(root: Path, what: str, cache_root: Path) -> Path:
+    """Where derived images (resized, undistorted) of dataset ``root`` go.
+
+    ``root/.exploregs/<what>`` when the dataset folder is writable, otherwise
+    ``cache_root/derived/<hash of root>/<what>`` (read-only datasets stay untouched).
+    """
+    local = root / ".exploregs"
+    if _writable(root):
+        return local / what
+    digest = hashlib.sha1(str(root.resolve()).encode()).hexdigest()[:16]
+    return cache_root / "derived" / f"{root.name}-{digest}" / what

@@ -1,0 +1,110 @@
+"""Test-set evaluation: PSNR, SSIM, region PSNR, LPIPS when available, render time."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from PIL import Image
+
+from exploregs_plugin.model.losses import MSE_FLOOR, psnr, ssim
+from exploregs_plugin.model import GaussianModel
+
+LPIPS_ABSENT = "absent: LPIPS needs pretrained network weights, which are not available on this machine"
+
+
+def _to_uint8(img: torch.Tensor) -> np.ndarray:
+    return (img.detach().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+
+
+def error_map(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """Per-pixel mean absolute error as a grey image [H, W, 3], scaled so 0.25 error is white."""
+    err = (render - target).abs().mean(dim=-1, keepdim=True)
+    return (err / 0.25).clamp(0, 1).expand(-1, -1, 3)
+
+
+def evaluate(
+    model: GaussianModel,
+    datamanager: Any,
+    save_dir: Path | None = None,
+) -> dict[str, Any]:
+    """Render every test view at full SH degree and score it against the ground truth.
+
+    Image PSNR/SSIM are means over test images (the usual convention). Region PSNR pools the
+    squared error over all pixels of that region in all test images, since a region can cover
+    only a few pixels of one view. With ``save_dir``, writes render | ground truth | error map
+    PNGs there.
+    """
+    per_image: list[dict[str, Any]] = []
+    region_sq: dict[str, float] = {}
+    region_n: dict[str, int] = {}
+    render_seconds = 0.0
+    if save_dir is not None:
+        Path(save_dir).mkdir(parents=True, exist_ok=True)
+    n_test = len(datamanager.test_cameras)
+    for i in range(n_test):
+        camera, target, extras = datamanager.test_item(i)
+        start = time.perf_counter()
+        with torch.no_grad():
+            image, _, _, _ = model.render(camera, model.config.sh_degree, datamanager.background)
+        render_seconds += time.perf_counter() - start
+        image = image.clamp(0.0, 1.0)
+        entry: dict[str, Any] = {
+            "name": camera.name,
+            "psnr": psnr(image, target),
+            "ssim": float(ssim(image, target)),
+        }
+        masks = extras.get("masks", {}) if isinstance(extras, dict) else {}
+        if masks:
+            entry["region_psnr"] = {}
+            sq = ((image.double() - target.double()) ** 2).mean(dim=-1)
+            for region, mask in masks.items():
+                entry["region_psnr"][region] = psnr(image, target, mask)
+                region_sq[region] = region_sq.get(region, 0.0) + float(sq[mask].sum())
+                region_n[region] = region_n.get(region, 0) + int(mask.sum())
+        per_image.append(entry)
+        if save_dir is not None:
+            panel = torch.cat([image, target, error_map(image, target)], dim=1)
+            Image.fromarray(_to_uint8(panel)).save(Path(save_dir) / f"{i:04d}_{Path(camera.name).stem}.png")
+    result: dict[str, Any] = {
+        "num_test_images": n_test,
+        "psnr": float(np.mean([e["psnr"] for e in per_image])) if per_image else float("nan"),
+        "ssim": float(np.mean([e["ssim"] for e in per_image])) if per_image else float("nan"),
+        "lpips": None,
+        "lpips_note": LPIPS_ABSENT,
+        "num_gaussians": model.num_gaussians,
+        "render_seconds_per_image": render_seconds / max(n_test, 1),
+        "per_image": per_image,
+    }
+    if region_n:
+        result["region_psnr"] = {
+            r: (-10.0 * math.log10(max(region_sq[r] / region_n[r], MSE_FLOOR)) if region_n[r] else float("nan"))
+            for r in sorted(region_n)
+        }
+        result["region_pixels"] = dict(sorted(region_n.items()))
+    return result
+
+
+def _finite_or_none(value: Any) -> Any:
+    """JSON has no NaN/inf: write them as null."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _finite_or_none(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_finite_or_none(v) for v in value]
+    return value
+
+
+def write_metrics_json(path: Path, metrics: dict[str, Any]) -> None:
+    """Write metrics as JSON atomically (temporary file, then rename); NaN/inf become null."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(_finite_or_none(metrics), indent=2))
+    tmp.replace(path)

@@ -1,0 +1,1 @@
+"""Reading and writing scenes and runs: checkpoints, PLY."""

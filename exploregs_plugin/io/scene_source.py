@@ -1,0 +1,139 @@
+"""A scene to render from a run folder, a checkpoint, or a PLY plus a source of cameras.
+
+Everything comes out in one frame: the normalised training frame of the run or dataset that
+supplies the cameras. A PLY in the dataset's original coordinates (what ``eg-export`` writes)
+is mapped into that frame with the dataset's normalisation.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+from torch import Tensor
+
+from exploregs_plugin.cameras import Camera
+from exploregs_plugin.io.ply import read_ply
+from exploregs_plugin.trainer import CONFIG_NAME
+
+PlyFrame = Literal["original", "normalized"]
+
+
+@dataclass
+class CameraSource:
+    """Cameras (normalised frame) and what goes with them, from a run folder or a dataset.
+
+    normalization: the dataset's ``x_norm = (x_orig + translation) * scale``, or None.
+    settings: the run's rasterizer settings, or None for the defaults.
+    """
+
+    name: str
+    train_cameras: list[Camera]
+    test_cameras: list[Camera]
+    background: Tensor | None
+    normalization: Any
+    settings: Any = None
+
+
+@dataclass
+class RenderableScene:
+    """Raw Gaussian parameters (see ``exploregs_plugin.io.ply.PlyScene``) with cameras to view them."""
+
+    params: dict[str, Tensor]
+    sh_degree: int
+    cameras: CameraSource
+    label: str
+    """Where the Gaussians came from (a checkpoint or PLY path), for messages."""
+    run_dir: Path | None = None
+    """The run folder, when the Gaussians come from a run."""
+    step: int | None = None
+    """The checkpoint's step, when the Gaussians come from a run."""
+    dropped: int = 0
+    """Gaussians of a PLY left out because a value was NaN or infinite."""
+
+
+def dataset_normalization(datamanager: Any) -> Any:
+    """The datamanager's normalisation at full precision: the parsed scene's float64
+    ``Normalization`` when it keeps one, else its ``normalization`` (translation, scale) pair."""
+    parsed = getattr(datamanager, "parsed", None)
+    if parsed is not None and getattr(parsed, "normalization", None) is not None:
+        return parsed.normalization
+    return datamanager.normalization
+
+
+def model_from_params(params: dict[str, Tensor], sh_degree: int, settings: Any = None) -> Any:
+    """A ``GaussianModel`` holding imported parameters (e.g. a PLY's), so everything that takes
+    a model (evaluation, the viewer) works on it. params: raw, as in :class:`RenderableScene`."""
+    from torch import nn
+
+    from exploregs_plugin.model.gaussians import GaussianModel, GaussianModelConfig
+    from exploregs_plugin.rasterizer import RasterSettings
+
+    config = GaussianModelConfig(sh_degree=sh_degree, raster=settings or RasterSettings())
+    return GaussianModel(config, nn.ParameterDict({k: nn.Parameter(v.detach().clone()) for k, v in params.items()}))
+
+
+def is_ply(path: Path) -> bool:
+    return Path(path).suffix.lower() == ".ply"
+
+
+def _is_run(path: Path) -> bool:
+    """A run folder, or a checkpoint file inside one."""
+    path = Path(path)
+    if path.is_dir():
+        return (path / CONFIG_NAME).is_file()
+    return path.is_file() and path.suffix == ".pt"
+
+
+def cameras_from(source: str | Path) -> CameraSource:
+    """Cameras of a run folder (its dataset, from config.yml; no checkpoint needed), or of any
+    dataset the datamanager reads (a path or ``builtin:NAME``)."""
+    from exploregs_plugin.configs import load_config
+    from exploregs_plugin.data import DataManagerConfig
+    from exploregs_plugin.io.checkpoint import resolve_run
+
+    text = str(source)
+    settings = None
+    if not text.startswith("builtin:") and _is_run(Path(text)):
+        path = Path(text)
+        run_dir = path if path.is_dir() else resolve_run(path)[0]
+        config = load_config(run_dir / CONFIG_NAME)
+        config = config.resolved() if hasattr(config, "resolved") else config
+        dm_config = config.pipeline.datamanager
+        settings = config.pipeline.model.raster
+    else:
+        if not text.startswith("builtin:") and not Path(text).exists():
+            raise FileNotFoundError(f"--cameras-from {text}: no such run folder or dataset")
+        dm_config = DataManagerConfig(data=text)
+    dm = dm_config.setup()
+    return CameraSource(dm.scene_name, list(dm.train_cameras), list(dm.test_cameras), dm.background,
+                        dataset_normalization(dm), settings)
+
+
+def load_scene(path: Path, cameras: str | Path | None = None, ply_frame: PlyFrame = "original") -> RenderableScene:
+    """Gaussians and cameras from a run folder / checkpoint, or from a PLY with ``cameras``.
+
+    ply_frame: whether the PLY holds the dataset's original coordinates (``original``, mapped
+    into the cameras' normalised frame) or already the normalised ones (``normalized``).
+    """
+    path = Path(path)
+    if is_ply(path):
+        if cameras is None:
+            raise ValueError(f"{path}: a PLY holds no cameras; pass --cameras-from RUN_OR_DATASET "
+                             f"(a run folder, a dataset folder or builtin:NAME)")
+        source = cameras_from(cameras)
+        if ply_frame not in ("original", "normalized"):
+            raise ValueError(f"ply_frame must be original or normalized, got {ply_frame!r}")
+        scene = read_ply(path, source.normalization if ply_frame == "original" else None)
+        return RenderableScene(scene.params, scene.sh_degree, source, str(path), dropped=scene.dropped)
+    if cameras is not None:
+        raise ValueError(f"--cameras-from is for PLY input; {path} is a run, which has its own cameras")
+    from exploregs_plugin.runs import load_run
+
+    run = load_run(path)
+    model, dm = run.pipeline.model, run.pipeline.datamanager
+    source = CameraSource(dm.scene_name, list(dm.train_cameras), list(dm.test_cameras), dm.background,
+                          dataset_normalization(dm), model.config.raster)
+    params = {name: value.detach() for name, value in model.params.items()}
+    return RenderableScene(params, model.config.sh_degree, source, str(run.checkpoint), run.run_dir, run.step)

@@ -1,0 +1,90 @@
+"""The method registry: named, complete TrainerConfigs, built-in and from installed plugins.
+
+A third-party package adds a method by declaring, in its pyproject.toml::
+
+    [project.entry-points."exploregs.methods"]
+    my-method = "my_package.methods:my_method"
+
+where ``my_method`` is a :class:`MethodSpecification`. It then appears in ``eg-train --help``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from importlib.metadata import entry_points
+
+from exploregs_plugin.pipeline import PipelineConfig
+from exploregs_plugin.trainer import TrainerConfig
+
+METHOD_ENTRY_POINT_GROUP = "exploregs.methods"
+
+
+@dataclass(frozen=True)
+class MethodSpecification:
+    """A method: a complete training config and a one-line description."""
+
+    config: TrainerConfig
+    description: str
+
+
+class MethodRegistryError(RuntimeError):
+    """A method name is unknown, or a plugin's method could not be loaded."""
+
+
+def _method(name: str, description: str, strategy: object, **trainer_fields: object) -> MethodSpecification:
+    config = TrainerConfig(method_name=name, pipeline=PipelineConfig(strategy=strategy), **trainer_fields)
+    return MethodSpecification(config=config, description=description)
+
+
+def builtin_methods() -> dict[str, MethodSpecification]:
+    from exploregs_plugin import strategies as s
+
+    methods = [
+        _method("exploregs-default", "3DGS adaptive density control (clone, split, prune), the baseline.",
+                s.DefaultStrategy()),
+        _method("exploregs-seed", "Default + Random Seeding: new Gaussians uniform in the bounding box (far side).",
+                s.SeedingStrategy()),
+        _method("exploregs-split", "Default + Random Splitting: scale-weighted splits regardless of gradient (near side).",
+                s.SplittingStrategy()),
+        _method("exploregs-seedsplit", "Default + Random Seeding + Random Splitting: both Blur-Trap remedies.",
+                s.SeedSplitStrategy()),
+        _method("exploregs-ray", "Default + MCMC-style position noise along the viewing ray only (depth exploration).",
+                s.RayPerturbationStrategy()),
+        _method("exploregs-mcmc", "3DGS-MCMC: relocation of dead Gaussians, 5% growth to a cap, isotropic noise.",
+                s.MCMCStrategy()),
+        _method("exploregs-mcmc-ray", "3DGS-MCMC with its position noise projected onto the viewing ray.",
+                s.MCMCStrategy(noise_mode="ray")),
+    ]
+    return {m.config.method_name: m for m in methods}
+
+
+def plugin_methods() -> dict[str, MethodSpecification]:
+    """Methods declared by other installed packages under ``exploregs.methods``."""
+    found: dict[str, MethodSpecification] = {}
+    for ep in entry_points(group=METHOD_ENTRY_POINT_GROUP):
+        try:
+            spec = ep.load()
+        except Exception as err:  # a broken plugin must not hide the others
+            raise MethodRegistryError(f"method plugin {ep.name!r} ({ep.value}) failed to load: {err}") from err
+        if not isinstance(spec, MethodSpecification):
+            raise MethodRegistryError(
+                f"method plugin {ep.name!r} ({ep.value}) is a {type(spec).__name__}, not a MethodSpecification"
+            )
+        found[ep.name] = MethodSpecification(replace(spec.config, method_name=ep.name), spec.description)
+    return found
+
+
+def all_methods() -> dict[str, MethodSpecification]:
+    methods = builtin_methods()
+    for name, spec in plugin_methods().items():
+        if name in methods:
+            raise MethodRegistryError(f"method plugin {name!r} clashes with a built-in method of that name")
+        methods[name] = spec
+    return methods
+
+
+def get_method(name: str) -> MethodSpecification:
+    methods = all_methods()
+    if name not in methods:
+        raise MethodRegistryError(f"unknown method {name!r}; known methods: {', '.join(sorted(methods))}")
+    return methods[name]

@@ -1,0 +1,189 @@
+"""Gaussian scene model: parameters, initialisation, and the camera-level render call."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+from typing import Literal
+
+import torch
+from torch import Tensor, nn
+
+from exploregs_plugin.cameras import Camera
+from exploregs_plugin.rasterizer import RasterSettings, rasterize
+
+SH_C0 = 0.28209479177387814  # Y_0^0: colour = SH_C0 * sh0 + 0.5
+PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
+PositionPath = Literal["mean2d", "cov", "sh"]
+
+
+def rgb_to_sh0(rgb: Tensor) -> Tensor:
+    """Inverse of colour = SH_C0 * sh0 + 0.5. rgb: [N, 3] in [0, 1] -> [N, 1, 3]."""
+    return ((rgb - 0.5) / SH_C0).unsqueeze(1)
+
+
+def knn_mean_distance(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
+    """Mean distance of each point to its k nearest other points. points: [P, 3] -> [P].
+
+    Chunked so memory stays O(chunk x P). Coincident points give 0 distance; callers floor it.
+    """
+    n = points.shape[0]
+    if n <= 1:
+        return torch.ones(n, dtype=points.dtype)
+    k_eff = min(k, n - 1)
+    out = torch.empty(n, dtype=points.dtype)
+    for start in range(0, n, chunk):
+        block = points[start : start + chunk]
+        d = torch.cdist(block, points)  # [b, P]
+        # the point itself is at distance 0: take k+1 smallest and drop the first
+        vals = torch.topk(d, k_eff + 1, dim=1, largest=False).values[:, 1:]
+        out[start : start + chunk] = vals.mean(dim=1)
+    return out
+
+
+@dataclass
+class GaussianModelConfig:
+    """How the Gaussian set is initialised and rendered."""
+
+    sh_degree: int = 3
+    """Largest spherical-harmonics degree (0-3)."""
+    init_opacity: float = 0.1
+    """Opacity of every initial Gaussian."""
+    init_scale: float = 1.0
+    """Initial scale = this x mean distance to the 3 nearest neighbouring points."""
+    random_init_count: int = 10_000
+    """Number of Gaussians when the dataset has no sparse points (random initialisation)."""
+    random_init_extent: float = 1.0
+    """Random initialisation fills a cube of half-side this x the scene extent around the origin."""
+    force_random_init: bool = False
+    """Ignore the dataset's points and initialise randomly (as 3DGS-MCMC's random-init option)."""
+    detach_paths: tuple[PositionPath, ...] = ()
+    """Position-gradient paths to switch off: any of mean2d (projected 2D mean), cov (2D
+    covariance via the Jacobian), sh (SH view direction). The forward pass is unchanged."""
+    raster: RasterSettings = field(default_factory=RasterSettings)
+    """Rasterizer constants."""
+
+    def setup(
+        self,
+        points: Tensor | None,
+        points_rgb: Tensor | None,
+        scene_extent: float,
+        generator: torch.Generator,
+    ) -> "GaussianModel":
+        if not 0 <= self.sh_degree <= 3:
+            raise ValueError(f"sh_degree must be in 0..3, got {self.sh_degree}")
+        if not 0.0 < self.init_opacity < 1.0:
+            raise ValueError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
+        if points is None or points.shape[0] == 0 or self.force_random_init:
+            means, rgb = random_points(self.random_init_count, self.random_init_extent * scene_extent, generator)
+        else:
+            means = points.float()
+            rgb = points_rgb.float() if points_rgb is not None else torch.full_like(means, 0.5)
+        params = init_params(means, rgb, self.sh_degree, self.init_opacity, self.init_scale, generator)
+        return GaussianModel(self, params)
+
+
+def random_points(count: int, half_side: float, generator: torch.Generator) -> tuple[Tensor, Tensor]:
+    """``count`` uniform points in [-half_side, half_side]^3 with uniform random colours."""
+    if count <= 0:
+        raise ValueError(f"random initialisation needs a positive count, got {count}")
+    means = (torch.rand(count, 3, generator=generator) * 2.0 - 1.0) * half_side
+    rgb = torch.rand(count, 3, generator=generator)
+    return means, rgb
+
+
+def init_params(
+    means: Tensor, rgb: Tensor, sh_degree: int, opacity: float, scale_mult: float, generator: torch.Generator
+) -> nn.ParameterDict:
+    """3DGS initialisation: isotropic scale from the 3-NN mean distance (so the rotation is
+    irrelevant and starts as the identity), opacity ``opacity``, SH DC from the point colour.
+
+    means: [N, 3], rgb: [N, 3] in [0, 1].
+    """
+    n = means.shape[0]
+    if not torch.isfinite(means).all():
+        raise ValueError("initial points contain non-finite coordinates")
+    dist = knn_mean_distance(means)
+    # Coincident points would give log(0): floor at a small fraction of the typical spacing.
+    positive = dist[dist > 0]
+    floor = float(positive.median()) * 1e-3 if positive.numel() else 1e-3
+    dist = dist.clamp_min(max(floor, 1e-7))
+    log_scales = torch.log(dist * scale_mult).unsqueeze(1).repeat(1, 3)
+    quats = torch.zeros(n, 4)
+    quats[:, 0] = 1.0
+    logit = math.log(opacity / (1.0 - opacity))
+    n_rest = (sh_degree + 1) ** 2 - 1
+    return nn.ParameterDict(
+        {
+            "means": nn.Parameter(means.clone().float()),
+            "scales": nn.Parameter(log_scales.float()),
+            "quats": nn.Parameter(quats),
+            "opacities": nn.Parameter(torch.full((n,), logit)),
+            "sh0": nn.Parameter(rgb_to_sh0(rgb.clamp(0.0, 1.0).float())),
+            "shN": nn.Parameter(torch.zeros(n, n_rest, 3)),
+        }
+    )
+
+
+class GaussianModel(nn.Module):
+    """Holds the Gaussian parameters (raw, unactivated) and renders them from a camera."""
+
+    def __init__(self, config: GaussianModelConfig, params: nn.ParameterDict) -> None:
+        super().__init__()
+        self.config = config
+        self.params = params
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.params["means"].shape[0])
+
+    def render(
+        self,
+        camera: Camera,
+        sh_degree: int | None = None,
+        background: Tensor | None = None,
+        detach_paths: tuple[PositionPath, ...] | None = None,
+    ) -> tuple[Tensor, Tensor, Tensor, dict]:
+        """Render from ``camera``: image [H, W, 3], alpha [H, W, 1], depth [H, W, 1], info."""
+        return render_params(
+            self.params, camera, sh_degree if sh_degree is not None else self.config.sh_degree,
+            background, self.config.detach_paths if detach_paths is None else detach_paths,
+            self.config.raster,
+        )
+
+
+def render_params(
+    params: dict[str, Tensor],
+    camera: Camera,
+    sh_degree: int,
+    background: Tensor | None,
+    detach_paths: tuple[PositionPath, ...] = (),
+    settings: RasterSettings | None = None,
+) -> tuple[Tensor, Tensor, Tensor, dict]:
+    """Activate raw parameters and rasterize them (shared by the model, viewer and exports)."""
+    means = params["means"]
+    unknown = set(detach_paths) - {"mean2d", "cov", "sh"}
+    if unknown:
+        raise ValueError(f"unknown position paths {sorted(unknown)}; choose from mean2d, cov, sh")
+    # Each path gets its own view of the means so any subset can be switched off (detached)
+    # while the forward pass stays identical.
+    means_2d = means.detach() if "mean2d" in detach_paths else means
+    means_cov = means.detach() if "cov" in detach_paths else means
+    means_sh = means.detach() if "sh" in detach_paths else means
+    sh = torch.cat([params["sh0"], params["shN"]], dim=1)
+    return rasterize(
+        means_2d,
+        params["quats"],
+        torch.exp(params["scales"]),
+        torch.sigmoid(params["opacities"]),
+        sh,
+        camera.viewmat,
+        camera.K,
+        camera.width,
+        camera.height,
+        sh_degree=sh_degree,
+        background=background,
+        means_cov=means_cov,
+        means_sh=means_sh,
+        settings=settings,
+    )

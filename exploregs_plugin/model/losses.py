@@ -1,0 +1,81 @@
+"""Image losses and metrics (pure functions). Images are [H, W, 3] floats in [0, 1]."""
+
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+SSIM_WINDOW = 11
+SSIM_SIGMA = 1.5
+# Stabilisers of Wang et al. (2004) for a dynamic range of 1: C1 = (0.01 L)^2, C2 = (0.03 L)^2.
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
+MSE_FLOOR = 1e-10  # PSNR of a perfect match is 100 dB instead of inf
+
+
+def _gaussian_window(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
+    coords = torch.arange(size, dtype=dtype) - (size - 1) / 2.0
+    g = torch.exp(-(coords**2) / (2.0 * sigma**2))
+    g = g / g.sum()
+    return torch.outer(g, g)
+
+
+def ssim_map(img: Tensor, ref: Tensor) -> Tensor:
+    """Per-pixel SSIM with an 11x11 Gaussian window (sigma 1.5), zero padding as in 3DGS.
+
+    img, ref: [H, W, C]. Returns [H, W, C].
+    """
+    if img.shape != ref.shape:
+        raise ValueError(f"ssim: shapes differ: {tuple(img.shape)} vs {tuple(ref.shape)}")
+    channels = img.shape[-1]
+    x = img.permute(2, 0, 1).unsqueeze(0)
+    y = ref.permute(2, 0, 1).unsqueeze(0)
+    w = _gaussian_window(SSIM_WINDOW, SSIM_SIGMA, img.dtype).expand(channels, 1, -1, -1)
+    pad = SSIM_WINDOW // 2
+
+    def blur(t: Tensor) -> Tensor:
+        return F.conv2d(t, w, padding=pad, groups=channels)
+
+    mu_x, mu_y = blur(x), blur(y)
+    sigma_xx = blur(x * x) - mu_x * mu_x
+    sigma_yy = blur(y * y) - mu_y * mu_y
+    sigma_xy = blur(x * y) - mu_x * mu_y
+    num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sigma_xy + SSIM_C2)
+    den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sigma_xx + sigma_yy + SSIM_C2)
+    return (num / den).squeeze(0).permute(1, 2, 0)
+
+
+def ssim(img: Tensor, ref: Tensor) -> Tensor:
+    """Mean SSIM of two [H, W, C] images (scalar)."""
+    return ssim_map(img, ref).mean()
+
+
+def l1(img: Tensor, ref: Tensor) -> Tensor:
+    return (img - ref).abs().mean()
+
+
+def psnr(img: Tensor, ref: Tensor, mask: Tensor | None = None) -> float:
+    """PSNR in dB for images in [0, 1]; ``mask`` [H, W] bool restricts it to a region.
+
+    Returns NaN for an empty mask (the region does not appear in this image).
+    """
+    err = (img.detach().double() - ref.detach().double()) ** 2
+    if mask is not None:
+        if mask.shape != img.shape[:2]:
+            raise ValueError(f"psnr: mask shape {tuple(mask.shape)} != image {tuple(img.shape[:2])}")
+        if not bool(mask.any()):
+            return float("nan")
+        err = err[mask]
+    mse = max(float(err.mean()), MSE_FLOOR)
+    return -10.0 * math.log10(mse)
+
+
+def photometric_loss(img: Tensor, ref: Tensor, ssim_lambda: float) -> tuple[Tensor, dict[str, Tensor]]:
+    """3DGS loss: (1 - lambda) L1 + lambda (1 - SSIM). Returns (loss, terms)."""
+    l1_term = l1(img, ref)
+    ssim_term = 1.0 - ssim(img, ref)
+    loss = (1.0 - ssim_lambda) * l1_term + ssim_lambda * ssim_term
+    return loss, {"l1": l1_term.detach(), "dssim": ssim_term.detach()}

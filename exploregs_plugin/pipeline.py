@@ -1,0 +1,152 @@
+"""The pipeline: datamanager + model + optimizers + strategy, and one training step."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field, replace
+from typing import Any
+
+import torch
+from torch import Tensor, nn
+
+from exploregs_plugin.data import DataManagerConfig
+from exploregs_plugin.model import GaussianModelConfig
+from exploregs_plugin.model.losses import photometric_loss, psnr
+from exploregs_plugin.model.optim import OptimizerConfig, set_lr
+from exploregs_plugin.schedule import Schedule
+from exploregs_plugin.strategies import DefaultStrategy
+
+
+class NonFiniteError(RuntimeError):
+    """Training produced a NaN or inf (in the loss or in a parameter)."""
+
+
+@dataclass
+class PipelineConfig:
+    """Everything a training step needs: data, model, optimizer, densification strategy, loss."""
+
+    datamanager: DataManagerConfig = field(default_factory=DataManagerConfig)
+    model: GaussianModelConfig = field(default_factory=GaussianModelConfig)
+    optim: OptimizerConfig = field(default_factory=OptimizerConfig)
+    strategy: Any = field(default_factory=DefaultStrategy)
+    """Densification / exploration strategy (its fields are set with --pipeline.strategy.NAME)."""
+    ssim_lambda: float = 0.2
+    """Loss = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM)."""
+    random_background: bool = False
+    """Composite each training image on a random colour (needs images with an alpha channel)."""
+    depth_loss_weight: float = 0.0
+    """Weight of an L1 loss between rendered expected depth and the dataset's depth maps (0 = off)."""
+
+    def setup(self, schedule: Schedule, seed: int) -> "Pipeline":
+        return Pipeline(self, schedule, seed)
+
+
+class Pipeline:
+    """Thin state holder; the maths lives in model, losses, rasterizer and strategies."""
+
+    def __init__(self, config: PipelineConfig, schedule: Schedule, seed: int) -> None:
+        self.config = config
+        self.schedule = schedule
+        self.generator = torch.Generator().manual_seed(seed)
+        # One run seed drives everything, the camera order and random initial points included.
+        self.datamanager = replace(config.datamanager, seed=seed).setup()
+        dm = self.datamanager
+        self.scene_extent = float(dm.scene_extent)
+        self.model = config.model.setup(dm.points, dm.points_rgb, self.scene_extent, self.generator)
+        self.optimizers = config.optim.setup(self.model.params, self.scene_extent)
+        self.strategy = config.strategy.setup(schedule)
+        self.strategy.check_sanity(self.model.params, self.optimizers)
+        self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
+        if config.random_background and not getattr(dm, "has_alpha", False):
+            raise ValueError("random_background needs a dataset whose images have an alpha channel")
+
+    @property
+    def params(self) -> nn.ParameterDict:
+        return self.model.params
+
+    def sh_degree_at(self, step: int) -> int:
+        return min(step // self.schedule.sh_degree_interval, self.model.config.sh_degree)
+
+    def means_lr_at(self, step: int) -> float:
+        return self.config.optim.means_lr_at(step, self.schedule.max_steps, self.scene_extent)
+
+    def train_step(self, step: int) -> dict[str, Any]:
+        """Render one training view, step the optimizers, then let the strategy change the set."""
+        _, camera, target, extras = self.datamanager.next_train()
+        background = self.datamanager.background
+        if self.config.random_background:
+            # The target was composited on the dataset background b0 with alpha a:
+            # t = c a + b0 (1 - a), so on a new background b it is t + (b - b0)(1 - a).
+            background = torch.rand(3, generator=self.generator)
+            target = target + (background - self.datamanager.background) * (1.0 - extras["alpha"])
+        image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background)
+        self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
+
+        loss, terms = photometric_loss(image, target, self.config.ssim_lambda)
+        if self.config.depth_loss_weight > 0.0:
+            if "depth" not in extras:
+                raise ValueError("depth_loss_weight > 0 but the dataset has no depth maps")
+            gt_depth = extras["depth"]
+            valid = torch.isfinite(gt_depth) & (gt_depth > 0)
+            depth_term = (depth - gt_depth).abs()[valid].mean() if valid.any() else depth.sum() * 0.0
+            loss = loss + self.config.depth_loss_weight * depth_term
+            terms["depth"] = depth_term.detach()
+        regularization = getattr(self.strategy, "regularization_loss", None)
+        if regularization is not None:
+            reg = regularization(self.params)
+            loss = loss + reg
+            terms["reg"] = reg.detach()
+        if not math.isfinite(float(loss.detach())):
+            raise NonFiniteError(f"step {step}: the loss is {float(loss.detach())} (terms: "
+                                 + ", ".join(f"{k}={float(v):.4g}" for k, v in terms.items()) + ")")
+        loss.backward()
+
+        means_lr = self.means_lr_at(step)
+        set_lr(self.optimizers["means"], means_lr)
+        for optimizer in self.optimizers.values():
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        self.check_finite(step)
+        counts = self.strategy.step_post_backward(
+            self.params, self.optimizers, self.strategy_state, step, info, lr=means_lr, generator=self.generator
+        )
+        return {
+            "loss": float(loss.detach()),
+            "terms": {k: float(v) for k, v in terms.items()},
+            "psnr": psnr(image, target),
+            "counts": dict(counts or {}),
+            "means_lr": means_lr,
+        }
+
+    def check_finite(self, step: int) -> None:
+        for name, p in self.params.items():
+            bad = ~torch.isfinite(p.detach())
+            if bool(bad.any()):
+                rows = int(bad.reshape(p.shape[0], -1).any(dim=1).sum()) if p.ndim else 1
+                raise NonFiniteError(
+                    f"step {step}: parameter '{name}' has non-finite values in {rows} of {p.shape[0]} Gaussians"
+                )
+
+    def state_dict(self) -> dict[str, Any]:
+        return {
+            "params": {k: v.detach().clone() for k, v in self.params.items()},
+            "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
+            "strategy_state": self.strategy_state,
+            "generator": self.generator.get_state(),
+            "datamanager": self.datamanager.state_dict(),
+        }
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore a checkpoint: the Gaussian count may differ from the fresh initialisation."""
+        missing = set(self.params.keys()) - set(state["params"])
+        if missing:
+            raise ValueError(f"checkpoint lacks parameters {sorted(missing)}")
+        for name, value in state["params"].items():
+            self.params[name] = nn.Parameter(value.clone())
+        self.optimizers = self.config.optim.setup(self.params, self.scene_extent)
+        for name, opt in self.optimizers.items():
+            opt.load_state_dict(state["optimizers"][name])
+        self.strategy_state = state["strategy_state"]
+        self.generator.set_state(state["generator"])
+        self.datamanager.load_state_dict(state["datamanager"])
+

@@ -1,0 +1,16 @@
+"""Pure-torch CPU Gaussian rasterizer (3DGS image model) with separable position paths.
+
+``rasterize(means, quats, scales, opacities, sh_coeffs, viewmat, K, width, height, ...)``
+returns ``image [H, W, 3], alpha [H, W, 1], depth [H, W, 1], info`` where info holds
+"means2d" [N, 2] (non-leaf; call ``retain_grad()`` for the screen-space gradient), "radii"
+[N, 2] int32 (0 = culled), "visible" [N] bool, "depths" [N], "conics" [N, 3],
+"camera_center" [3], "width", "height", "n_cameras" (= 1) and "n_pairs".
+``trace_pixel`` lists the Gaussians composited at one pixel with their alpha, transmittance
+and dC/dalpha.
+"""
+
+from .rasterize import rasterize
+from .settings import RasterSettings
+from .trace import trace_pixel
+
+__all__ = ["rasterize", "trace_pixel", "RasterSettings"]

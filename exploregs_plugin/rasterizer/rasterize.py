@@ -1,0 +1,154 @@
+"""The public rasterizer: project (autograd) -> bin (one sort) -> composite (custom Function)."""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .composite import composite
+from .projection import project_gaussians
+from .settings import RasterSettings
+from .sh import sh_colors
+from .tiling import bin_gaussians
+
+# Accumulated alpha below this gives expected depth 0 (guards the division D / A).
+ALPHA_DEPTH_MIN = 1e-10
+
+
+def _check(name: str, t: Tensor | None, shape: tuple[int | None, ...]) -> None:
+    if t is None:
+        return
+    if not isinstance(t, Tensor):
+        raise TypeError(f"rasterize: argument '{name}' must be a torch.Tensor, got {type(t).__name__}")
+    if t.dim() != len(shape) or any(s is not None and s != d for s, d in zip(shape, t.shape)):
+        want = "[" + ", ".join("N" if s is None else str(s) for s in shape) + "]"
+        raise ValueError(f"rasterize: argument '{name}' must have shape {want}, got {list(t.shape)}")
+
+
+def _validate(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    sh_coeffs: Tensor | None,
+    colors: Tensor | None,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    sh_degree: int | None,
+    means_cov: Tensor | None,
+    means_sh: Tensor | None,
+    background: Tensor | None,
+) -> int:
+    """Checks shapes and returns the active SH degree (-1 when ``colors`` are given)."""
+    _check("means", means, (None, 3))
+    n = means.shape[0]
+    _check("quats", quats, (n, 4))
+    _check("scales", scales, (n, 3))
+    _check("opacities", opacities, (n,))
+    _check("viewmat", viewmat, (4, 4))
+    _check("K", K, (3, 3))
+    _check("means_cov", means_cov, (n, 3))
+    _check("means_sh", means_sh, (n, 3))
+    _check("background", background, (3,))
+    if not (isinstance(width, int) and isinstance(height, int)) or width < 1 or height < 1:
+        raise ValueError(f"rasterize: width and height must be positive ints, got {width!r}, {height!r}")
+    if (sh_coeffs is None) == (colors is None):
+        raise ValueError("rasterize: give exactly one of 'sh_coeffs' [N, K, 3] and 'colors' [N, 3]")
+    if colors is not None:
+        _check("colors", colors, (n, 3))
+        return -1
+    _check("sh_coeffs", sh_coeffs, (n, None, 3))
+    n_coeffs = sh_coeffs.shape[1]
+    full = math.isqrt(n_coeffs) - 1
+    if (full + 1) ** 2 != n_coeffs or full > 3:
+        raise ValueError(f"rasterize: sh_coeffs must have 1, 4, 9 or 16 coefficients per Gaussian, got {n_coeffs}")
+    degree = full if sh_degree is None else sh_degree
+    if not 0 <= degree <= full:
+        raise ValueError(f"rasterize: sh_degree must be in 0..{full} for {n_coeffs} coefficients, got {sh_degree}")
+    return degree
+
+
+def rasterize(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    sh_coeffs: Tensor | None,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    *,
+    sh_degree: int | None = None,
+    colors: Tensor | None = None,
+    background: Tensor | None = None,
+    near_plane: float = 0.01,
+    far_plane: float = 1e10,
+    means_cov: Tensor | None = None,
+    means_sh: Tensor | None = None,
+    settings: RasterSettings | None = None,
+) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
+    """Renders Gaussians with the 3DGS image model.
+
+    means: [N, 3]; quats: [N, 4] wxyz (unnormalised; zero = identity); scales: [N, 3] activated;
+    opacities: [N] in [0, 1]; sh_coeffs: [N, K, 3] (K = 1, 4, 9, 16) or None with colors [N, 3];
+    viewmat: [4, 4] world-to-camera (OpenCV); K: [3, 3]; background: [3] (None = black).
+    means_cov / means_sh: [N, 3] tensors fed to the covariance (Jacobian) path and the SH
+    view-direction path instead of ``means`` (the expected depth follows the ``means`` path).
+
+    Returns image [H, W, 3], alpha [H, W, 1], expected depth [H, W, 1] (sum w z / alpha; 0 where
+    nothing is drawn) and info (see the package docstring).
+    """
+    settings = settings or RasterSettings()
+    degree = _validate(
+        means, quats, scales, opacities, sh_coeffs, colors, viewmat, K, width, height,
+        sh_degree, means_cov, means_sh, background,
+    )  # fmt: skip
+    dtype = means.dtype
+    viewmat, K = viewmat.to(dtype), K.to(dtype)
+    proj = project_gaussians(
+        means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane, settings, means_cov
+    )
+    camera_center = -(viewmat[:3, :3].T @ viewmat[:3, 3])
+    vis = torch.nonzero(proj.visible).squeeze(1)
+    if degree < 0:
+        rgb = colors.index_select(0, vis)
+    else:
+        src = means if means_sh is None else means_sh
+        rgb = sh_colors(sh_coeffs.index_select(0, vis), src.index_select(0, vis), camera_center, degree)
+    feats = torch.cat([rgb, proj.depths.index_select(0, vis)[:, None]], -1)  # [M, 4]
+    means2d_vis = proj.means2d.index_select(0, vis)
+    support = proj.support.index_select(0, vis)
+    bins = bin_gaussians(
+        means2d_vis.detach(), support, proj.depths.detach().index_select(0, vis), width, height, settings.tile_size
+    )
+    out = composite(
+        means2d_vis, proj.conics.index_select(0, vis), proj.opacities.index_select(0, vis), feats, support, bins,
+        settings,
+    )  # fmt: skip
+    ts = settings.tile_size
+    img = out.view(bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 2, 1, 3, 4)
+    img = img.reshape(bins.tiles_y * ts, bins.tiles_x * ts, -1)[:height, :width]
+    acc = img[..., 4:5]
+    image = img[..., :3]
+    if background is not None:
+        image = image + (1.0 - acc) * background.to(dtype)
+    depth = img[..., 3:4] / acc.clamp_min(ALPHA_DEPTH_MIN)
+    info: dict[str, Any] = {
+        "means2d": proj.means2d,
+        "radii": proj.radii,
+        "visible": proj.visible,
+        "depths": proj.depths,
+        "conics": proj.conics,
+        "camera_center": camera_center,
+        "width": width,
+        "height": height,
+        "n_cameras": 1,
+        "n_pairs": bins.n_pairs,
+    }
+    return image, acc, depth, info

@@ -1,0 +1,48 @@
+"""Named constants of the 3DGS image model and the compositor's work-size knob."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class RasterSettings:
+    """Constants of the 3D Gaussian Splatting image model (defaults = the original renderer)."""
+
+    eps2d: float = 0.3
+    """Low-pass filter in pixels^2 added to the diagonal of every 2D covariance."""
+    sigma_radius: float = 3.0
+    """Support half-width in standard deviations: radius = ceil(sigma_radius * sigma) per axis."""
+    guard_band: float = 0.3
+    """Extra fraction of tan(fov/2) beyond the image edge at which x/z and y/z are clamped in the Jacobian."""
+    alpha_max: float = 0.99
+    """Upper clamp of a pair's alpha (keeps 1 - alpha >= 0.01, so transmittance stays invertible)."""
+    alpha_min: float = 1.0 / 255.0
+    """Pairs whose alpha is below this are skipped (contribute nothing)."""
+    transmittance_min: float = 1e-4
+    """A Gaussian that would bring transmittance below this is left out and compositing stops."""
+    tile_size: int = 16
+    """Side of the square screen tiles in pixels."""
+    antialiased: bool = False
+    """Scale opacity by sqrt(det(cov2d) / det(cov2d + eps2d I)) (the anti-aliased 3DGS variant)."""
+    chunk_elements: int = 1 << 17
+    """Target pixel x pair count of one compositing chunk (keeps temporaries cache-sized)."""
+    workers: int = 0
+    """Compositing threads, each running single-threaded torch ops on its own chunks
+    (0 = torch.get_num_threads()). Results agree across settings up to float rounding."""
+
+    def __post_init__(self) -> None:
+        if not 0.0 < self.alpha_min < self.alpha_max < 1.0:
+            raise ValueError(
+                f"RasterSettings: need 0 < alpha_min < alpha_max < 1, got alpha_min={self.alpha_min}, "
+                f"alpha_max={self.alpha_max}"
+            )
+        if not 0.0 <= self.transmittance_min < 1.0:
+            raise ValueError(f"RasterSettings.transmittance_min must be in [0, 1), got {self.transmittance_min}")
+        if self.tile_size < 1 or self.chunk_elements < 1 or self.workers < 0:
+            raise ValueError(
+                f"RasterSettings: tile_size, chunk_elements must be >= 1 and workers >= 0, got "
+                f"{self.tile_size}, {self.chunk_elements}, {self.workers}"
+            )
+        if self.eps2d < 0.0 or self.sigma_radius <= 0.0 or self.guard_band < 0.0:
+            raise ValueError("RasterSettings: eps2d and guard_band must be >= 0 and sigma_radius > 0")

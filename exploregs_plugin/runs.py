@@ -1,0 +1,33 @@
+"""Loading a finished (or interrupted) run back: config, data, trained Gaussians."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+from exploregs_plugin.configs import load_config
+from exploregs_plugin.io.checkpoint import load_checkpoint, resolve_run
+from exploregs_plugin.pipeline import Pipeline
+from exploregs_plugin.trainer import CONFIG_NAME, TrainerConfig
+
+
+@dataclass
+class LoadedRun:
+    run_dir: Path
+    checkpoint: Path
+    step: int
+    config: TrainerConfig
+    pipeline: Pipeline
+
+
+def load_run(path: Path) -> LoadedRun:
+    """``path``: a run folder (latest checkpoint) or one checkpoint file inside it."""
+    run_dir, ckpt = resolve_run(Path(path))
+    config_path = run_dir / CONFIG_NAME
+    config = load_config(config_path)
+    if not isinstance(config, TrainerConfig):
+        raise ValueError(f"{config_path} holds a {type(config).__name__}, not a TrainerConfig")
+    payload = load_checkpoint(ckpt)
+    pipeline = config.pipeline.setup(config.schedule.resolve(config.max_steps), config.seed)
+    pipeline.load_state_dict(payload)
+    return LoadedRun(run_dir, ckpt, int(payload["step"]), config, pipeline)

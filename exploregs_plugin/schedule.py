@@ -1,0 +1,62 @@
+"""Training schedule as fractions of the run, resolved to step numbers.
+
+The 3DGS reference trains 30k steps: densify from step 500 to 15k every 100, reset opacity
+every 3k, raise the SH degree every 1k. A short CPU run keeps that *shape*: each event is a
+fraction of ``max_steps`` (500/30k = 1/60, 15k/30k = 1/2, 3k/30k = 1/10, 1k/30k = 1/30), with
+minimum intervals so that a very short run still has room between events.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+
+@dataclass(frozen=True)
+class Schedule:
+    """Step numbers for one run (all ints, resolved from a :class:`ScheduleConfig`)."""
+
+    max_steps: int
+    refine_start: int
+    refine_stop: int
+    refine_every: int
+    reset_every: int
+    sh_degree_interval: int
+
+
+@dataclass
+class ScheduleConfig:
+    """Fractions of the run at which the 3DGS events happen."""
+
+    refine_start_frac: float = 1.0 / 60.0
+    """Densification starts after this fraction of the run (3DGS: 500 of 30k)."""
+    refine_stop_frac: float = 0.5
+    """Densification stops after this fraction of the run (3DGS: 15k of 30k)."""
+    refine_every_frac: float = 1.0 / 300.0
+    """Densification interval as a fraction of the run (3DGS: 100 of 30k)."""
+    reset_every_frac: float = 0.1
+    """Opacity reset interval as a fraction of the run (3DGS: 3k of 30k)."""
+    sh_degree_interval_frac: float = 1.0 / 30.0
+    """SH degree is raised every this fraction of the run (3DGS: 1k of 30k)."""
+    min_refine_every: int = 10
+    """Smallest densification interval in steps, so statistics average over a few views."""
+    min_reset_every: int = 200
+    """Smallest opacity-reset interval in steps, so Gaussians recover between resets."""
+    min_sh_degree_interval: int = 25
+    """Smallest interval between SH degree increases."""
+
+    def resolve(self, max_steps: int) -> Schedule:
+        if max_steps <= 0:
+            raise ValueError(f"max_steps must be positive, got {max_steps}")
+        refine_every = max(self.min_refine_every, int(round(self.refine_every_frac * max_steps)))
+        reset_every = max(self.min_reset_every, int(round(self.reset_every_frac * max_steps)))
+        return Schedule(
+            max_steps=max_steps,
+            refine_start=int(math.floor(self.refine_start_frac * max_steps)),
+            refine_stop=int(math.floor(self.refine_stop_frac * max_steps)),
+            refine_every=refine_every,
+            reset_every=reset_every,
+            sh_degree_interval=max(
+                self.min_sh_degree_interval, int(round(self.sh_degree_interval_frac * max_steps))
+            ),
+        )

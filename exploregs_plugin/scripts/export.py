@@ -1,0 +1,58 @@
+"""eg-export: write a trained run's Gaussians as a standard 3DGS PLY.
+
+By default the PLY is in the dataset's original coordinates (the training normalisation is
+undone), so it lines up with the dataset's own cameras and points in other tools.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import tyro
+
+from exploregs_plugin.io.checkpoint import CheckpointError
+from exploregs_plugin.io.ply import PlyExport, export_ply, normalization_terms
+from exploregs_plugin.io.scene_source import dataset_normalization
+from exploregs_plugin.runs import load_run
+
+
+@dataclass
+class ExportArgs:
+    path: tyro.conf.Positional[Path]
+    """A run folder (uses its latest checkpoint) or a checkpoint file."""
+    out: Path | None = None
+    """Output PLY file (default: RUN/exports/scene-step-XXXXXXX.ply)."""
+    frame: Literal["original", "normalized"] = "original"
+    """Coordinates to write: the dataset's original frame, or the normalised training frame."""
+    ascii: bool = False
+    """Write an ASCII PLY instead of binary little-endian (larger; for inspection)."""
+
+
+def main(args: ExportArgs) -> PlyExport:
+    run = load_run(args.path)
+    out = args.out or run.run_dir / "exports" / f"scene-step-{run.step:07d}.ply"
+    normalization = dataset_normalization(run.pipeline.datamanager) if args.frame == "original" else None
+    translation, scale = normalization_terms(normalization)
+    comments = [f"step {run.step}, frame {args.frame}",
+                f"normalization x_norm = (x_orig + t) * s, t = {translation.tolist()}, s = {scale!r}"]
+    result = export_ply(out, run.pipeline.model.params, normalization, text=args.ascii, comments=comments)
+    print(f"wrote {result.written} Gaussians (SH degree {result.sh_degree}, {args.frame} frame) -> {result.path}")
+    if result.dropped:
+        print(f"left out {result.dropped} Gaussians with non-finite values")
+    return result
+
+
+def entrypoint() -> None:
+    args = tyro.cli(ExportArgs, description="Export a trained ExploreGS run as a standard 3DGS PLY.")
+    try:
+        main(args)
+    except (ValueError, FileNotFoundError, CheckpointError) as err:
+        print(f"eg-export: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from err
+
+
+if __name__ == "__main__":
+    entrypoint()

@@ -1,0 +1,125 @@
+"""eg-render: render a run, a checkpoint or a 3DGS PLY to PNG frames (and an MP4).
+
+Cameras: the test views, the training views, or a smooth path through the training views.
+A PLY has no cameras of its own: ``--cameras-from`` names a run folder or a dataset.
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import tyro
+
+from exploregs_plugin.io.camera_path import CameraOrder, Trajectory, trajectory_cameras
+from exploregs_plugin.io.checkpoint import CheckpointError
+from exploregs_plugin.io.frames import RenderedSequence, RenderMode, render_sequence
+from exploregs_plugin.io.ply import normalization_terms
+from exploregs_plugin.io.scene_source import PlyFrame, RenderableScene, load_scene
+
+
+@dataclass
+class RenderArgs:
+    path: tyro.conf.Positional[Path]
+    """A run folder (latest checkpoint), a checkpoint file, or a 3DGS .ply file."""
+    out: Path | None = None
+    """Output folder (default: RUN/render/TRAJECTORY-MODE-step-XXXXXXX, or PLY_STEM-render/TRAJECTORY-MODE beside a PLY)."""
+    trajectory: Trajectory = "test"
+    """Which cameras: the test views, the training views, or a smooth path through the training views."""
+    mode: RenderMode = "rgb"
+    """What to draw: colour, expected depth (colour-mapped), or accumulated opacity."""
+    cameras_from: str | None = None
+    """For a PLY: the run folder or dataset (path or builtin:NAME) whose cameras to use."""
+    ply_frame: PlyFrame = "original"
+    """For a PLY: its coordinates are the dataset's original ones (as eg-export writes) or already normalised."""
+    num_frames: int = 120
+    """Path trajectory: about this many frames in all."""
+    max_keys: int | None = 16
+    """Path trajectory: pass through at most this many training cameras (evenly chosen along the order)."""
+    order: CameraOrder = "nearest"
+    """Path trajectory: order of the key cameras (nearest-neighbour chain, by name, or as listed)."""
+    loop: bool = False
+    """Path trajectory: close the path back to the first key camera."""
+    resolution_scale: float = 1.0
+    """Render at this fraction of the cameras' resolution (e.g. 0.5 halves each side)."""
+    sh_degree: int | None = None
+    """SH degree to render with (default: the scene's)."""
+    background: tuple[float, float, float] | None = None
+    """Background colour in [0, 1] (default: the dataset's)."""
+    fps: float = 30.0
+    """Frame rate of the MP4."""
+    video: bool = True
+    """Also write an MP4 (needs imageio and imageio-ffmpeg; frames only otherwise)."""
+    near: float | None = None
+    """Depth mode: depth shown as the first colour of the map (default: 1st percentile), dataset units."""
+    far: float | None = None
+    """Depth mode: depth shown as the last colour of the map (default: 99th percentile), dataset units."""
+    cmap: str = "turbo"
+    """Depth mode: matplotlib colour map."""
+
+
+def _default_out(args: RenderArgs, scene: RenderableScene) -> Path:
+    leaf = f"{args.trajectory}-{args.mode}"
+    if scene.run_dir is None:  # a PLY: beside it
+        return args.path.with_name(f"{args.path.stem}-render") / leaf
+    return scene.run_dir / "render" / f"{leaf}-step-{scene.step:07d}"
+
+
+def _progress(i: int, n: int) -> None:
+    # one updating line on a terminal; in a log, a line every tenth of the way
+    if sys.stdout.isatty():
+        print(f"  frame {i + 1}/{n}", end="\r" if i + 1 < n else "\n", flush=True)
+    elif (i + 1) % max(1, n // 10) == 0 or i + 1 == n:
+        print(f"  frame {i + 1}/{n}", flush=True)
+
+
+def main(args: RenderArgs) -> RenderedSequence:
+    if not args.resolution_scale > 0:
+        raise ValueError(f"--resolution-scale must be > 0, got {args.resolution_scale}")
+    if args.background is not None and not all(0.0 <= c <= 1.0 for c in args.background):
+        raise ValueError(f"--background must be three values in [0, 1], got {args.background}")
+    scene = load_scene(args.path, args.cameras_from, args.ply_frame)
+    source = scene.cameras
+    if scene.dropped:
+        print(f"{scene.label}: left out {scene.dropped} Gaussians with non-finite values")
+    cameras = trajectory_cameras(source.train_cameras, source.test_cameras, args.trajectory,
+                                 args.num_frames, args.max_keys, args.order, args.loop)
+    if args.resolution_scale != 1.0:
+        cameras = [c.scaled(args.resolution_scale) for c in cameras]
+    sh_degree = scene.sh_degree if args.sh_degree is None else args.sh_degree
+    if not 0 <= sh_degree <= scene.sh_degree:
+        raise ValueError(f"--sh-degree must be in 0..{scene.sh_degree} for this scene, got {sh_degree}")
+    background = torch.tensor(args.background, dtype=torch.float32) if args.background else source.background
+    # Depths are rendered in the normalised frame; report them in the dataset's units.
+    _, scale = normalization_terms(source.normalization)
+    out = args.out or _default_out(args, scene)
+    print(f"rendering {len(cameras)} {args.trajectory} frames ({args.mode}) of {scene.label} -> {out}")
+    result = render_sequence(
+        scene.params, cameras, out, mode=args.mode, sh_degree=sh_degree, background=background,
+        settings=source.settings, fps=args.fps, video=args.video, near=args.near, far=args.far,
+        depth_scale=1.0 / scale, cmap=args.cmap,
+        on_frame=_progress,
+    )
+    print(f"wrote {len(result.frames)} PNG frames to {out}")
+    if result.near is not None:
+        print(f"depth colour range (dataset units): near {result.near:.6g}  far {result.far:.6g}")
+    if result.video is not None:
+        print(f"video: {result.video}")
+    elif result.video_note:
+        print(result.video_note)
+    return result
+
+
+def entrypoint() -> None:
+    args = tyro.cli(RenderArgs, description="Render an ExploreGS run or a 3DGS PLY to frames and video.")
+    try:
+        main(args)
+    except (ValueError, FileNotFoundError, CheckpointError) as err:
+        print(f"eg-render: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from err
+
+
+if __name__ == "__main__":
+    entrypoint()

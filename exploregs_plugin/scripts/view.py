@@ -1,0 +1,83 @@
+"""eg-view: serve a finished run, a checkpoint or a 3DGS PLY in the browser until Ctrl-C.
+
+    eg-view outputs/SCENE/METHOD/STAMP                 # latest checkpoint of a run
+    eg-view outputs/.../checkpoints/step-0003000.pt    # one checkpoint
+    eg-view scene.ply [--cameras-from RUN_OR_DATASET]  # a PLY (ours or another tool's)
+    eg-view RUN --viewer.port 8081 --viewer.rest-resolution 1024
+"""
+
+from __future__ import annotations
+
+import sys
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import tyro
+
+from exploregs_plugin.io.checkpoint import CheckpointError
+from exploregs_plugin.io.scene_source import PlyFrame, is_ply, load_scene
+from exploregs_plugin.viewer import Viewer, ViewerConfig, ViewerScene
+
+
+@dataclass
+class ViewArgs:
+    path: tyro.conf.Positional[Path]
+    """A run folder (uses its latest checkpoint), a checkpoint file, or a 3DGS .ply file."""
+    cameras_from: str | None = None
+    """PLY only: a run folder, dataset folder or builtin:NAME whose training cameras are shown
+    (the PLY is mapped into their normalised frame, see --ply-frame). Unset: no cameras."""
+    ply_frame: PlyFrame = "original"
+    """PLY with --cameras-from: the file holds the dataset's original coordinates (what eg-export
+    writes) or already the normalised training frame."""
+    viewer: ViewerConfig = field(default_factory=ViewerConfig)
+    """The viewer's settings (port, resolutions, output, ...)."""
+
+
+def load_viewer_scene(args: ViewArgs) -> ViewerScene:
+    """What to show for ``args.path``: a run's pipeline (cameras with thumbnails, initial
+    points) or a PLY's Gaussians (with the cameras of --cameras-from, if given)."""
+    path = Path(args.path)
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such run folder, checkpoint or PLY file")
+    if is_ply(path):
+        if args.cameras_from is None:
+            from exploregs_plugin.io.ply import read_ply
+
+            ply = read_ply(path)
+            if ply.dropped:
+                print(f"{path}: left out {ply.dropped} Gaussians with non-finite values", file=sys.stderr)
+            return ViewerScene.from_params(ply.params, name=path.stem)
+        loaded = load_scene(path, args.cameras_from, args.ply_frame)
+        scene = ViewerScene.from_params(loaded.params, loaded.cameras.train_cameras, loaded.cameras.background,
+                                        name=f"{path.stem} ({loaded.cameras.name})")
+        scene.raster_settings = loaded.cameras.settings
+        return scene
+    if args.cameras_from is not None:
+        raise ValueError(f"--cameras-from is for PLY input; {path} is a run, which has its own cameras")
+    from exploregs_plugin.runs import load_run
+
+    run = load_run(path)
+    return ViewerScene.from_pipeline(run.pipeline, step=run.step)
+
+
+def main(args: ViewArgs) -> Viewer:
+    """Start the viewer (it serves from background threads) and return it."""
+    return args.viewer.setup(load_viewer_scene(args), training=False)
+
+
+def entrypoint() -> None:
+    args = tyro.cli(ViewArgs, description="Serve a trained ExploreGS scene (run, checkpoint or PLY) in the browser.")
+    try:
+        viewer = main(args)
+    except (ValueError, FileNotFoundError, CheckpointError) as err:
+        print(f"eg-view: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from err
+    print("eg-view: serving; press Ctrl-C to stop", file=sys.stderr)
+    try:
+        viewer.serve_forever()
+    finally:
+        viewer.close()
+
+
+if __name__ == "__main__":
+    entrypoint()

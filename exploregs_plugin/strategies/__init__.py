@@ -1,0 +1,40 @@
+"""Densification and exploration strategies; every change to the Gaussian set goes via ``ops``."""
+
+from . import ops
+from .base import StepContext, Strategy, StrategyError
+from .budget import BUDGET_PRESETS, ExplorationBudget, resolve_budget, scaled_budget
+from .default import DefaultStrategy
+from .mcmc import MCMCStrategy, random_initial_points
+from .perturbation import NoiseMixin, RayPerturbationMixin, position_noise
+from .ray import RayPerturbationStrategy
+from .registry import ENTRY_POINT_GROUP, StrategyPluginError, available_strategies, builtin_strategies
+from .seeding import SeedingMixin, SeedingStrategy
+from .seedsplit import SeedSplitStrategy
+from .splitting import SplittingMixin, SplittingStrategy
+
+__all__ = [
+    "BUDGET_PRESETS",
+    "ENTRY_POINT_GROUP",
+    "DefaultStrategy",
+    "ExplorationBudget",
+    "MCMCStrategy",
+    "NoiseMixin",
+    "RayPerturbationMixin",
+    "RayPerturbationStrategy",
+    "SeedSplitStrategy",
+    "SeedingMixin",
+    "SeedingStrategy",
+    "SplittingMixin",
+    "SplittingStrategy",
+    "StepContext",
+    "Strategy",
+    "StrategyError",
+    "StrategyPluginError",
+    "available_strategies",
+    "builtin_strategies",
+    "ops",
+    "position_noise",
+    "random_initial_points",
+    "resolve_budget",
+    "scaled_budget",
+]

@@ -1,0 +1,196 @@
+"""The Strategy contract: a dataclass config plus an explicit, torch.save-able state dict.
+
+Call shape (the same as gsplat's, so strategies can be reused across trainers)::
+
+    strategy = SomeStrategy(...).setup(schedule)          # fills None schedule fields
+    state = strategy.initialize_state(scene_scale)         # tensors + scalars only
+    strategy.check_sanity(params, optimizers)
+    # every step:
+    strategy.step_pre_backward(params, optimizers, state, step, info)   # retain means2d grad
+    loss = loss + strategy.regularization_loss(params)                  # zero unless regularised
+    loss.backward(); optimizer.step() for each; zero_grad()
+    counts = strategy.step_post_backward(params, optimizers, state, step, info,
+                                         lr=means_lr, generator=gen)    # dict[str, int]
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Any, ClassVar, TypeVar
+
+import torch
+from torch import Tensor
+
+from ..schedule import Schedule
+from .ops import Optimizers, Params, num_gaussians
+
+REQUIRED_KEYS = ("means", "scales", "quats", "opacities")
+"""Parameter keys every built-in strategy reads."""
+
+StrategyT = TypeVar("StrategyT", bound="Strategy")
+
+
+class StrategyError(ValueError):
+    """A strategy was configured or called in a way it cannot work with."""
+
+
+@dataclass
+class StepContext:
+    """Everything one ``step_post_backward`` call hands to a strategy's operators."""
+
+    params: Params
+    optimizers: Optimizers
+    state: dict[str, Any]
+    step: int
+    info: dict[str, Any]
+    lr: float = 0.0
+    generator: torch.Generator | None = None
+
+    def rng(self, who: str) -> torch.Generator:
+        """The caller's generator; a clear error when randomness is needed and none was given."""
+        return require_generator(self.generator, who)
+
+
+@dataclass
+class Strategy:
+    """Base class: shared fields (Gaussian cap, schedule) and the contract's default hooks."""
+
+    cap_max: int | None = None
+    """Upper bound on the number of Gaussians; growth stops there. None: no cap."""
+    refine_start_iter: int | None = None
+    """Refinement runs on steps strictly after this one. None: the run's schedule (refine_start)."""
+    refine_stop_iter: int | None = None
+    """Refinement (and its statistics) stops at this step. None: the run's schedule."""
+    refine_every: int | None = None
+    """Refinement interval in steps. None: the run's schedule."""
+    reset_every: int | None = None
+    """Opacity reset interval in steps. None: the run's schedule."""
+
+    SCHEDULE_FIELDS: ClassVar[tuple[str, ...]] = (
+        "refine_start_iter",
+        "refine_stop_iter",
+        "refine_every",
+        "reset_every",
+    )
+
+    def __post_init__(self) -> None:
+        if self.cap_max is not None and self.cap_max < 0:
+            raise StrategyError(f"{type(self).__name__}.cap_max must be >= 0 or None, got {self.cap_max}")
+        for name in ("refine_every", "reset_every"):
+            value = getattr(self, name)
+            if value is not None and value <= 0:
+                raise StrategyError(f"{type(self).__name__}.{name} must be positive, got {value}")
+
+    # ----------------------------------------------------------------- configuration
+    def schedule_defaults(self, schedule: Schedule) -> dict[str, int]:
+        """Values the run's schedule gives to fields left at None (subclasses may extend)."""
+        return {
+            "refine_start_iter": schedule.refine_start,
+            "refine_stop_iter": schedule.refine_stop,
+            "refine_every": schedule.refine_every,
+            "reset_every": schedule.reset_every,
+        }
+
+    def setup(self: StrategyT, schedule: Schedule) -> StrategyT:
+        """A copy with every None field that the schedule defines filled in."""
+        filled = {
+            name: value
+            for name, value in self.schedule_defaults(schedule).items()
+            if getattr(self, name) is None
+        }
+        return dataclasses.replace(self, **filled)
+
+    def deferred_fields(self) -> tuple[str, ...]:
+        """Fields that may be None until :meth:`setup` fills them (subclasses extend)."""
+        return self.SCHEDULE_FIELDS
+
+    def require_schedule(self) -> None:
+        missing = [name for name in self.deferred_fields() if getattr(self, name) is None]
+        if missing:
+            raise StrategyError(
+                f"{type(self).__name__} has unset schedule fields {missing}: call "
+                f"strategy.setup(schedule) (or set them) before training"
+            )
+
+    def room(self, n_current: int) -> int:
+        """How many Gaussians may still be added under ``cap_max`` (a large number if None)."""
+        if self.cap_max is None:
+            return 1 << 62
+        return max(0, self.cap_max - n_current)
+
+    # ----------------------------------------------------------------- contract
+    def initialize_state(
+        self, scene_scale: float = 1.0, scene_center: Tensor | None = None
+    ) -> dict[str, Any]:
+        """Running state: ``scene_scale`` (float), ``scene_center`` [3] and ``stats``.
+
+        ``stats`` holds the per-Gaussian statistics (first dimension N) that the ops keep
+        aligned with the rows; it starts empty and is filled on first use.
+        """
+        if not (scene_scale > 0.0) or scene_scale != scene_scale or scene_scale == float("inf"):
+            raise StrategyError(f"initialize_state: scene_scale must be positive and finite, got {scene_scale}")
+        center = torch.zeros(3) if scene_center is None else torch.as_tensor(scene_center, dtype=torch.float32).reshape(3)
+        return {"scene_scale": float(scene_scale), "scene_center": center.clone(), "stats": {}}
+
+    def check_sanity(self, params: Params, optimizers: Optimizers) -> None:
+        """Check the parameter/optimizer convention; raise :class:`StrategyError` if broken."""
+        missing = [k for k in REQUIRED_KEYS if k not in params]
+        if missing:
+            raise StrategyError(f"{type(self).__name__}: parameters lack required keys {missing}")
+        trainable = {k for k, p in params.items() if p.requires_grad}
+        if trainable != set(optimizers.keys()):
+            raise StrategyError(
+                f"trainable parameters {sorted(trainable)} and optimizers {sorted(optimizers)} "
+                f"must have the same keys"
+            )
+        n = num_gaussians(params)
+        for key, p in params.items():
+            if p.shape[0] != n:
+                raise StrategyError(f"parameter '{key}' has {p.shape[0]} rows, '{next(iter(params))}' has {n}")
+        for key, opt in optimizers.items():
+            if len(opt.param_groups) != 1 or len(opt.param_groups[0]["params"]) != 1:
+                raise StrategyError(f"optimizer '{key}' must have one param group holding one parameter")
+            if opt.param_groups[0]["params"][0] is not params[key]:
+                raise StrategyError(f"optimizer '{key}' does not hold params['{key}']")
+
+    def step_pre_backward(
+        self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, info: dict[str, Any]
+    ) -> None:
+        """Called after rendering, before ``loss.backward()``. Default: nothing."""
+
+    def step_post_backward(
+        self,
+        params: Params,
+        optimizers: Optimizers,
+        state: dict[str, Any],
+        step: int,
+        info: dict[str, Any],
+        lr: float = 0.0,
+        generator: torch.Generator | None = None,
+    ) -> dict[str, int]:
+        """Called after the optimizer step; returns counts of what it did (dict[str, int]).
+
+        Checks that the schedule is resolved and hands one :class:`StepContext` to
+        :meth:`post_backward`, which subclasses implement.
+        """
+        self.require_schedule()
+        return self.post_backward(StepContext(params, optimizers, state, step, info, lr, generator))
+
+    def post_backward(self, ctx: StepContext) -> dict[str, int]:
+        """The strategy's work after each optimizer step. Default: nothing."""
+        return {}
+
+    def regularization_loss(self, params: Params) -> Tensor:
+        """Extra loss term the trainer adds to the photometric loss. Default: 0."""
+        return params["means"].new_zeros(())
+
+
+def require_generator(generator: torch.Generator | None, who: str) -> torch.Generator:
+    """The strategies draw random numbers only from the caller's generator."""
+    if generator is None:
+        raise StrategyError(
+            f"{who} needs randomness: pass generator=torch.Generator().manual_seed(seed) to "
+            f"step_post_backward"
+        )
+    return generator

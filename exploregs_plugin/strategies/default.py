@@ -1,0 +1,254 @@
+"""Default: 3DGS adaptive density control (Kerbl et al. 2023).
+
+Per step (inside the refinement window) the screen-space gradient statistic of every visible
+Gaussian is accumulated: ||dL/d(mean2d)|| in NDC units (pixel gradient x W/2, H/2), summed and
+divided by the number of views in which the Gaussian was visible. Every ``refine_every`` steps:
+clone Gaussians whose statistic exceeds ``grow_grad2d`` and whose largest scale is at most
+``grow_scale3d`` x extent, split the larger ones, prune opacity < ``prune_opa`` (and, after the
+first opacity reset, world size > ``prune_scale3d`` x extent), then clear the statistics. Every
+``reset_every`` steps the opacities are clamped to ``reset_opacity``.
+
+Subclasses add exploration through two hooks: :meth:`DefaultStrategy.explore` (called on every
+step after densification and before the opacity reset) and
+:meth:`DefaultStrategy.size_prune_factor`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from . import ops
+from .base import StepContext, Strategy, StrategyError, require_generator
+from .geometry import max_world_scale
+from .ops import Optimizers, Params, Stats, num_gaussians
+
+
+GRAD_STATS = ("grad2d", "count")
+"""Per-Gaussian statistics of the gradient criterion, cleared after every densification."""
+
+
+# ---------------------------------------------------------------------------- pure functions
+def accumulate_grad_stats(
+    stats: Stats,
+    pixel_grads: Tensor,
+    visible: Tensor,
+    width: int,
+    height: int,
+    n_cameras: int = 1,
+) -> int:
+    """Add this step's NDC gradient norms to ``stats["grad2d"]`` and views to ``stats["count"]``.
+
+    pixel_grads: [C, N, 2] dL/d(mean2d) in pixels; visible: [C, N] bool. The stats are created
+    (zeros [N]) on first use. Rows with a non-finite gradient are skipped (neither summed nor
+    counted); returns how many visible rows were skipped.
+    """
+    c, n, _ = pixel_grads.shape
+    if "grad2d" not in stats:
+        stats["grad2d"] = torch.zeros(n, device=pixel_grads.device)
+        stats["count"] = torch.zeros(n, device=pixel_grads.device)
+    if stats["grad2d"].shape[0] != n:
+        raise StrategyError(
+            f"strategy statistics have {stats['grad2d'].shape[0]} rows but the gradient has {n}: "
+            f"the Gaussian set was changed without strategies.ops"
+        )
+    # NDC spans [-1, 1] over W (H) pixels: d/d(ndc) = d/d(pixel) * W/2 (H/2). The n_cameras
+    # factor undoes the loss's mean over a batch of views, as gsplat does.
+    scale = torch.tensor([width / 2.0, height / 2.0], dtype=torch.float32) * float(n_cameras)
+    norms = (pixel_grads.detach().to(torch.float32) * scale.to(pixel_grads.device)).norm(dim=-1)
+    finite = torch.isfinite(norms)
+    take = visible & finite
+    _, ids = torch.where(take)
+    stats["grad2d"].index_add_(0, ids, norms[take])
+    stats["count"].index_add_(0, ids, torch.ones_like(norms[take]))
+    return int((visible & ~finite).sum())
+
+
+def visible_mask(info: dict[str, Any], n: int) -> Tensor:
+    """Which Gaussians each view saw: [C, N] bool, from ``radii`` (> 0 on both axes, the 3DGS
+    test) or else ``visible``."""
+    if "radii" in info:
+        radii = info["radii"]
+        if radii.dim() < 2 or tuple(radii.shape[-2:]) != (n, 2):
+            raise StrategyError(f"info['radii'] has shape {tuple(radii.shape)} but there are {n} Gaussians")
+        return (radii.reshape(-1, n, 2) > 0).all(dim=-1)
+    if "visible" in info:
+        return info["visible"].reshape(-1, n).to(torch.bool)
+    raise StrategyError("info needs 'radii' or 'visible' to know which Gaussians were seen")
+
+
+def grow_masks(
+    avg_grad: Tensor, log_scales: Tensor, grad_threshold: float, clone_max_scale: float
+) -> tuple[Tensor, Tensor]:
+    """3DGS growth decisions: (clone [N], split [N]) bool masks.
+
+    High gradient (> threshold) and small (max scale <= clone_max_scale) -> clone; high and
+    large -> split.
+    """
+    high = avg_grad > grad_threshold
+    small = max_world_scale(log_scales) <= clone_max_scale
+    return high & small, high & ~small
+
+
+def limit_growth(clone: Tensor, split: Tensor, score: Tensor, room: int) -> tuple[Tensor, Tensor]:
+    """Keep at most ``room`` growth candidates (each clone or split adds one Gaussian).
+
+    When the cap binds, the candidates with the highest ``score`` (the gradient statistic) win;
+    ties keep index order (stable sort), so the choice is deterministic.
+    """
+    candidates = clone | split
+    if int(candidates.sum()) <= room:
+        return clone, split
+    idx = torch.where(candidates)[0]
+    order = torch.sort(score[idx], descending=True, stable=True).indices
+    keep = torch.zeros_like(candidates)
+    keep[idx[order[:room]]] = True
+    return clone & keep, split & keep
+
+
+def prune_mask(
+    opacity_logits: Tensor, log_scales: Tensor, min_opacity: float, max_world_size: float | None
+) -> Tensor:
+    """Gaussians to prune: sigmoid(opacity) < min_opacity, or max scale > max_world_size."""
+    mask = torch.sigmoid(opacity_logits.flatten()) < min_opacity
+    if max_world_size is not None:
+        mask |= max_world_scale(log_scales) > max_world_size
+    return mask
+
+
+# ---------------------------------------------------------------------------- strategy
+@dataclass
+class DefaultStrategy(Strategy):
+    """3DGS adaptive density control: clone, split, prune, periodic opacity reset."""
+
+    prune_opa: float = 0.005
+    """Prune Gaussians whose opacity is below this value."""
+    grow_grad2d: float = 0.0002
+    """Clone/split Gaussians whose view-averaged NDC gradient norm exceeds this value."""
+    grow_scale3d: float = 0.01
+    """Clone when the largest scale is at most this fraction of the scene extent, else split."""
+    prune_scale3d: float = 0.1
+    """After the first opacity reset, prune Gaussians larger than this fraction of the extent."""
+    reset_opacity: float = 0.01
+    """Opacity reset value (opacities are clamped to at most this)."""
+    split_scale_factor: float = 1.6
+    """Split children get the parent's scales divided by this factor."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not 0.0 < self.reset_opacity < 1.0:
+            raise StrategyError(f"reset_opacity must be in (0, 1), got {self.reset_opacity}")
+        if self.split_scale_factor <= 0.0:
+            raise StrategyError(f"split_scale_factor must be positive, got {self.split_scale_factor}")
+
+    # ------------------------------------------------------------------ hooks for subclasses
+    def size_prune_factor(self, step: int) -> float:
+        """World-size prune threshold as a fraction of the extent (Seeding relaxes it)."""
+        return self.prune_scale3d
+
+    def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
+        """Read this step's render ``info`` before the Gaussian set changes (inside the window).
+
+        Default accumulates the gradient statistic; subclasses extend (super() first).
+        """
+        return {"nonfinite_grads": self._update_stats(params, state, info)}
+
+    def explore(self, ctx: StepContext) -> dict[str, int]:
+        """Exploration operators run here on every step, after densification and before the
+        opacity reset (Default: none). Mixins extend it, calling super() first."""
+        return {}
+
+    # ------------------------------------------------------------------ contract
+    def step_pre_backward(
+        self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, info: dict[str, Any]
+    ) -> None:
+        means2d = info.get("means2d")
+        if means2d is None:
+            raise StrategyError("info['means2d'] is required for the screen-space gradient statistic")
+        if means2d.requires_grad:
+            means2d.retain_grad()
+
+    def post_backward(self, ctx: StepContext) -> dict[str, int]:
+        params, optimizers, state, step = ctx.params, ctx.optimizers, ctx.state, ctx.step
+        counts = {"cloned": 0, "split": 0, "pruned": 0, "opacity_reset": 0, "nonfinite_grads": 0}
+        in_window = step < self.refine_stop_iter
+        if in_window:
+            counts.update(self.observe(params, state, ctx.info))
+            if step > self.refine_start_iter and step % self.refine_every == 0:
+                counts["cloned"], counts["split"] = self._grow(params, optimizers, state, ctx.generator)
+                counts["pruned"] = self._prune(params, optimizers, state, step)
+                for key in GRAD_STATS:
+                    if key in state["stats"]:
+                        state["stats"][key].zero_()
+        counts.update(self.explore(ctx))
+        if in_window and step > 0 and step % self.reset_every == 0:
+            ops.reset_opacity(params, optimizers, self.reset_opacity)
+            counts["opacity_reset"] = 1
+        return counts
+
+    # ------------------------------------------------------------------ steps
+    def _update_stats(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> int:
+        n = num_gaussians(params)
+        means2d = info.get("means2d")
+        if means2d is None:
+            raise StrategyError("info['means2d'] is required for the screen-space gradient statistic")
+        if n == 0:
+            return 0
+        if not means2d.is_leaf and not means2d.retains_grad:
+            raise StrategyError(
+                "info['means2d'].grad is not retained: call strategy.step_pre_backward(...) before "
+                "loss.backward() so the screen-space gradient is kept"
+            )
+        grad = means2d.grad
+        if grad is None:
+            return 0  # no gradient reached the 2D means this step (nothing visible)
+        if grad.dim() < 2 or tuple(grad.shape[-2:]) != (n, 2):
+            raise StrategyError(
+                f"info['means2d'].grad has shape {tuple(grad.shape)} but there are {n} Gaussians: "
+                f"the info must come from rendering the current Gaussian set"
+            )
+        for key in ("width", "height"):
+            if key not in info:
+                raise StrategyError(f"info['{key}'] is required to convert gradients to NDC")
+        return accumulate_grad_stats(
+            state["stats"],
+            grad.reshape(-1, n, 2),
+            visible_mask(info, n),
+            int(info["width"]),
+            int(info["height"]),
+            int(info.get("n_cameras", 1)),
+        )
+
+    def _grow(
+        self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator | None
+    ) -> tuple[int, int]:
+        stats = state["stats"]
+        n = num_gaussians(params)
+        if "grad2d" not in stats or n == 0:
+            return 0, 0
+        avg_grad = stats["grad2d"] / stats["count"].clamp_min(1.0)
+        clone, split = grow_masks(
+            avg_grad, params["scales"].detach(), self.grow_grad2d, self.grow_scale3d * state["scene_scale"]
+        )
+        clone, split = limit_growth(clone, split, avg_grad, self.room(n))
+        n_cloned = ops.duplicate(params, optimizers, stats, clone)
+        # Clones are appended at the end and are never split in the same step.
+        split = torch.cat([split, torch.zeros(n_cloned, dtype=torch.bool, device=split.device)])
+        n_split = 0
+        if bool(split.any()):
+            gen = require_generator(generator, f"{type(self).__name__} (split)")
+            n_split = ops.split(params, optimizers, stats, split, gen, self.split_scale_factor)
+        return n_cloned, n_split
+
+    def _prune(self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int) -> int:
+        if num_gaussians(params) == 0:
+            return 0
+        # 3DGS turns the world-size criterion on only once the first opacity reset has happened.
+        max_size = None
+        if step > self.reset_every:
+            max_size = self.size_prune_factor(step) * state["scene_scale"]
+        mask = prune_mask(params["opacities"].detach(), params["scales"].detach(), self.prune_opa, max_size)
+        return ops.remove(params, optimizers, state["stats"], mask)

@@ -1,0 +1,218 @@
+"""Random Seeding (far side): new Gaussians uniform in the box of the current centres.
+
+At every seeding step ``n_seed`` Gaussians are placed uniformly in the axis-aligned bounding box
+of the current centres (a per-axis quantile box is an option). With r the distance of a point
+from the scene centre, their attributes follow the authors' reference implementation:
+
+    sh0     from a uniformly random RGB colour, higher SH = 0
+    scale   isotropic, s_new = r_new * mean_i( mean_axis(s_i) / r_i )   over existing Gaussians
+    opacity 0.2 + 0.5 * r_new / max(r_new over this batch)
+    quat    uniform random unit quaternion
+
+While seeding is active the world-size prune threshold is relaxed (0.1 -> 10 x extent) so far
+seeds survive.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import torch
+from torch import Tensor
+
+from . import ops
+from .base import StepContext, StrategyError
+from .budget import BudgetMixin
+from .default import DefaultStrategy, visible_mask
+from .geometry import random_unit_quats, rgb_to_sh0
+from .ops import Optimizers, Params, num_gaussians
+
+_EPS = 1e-12
+
+SEED_FLAG = "seed"
+"""Per-Gaussian statistic: 1 for seeds (and their descendants), 0 otherwise."""
+SEED_SEEN = "seed_seen"
+"""Per-Gaussian statistic: number of training views in which the row was visible since seeding."""
+
+
+def seed_box(means: Tensor, mode: str = "aabb", quantile: float = 0.01) -> tuple[Tensor, Tensor] | None:
+    """Box of the finite centres: (lo [3], hi [3]); None when there is no finite centre.
+
+    mode 'aabb' is the paper's rule (min/max); 'robust' uses the per-axis ``quantile`` and
+    ``1 - quantile`` so a few outliers do not inflate the box.
+    """
+    finite = means[torch.isfinite(means).all(dim=-1)]
+    if finite.shape[0] == 0:
+        return None
+    if mode == "aabb":
+        return finite.min(dim=0).values, finite.max(dim=0).values
+    if mode == "robust":
+        q = torch.tensor([quantile, 1.0 - quantile], dtype=finite.dtype)
+        lo_hi = torch.quantile(finite, q, dim=0)
+        return lo_hi[0], lo_hi[1]
+    raise StrategyError(f"seed box mode must be 'aabb' or 'robust', got '{mode}'")
+
+
+def seed_rows(
+    means: Tensor,
+    log_scales: Tensor,
+    n_seed: int,
+    generator: torch.Generator,
+    scene_center: Tensor,
+    sh_rest: int,
+    *,
+    box: str = "aabb",
+    box_quantile: float = 0.01,
+    opacity_base: float = 0.2,
+    opacity_gain: float = 0.5,
+    min_scale: float = 1e-7,
+) -> dict[str, Tensor] | None:
+    """Raw parameter rows of ``n_seed`` seeds; None when no box exists (no finite centre).
+
+    means, log_scales: [N, 3] existing Gaussians; scene_center: [3]; sh_rest: K - 1 higher SH
+    coefficients. Returns {means [S,3], scales [S,3], quats [S,4], opacities [S], sh0 [S,1,3],
+    shN [S,sh_rest,3]}. A zero-volume box (e.g. one Gaussian, coplanar centres) is kept as is:
+    seeds lie in it. ``min_scale`` floors the scale of a seed that lands on the centre.
+    """
+    bounds = seed_box(means.detach(), box, box_quantile)
+    if bounds is None or n_seed <= 0:
+        return None
+    lo, hi = bounds
+    dtype = means.dtype
+    center = scene_center.to(dtype=dtype, device=means.device)
+    u = torch.rand(n_seed, 3, generator=generator, dtype=dtype)
+    positions = lo + u * (hi - lo)
+
+    # Scale per unit distance from the centre, averaged over existing Gaussians whose distance
+    # and scale are usable (r_i > 0, finite); if none is, fall back to their mean scale.
+    r_old = (means.detach() - center).norm(dim=-1)
+    s_old = torch.exp(log_scales.detach()).mean(dim=-1)
+    usable = torch.isfinite(r_old) & torch.isfinite(s_old) & (r_old > _EPS)
+    r_new = (positions - center).norm(dim=-1)
+    if bool(usable.any()):
+        s_new = r_new * (s_old[usable] / r_old[usable]).mean()
+    else:
+        finite_s = s_old[torch.isfinite(s_old)]
+        fallback = finite_s.mean() if finite_s.numel() else torch.tensor(1.0, dtype=dtype)
+        s_new = fallback.expand(n_seed)
+    s_new = s_new.clamp_min(min_scale)
+
+    r_max = r_new.max()
+    ratio = r_new / r_max if float(r_max) > _EPS else torch.zeros_like(r_new)
+    opacity = (opacity_base + opacity_gain * ratio).clamp(1e-6, 1.0 - 1e-6)
+
+    rgb = torch.rand(n_seed, 3, generator=generator, dtype=dtype)
+    return {
+        "means": positions,
+        "scales": torch.log(s_new).unsqueeze(-1).expand(n_seed, 3).clone(),
+        "quats": random_unit_quats(n_seed, generator, dtype),
+        "opacities": torch.logit(opacity),
+        "sh0": rgb_to_sh0(rgb),
+        "shN": torch.zeros(n_seed, sh_rest, 3, dtype=dtype),
+    }
+
+
+@dataclass
+class SeedingMixin(BudgetMixin):
+    """Random Seeding operator; compose it in front of :class:`DefaultStrategy`."""
+
+    n_seed: int | None = None
+    """Seeds added per seeding step (0 disables). None: from `budget` (paper: 20)."""
+    seed_every: int | None = None
+    """Seeding interval in steps. None: from `budget` (paper: the densification interval)."""
+    seed_box_mode: Literal["aabb", "robust"] = "aabb"
+    """Seed box: 'aabb' of all centres (the paper) or 'robust' per-axis quantiles."""
+    seed_box_quantile: float = 0.01
+    """Quantile trimmed from each side of each axis in the 'robust' box."""
+    seed_opacity_base: float = 0.2
+    """Seed opacity = base + gain * r / max r over the batch."""
+    seed_opacity_gain: float = 0.5
+    """Seed opacity = base + gain * r / max r over the batch."""
+    seed_prune_scale3d: float = 10.0
+    """While seeding is active, prune only Gaussians larger than this fraction of the extent."""
+    seed_min_scale: float = 1e-6
+    """Smallest seed scale, as a fraction of the scene extent (guards r = 0)."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()  # type: ignore[misc]
+        for name in ("n_seed", "seed_every"):
+            value = getattr(self, name)
+            if value is not None and value < (0 if name == "n_seed" else 1):
+                raise StrategyError(f"{type(self).__name__}.{name} is out of range: {value}")
+        if not 0.0 <= self.seed_box_quantile < 0.5:
+            raise StrategyError(f"seed_box_quantile must be in [0, 0.5), got {self.seed_box_quantile}")
+        if not 0.0 < self.seed_opacity_base + self.seed_opacity_gain < 1.0 or self.seed_opacity_base <= 0:
+            raise StrategyError("seed opacities base and base + gain must lie in (0, 1)")
+
+    def deferred_fields(self) -> tuple[str, ...]:
+        return super().deferred_fields() + ("n_seed", "seed_every")  # type: ignore[misc]
+
+    def schedule_defaults(self, schedule: Any) -> dict[str, int]:
+        defaults = super().schedule_defaults(schedule)  # type: ignore[misc]
+        budget = self.resolved_budget(defaults)
+        return {**defaults, "n_seed": budget.n_seed, "seed_every": budget.seed_every}
+
+    def seeding_active(self, step: int) -> bool:
+        return bool(self.n_seed) and step < self.refine_stop_iter  # type: ignore[attr-defined]
+
+    def size_prune_factor(self, step: int) -> float:
+        if self.seeding_active(step):
+            return self.seed_prune_scale3d
+        return super().size_prune_factor(step)  # type: ignore[misc]
+
+    def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
+        counts = super().observe(params, state, info)  # type: ignore[misc]
+        stats = state["stats"]
+        n = num_gaussians(params)
+        if SEED_SEEN in stats and n > 0:
+            stats[SEED_SEEN] += visible_mask(info, n).sum(dim=0).to(stats[SEED_SEEN].dtype)
+        return counts
+
+    def explore(self, ctx: StepContext) -> dict[str, int]:
+        counts = super().explore(ctx)  # type: ignore[misc]
+        seeded = 0
+        if (
+            self.seeding_active(ctx.step)
+            and ctx.step > self.refine_start_iter  # type: ignore[attr-defined]
+            and ctx.step % self.seed_every == 0
+        ):
+            seeded = self.seed(ctx.params, ctx.optimizers, ctx.state, ctx.rng("seeding"))
+        flag = ctx.state["stats"].get(SEED_FLAG)
+        counts["seeded"] = seeded
+        counts["seeds_alive"] = int(flag.sum()) if flag is not None else 0
+        counts["seeds_unseen"] = int(((flag > 0) & (ctx.state["stats"][SEED_SEEN] == 0)).sum()) if flag is not None else 0
+        return counts
+
+    def seed(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator) -> int:
+        """Append up to n_seed seeds (fewer under cap_max; none when N = 0: no box)."""
+        n_before = num_gaussians(params)
+        n = min(self.n_seed, self.room(n_before))  # type: ignore[attr-defined]
+        if n <= 0 or n_before == 0:
+            return 0
+        rows = seed_rows(
+            params["means"],
+            params["scales"],
+            n,
+            generator,
+            state["scene_center"],
+            params["shN"].shape[1],
+            box=self.seed_box_mode,
+            box_quantile=self.seed_box_quantile,
+            opacity_base=self.seed_opacity_base,
+            opacity_gain=self.seed_opacity_gain,
+            min_scale=self.seed_min_scale * state["scene_scale"],
+        )
+        if rows is None:
+            return 0
+        stats = state["stats"]
+        for key in (SEED_FLAG, SEED_SEEN):
+            stats.setdefault(key, torch.zeros(n_before, device=params["means"].device))
+        added = ops.append(params, optimizers, stats, rows)
+        stats[SEED_FLAG][n_before:] = 1.0
+        return added
+
+
+@dataclass
+class SeedingStrategy(SeedingMixin, DefaultStrategy):
+    """Random Seeding on top of 3DGS adaptive density control."""

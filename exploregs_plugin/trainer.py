@@ -1,0 +1,244 @@
+"""The Trainer owns the loop: train steps, logging, evaluation, checkpoints, metrics."""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+from dataclasses import dataclass, field, replace
+from datetime import datetime
+from pathlib import Path
+from typing import Annotated, Any
+
+import torch
+import tyro
+
+from exploregs_plugin.configs import load_config, save_config
+from exploregs_plugin.evaluation import error_map, evaluate, write_metrics_json
+from exploregs_plugin.io.checkpoint import load_checkpoint, resolve_run, save_checkpoint
+from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig
+from exploregs_plugin.run_logger import RunLogger
+from exploregs_plugin.schedule import ScheduleConfig
+
+CONFIG_NAME = "config.yml"
+METRICS_NAME = "metrics.json"
+
+
+@dataclass
+class TrainerConfig:
+    """A complete training run. Every field can be set on the command line."""
+
+    method_name: str = "exploregs-default"
+    """Name of the method this config came from (recorded in the run folder)."""
+    data: str | None = None
+    """Dataset: a COLMAP folder (images/ + sparse/0), a folder with transforms.json, or
+    builtin:NAME (tiny, default, farside, nearside, combined, ...). Unset: builtin:default."""
+    data_factor: int | None = None
+    """Downscale images by this factor (uses images_N/ when present). Unset: the datamanager's."""
+    max_steps: int = 3000
+    """Number of training steps."""
+    seed: int = 0
+    """Seed of every random choice (camera order, initialisation, strategies): same seed, same result."""
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    pipeline: Annotated[PipelineConfig, tyro.conf.arg(name="")] = field(default_factory=PipelineConfig)
+    """Data, model, optimizer, strategy and loss (set as --datamanager.*, --model.*, --strategy.*, ...)."""
+    output_dir: Path = Path("outputs")
+    """Runs go to OUTPUT_DIR/<scene>/<method>/<timestamp>/."""
+    run_dir: Path | None = None
+    """Use exactly this run folder instead of the timestamped one."""
+    resume: Path | None = None
+    """Continue the run in this folder from its latest checkpoint (its config.yml is used)."""
+    eval_count: int = 5
+    """Evaluate on the test views this many times, evenly spread (the last at the end)."""
+    checkpoint_every: int = 500
+    """Write a checkpoint every this many steps (and on Ctrl-C, and at the end)."""
+    keep_checkpoints: int = 3
+    """Keep only the newest this many checkpoints."""
+    log_every: int = 10
+    """Write tensorboard scalars every this many steps."""
+    tensorboard: bool = True
+    """Write tensorboard event files into the run folder."""
+    save_eval_images: bool = True
+    """At the end, save render | ground truth | error PNGs of every test view into RUN/renders/."""
+    flush_denormal: bool = True
+    """Flush denormal floats to zero (tiny alphas and gradients otherwise slow the CPU)."""
+    num_threads: int | None = None
+    """Torch CPU threads (unset: torch's default)."""
+    quiet: bool = False
+    """No progress bar or console lines."""
+
+    def resolved(self) -> "TrainerConfig":
+        """Apply the top-level --data / --data-factor shortcuts to the datamanager config."""
+        dm = self.pipeline.datamanager
+        updates: dict[str, Any] = {}
+        if self.data is not None:
+            updates["data"] = self.data
+        if self.data_factor is not None:
+            updates["data_factor"] = self.data_factor
+        if not updates:
+            return self
+        return replace(self, data=None, data_factor=None,
+                       pipeline=replace(self.pipeline, datamanager=replace(dm, **updates)))
+
+    def setup(self) -> "Trainer":
+        if self.resume is not None:
+            return Trainer.from_run(self.resume, max_steps=None, quiet=self.quiet)
+        return Trainer(self.resolved())
+
+
+class Trainer:
+    def __init__(self, config: TrainerConfig, run_dir: Path | None = None, checkpoint: Path | None = None) -> None:
+        self.config = config
+        if config.flush_denormal:
+            torch.set_flush_denormal(True)
+        if config.num_threads:
+            torch.set_num_threads(config.num_threads)
+        self.schedule = config.schedule.resolve(config.max_steps)
+        self.pipeline: Pipeline = config.pipeline.setup(self.schedule, config.seed)
+        self.run_dir = Path(run_dir or config.run_dir or self._default_run_dir())
+        self.start_step = 0
+        self.train_seconds = 0.0
+        self.history: list[dict[str, Any]] = []
+        self.last_checkpoint: Path | None = None
+        if checkpoint is not None:
+            self._restore(checkpoint)
+        else:
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            save_config(config, self.run_dir / CONFIG_NAME)
+
+    @classmethod
+    def from_run(cls, path: Path, max_steps: int | None = None, quiet: bool | None = None) -> "Trainer":
+        """Resume a run folder (or a checkpoint inside one) from its saved config."""
+        run_dir, ckpt = resolve_run(Path(path))
+        config = load_config(run_dir / CONFIG_NAME)
+        if max_steps is not None:
+            config = replace(config, max_steps=max_steps)
+        if quiet is not None:
+            config = replace(config, quiet=quiet)
+        return cls(config, run_dir=run_dir, checkpoint=ckpt)
+
+    def _default_run_dir(self) -> Path:
+        stamp = datetime.now().strftime("%Y-%m-%d_%H%M%S")
+        return self.config.output_dir / self.pipeline.datamanager.scene_name / self.config.method_name / stamp
+
+    # ----------------------------------------------------------------------------- loop
+    def train(self) -> dict[str, Any]:
+        """Run from ``start_step`` to ``max_steps``; returns the final metrics."""
+        eval_steps = self._eval_steps()
+        with RunLogger(self.run_dir, self.schedule.max_steps, self.start_step, self.config.log_every,
+                       self.config.tensorboard, self.config.quiet) as logger, _StopOnSigint() as stop:
+            self.logger = logger
+            for step in range(self.start_step, self.schedule.max_steps):
+                if stop.requested:
+                    self.save_checkpoint(step)
+                    raise KeyboardInterrupt(f"interrupted before step {step}; checkpoint {self.last_checkpoint}")
+                start = time.perf_counter()
+                stats = self._train_step(step)
+                self.train_seconds += time.perf_counter() - start
+                logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
+                if step + 1 in eval_steps:
+                    self.run_eval(step + 1)
+                if (step + 1) % self.config.checkpoint_every == 0 and step + 1 < self.schedule.max_steps:
+                    self.save_checkpoint(step + 1)
+            if self.schedule.max_steps not in eval_steps or not self.history:
+                self.run_eval(self.schedule.max_steps)
+            self.save_checkpoint(self.schedule.max_steps)
+        return self.write_metrics()
+
+    def _train_step(self, step: int) -> dict[str, Any]:
+        try:
+            return self.pipeline.train_step(step)
+        except NonFiniteError as err:
+            where = self.last_checkpoint or "none was written yet"
+            raise NonFiniteError(f"{err}. Training stopped; the last good checkpoint is {where}") from err
+
+    def _eval_steps(self) -> set[int]:
+        total, count = self.schedule.max_steps, max(1, self.config.eval_count)
+        return {max(1, round(total * (i + 1) / count)) for i in range(count)}
+
+    def _lrs(self) -> dict[str, float]:
+        return {name: opt.param_groups[0]["lr"] for name, opt in self.pipeline.optimizers.items()}
+
+    # ----------------------------------------------------------------------------- eval
+    def run_eval(self, step: int) -> dict[str, Any]:
+        """Evaluate on the test views and record a point of the PSNR-against-time curve."""
+        final = step >= self.schedule.max_steps
+        save_dir = self.run_dir / "renders" if (final and self.config.save_eval_images) else None
+        metrics = evaluate(self.pipeline.model, self.pipeline.datamanager, save_dir=save_dir)
+        self.history.append({"step": step, "train_seconds": self.train_seconds, "psnr": metrics["psnr"],
+                             "ssim": metrics["ssim"], "num_gaussians": metrics["num_gaussians"],
+                             **({"region_psnr": metrics["region_psnr"]} if "region_psnr" in metrics else {})})
+        if getattr(self, "logger", None) is not None:
+            self.logger.log_eval(step, metrics, self._eval_panels())
+        self.last_metrics = metrics
+        return metrics
+
+    def _eval_panels(self, limit: int = 2) -> list[tuple[str, torch.Tensor]]:
+        dm, model = self.pipeline.datamanager, self.pipeline.model
+        panels = []
+        for i in range(min(limit, len(dm.test_cameras))):
+            camera, target, _ = dm.test_item(i)
+            with torch.no_grad():
+                image = model.render(camera, model.config.sh_degree, dm.background)[0].clamp(0, 1)
+            panels.append((camera.name or f"view{i}", torch.cat([image, target, error_map(image, target)], dim=1)))
+        return panels
+
+    def write_metrics(self) -> dict[str, Any]:
+        metrics = dict(self.last_metrics)
+        metrics.update({
+            "method": self.config.method_name,
+            "scene": self.pipeline.datamanager.scene_name,
+            "steps": self.schedule.max_steps,
+            "seed": self.config.seed,
+            "train_seconds": self.train_seconds,
+            "seconds_per_step": self.train_seconds / max(self.schedule.max_steps, 1),
+            "history": self.history,
+        })
+        write_metrics_json(self.run_dir / METRICS_NAME, metrics)
+        return metrics
+
+    # ----------------------------------------------------------------------------- checkpoints
+    def save_checkpoint(self, step: int) -> Path:
+        payload = {
+            "version": 1,
+            "step": step,
+            "train_seconds": self.train_seconds,
+            "history": self.history,
+            **self.pipeline.state_dict(),
+        }
+        self.last_checkpoint = save_checkpoint(self.run_dir, step, payload, self.config.keep_checkpoints)
+        return self.last_checkpoint
+
+    def _restore(self, path: Path) -> None:
+        payload = load_checkpoint(path)
+        self.pipeline.load_state_dict(payload)
+        self.start_step = int(payload["step"])
+        self.train_seconds = float(payload.get("train_seconds", 0.0))
+        self.history = list(payload.get("history", []))
+        self.last_checkpoint = Path(path)
+        if self.start_step >= self.schedule.max_steps:
+            self.last_metrics = evaluate(self.pipeline.model, self.pipeline.datamanager)
+
+
+class _StopOnSigint:
+    """First Ctrl-C asks the loop to stop at the next step boundary (so the checkpoint holds a
+    consistent state, never half an optimizer step); a second one interrupts at once."""
+
+    def __init__(self) -> None:
+        self.requested = False
+        self._previous: Any = None
+
+    def _handler(self, signum: int, frame: Any) -> None:
+        if self.requested:
+            raise KeyboardInterrupt
+        self.requested = True
+
+    def __enter__(self) -> "_StopOnSigint":
+        if threading.current_thread() is threading.main_thread():
+            self._previous = signal.signal(signal.SIGINT, self._handler)
+        return self
+
+    def __exit__(self, *exc: Any) -> None:
+        if self._previous is not None:
+            signal.signal(signal.SIGINT, self._previous)
+

@@ -1,0 +1,195 @@
+"""COLMAP parsing: binary vs text, distortion, --data-factor, caches, and every bad input."""
+
+from __future__ import annotations
+
+import os
+import shutil
+import stat
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+import pytest
+from PIL import Image
+
+from exploregs_plugin.data import DataError, ParseOptions, read_colmap
+
+
+@pytest.fixture()
+def scene_copy(tiny_scene_dir: Path, tmp_path: Path) -> Path:
+    """A private, writable copy of the tiny scene."""
+    return Path(shutil.copytree(tiny_scene_dir, tmp_path / "scene"))
+
+
+def _same_scene(a, b) -> None:
+    assert [im.name for im in a.images] == [im.name for im in b.images]
+    for x, y in zip(a.images, b.images):
+        np.testing.assert_array_equal(x.K, y.K)
+        np.testing.assert_allclose(x.viewmat, y.viewmat, rtol=0, atol=1e-15)
+        assert (x.width, x.height, x.path) == (y.width, y.height, y.path)
+    np.testing.assert_array_equal(a.points, b.points)
+    np.testing.assert_array_equal(a.points_rgb, b.points_rgb)
+
+
+def _rewrite_model(root: Path, edit, binary: bool = False) -> None:
+    sparse = root / "sparse" / "0"
+    rec = pycolmap.Reconstruction(str(sparse))
+    edit(rec)
+    for f in sparse.iterdir():
+        f.unlink()
+    (rec.write_binary if binary else rec.write_text)(str(sparse))
+
+
+def test_binary_and_text_models_give_identical_results(scene_copy: Path, tmp_path: Path) -> None:
+    text = read_colmap(scene_copy, ParseOptions())
+    _rewrite_model(scene_copy, lambda rec: None, binary=True)
+    assert (scene_copy / "sparse" / "0" / "images.bin").is_file()
+    binary = read_colmap(scene_copy, ParseOptions())
+    _same_scene(text, binary)
+
+
+def test_model_directly_in_sparse_folder(scene_copy: Path) -> None:
+    for f in (scene_copy / "sparse" / "0").iterdir():
+        f.rename(scene_copy / "sparse" / f.name)
+    (scene_copy / "sparse" / "0").rmdir()
+    assert len(read_colmap(scene_copy, ParseOptions()).images) == 8
+
+
+def test_distorted_model_is_refused_or_undistorted_into_a_cache(scene_copy: Path) -> None:
+    def make_radial(rec: pycolmap.Reconstruction) -> None:
+        for cam in rec.cameras.values():
+            fx, _fy, cx, cy = cam.params
+            cam.model = pycolmap.CameraModelId.SIMPLE_RADIAL
+            cam.params = [fx, cx, cy, 0.08]
+
+    _rewrite_model(scene_copy, make_radial)
+    with pytest.raises(DataError, match="SIMPLE_RADIAL has lens distortion.*image_undistorter"):
+        read_colmap(scene_copy, ParseOptions(undistort=False))
+    scene = read_colmap(scene_copy, ParseOptions(undistort=True))
+    im = scene.images[0]
+    assert im.path.parent == scene_copy / ".exploregs" / "undistorted_f1"
+    with Image.open(im.path) as pic:
+        assert pic.size == (im.width, im.height)
+    assert im.K[0, 1] == 0 and im.K[0, 0] > 0 and im.K[1, 1] > 0
+    assert 0 < im.width <= 2 * 64 and 0 < im.height <= 2 * 48
+    stamp = im.path.stat().st_mtime_ns
+    again = read_colmap(scene_copy, ParseOptions(undistort=True))
+    assert again.images[0].path == im.path and im.path.stat().st_mtime_ns == stamp
+    np.testing.assert_array_equal(again.images[0].K, im.K)
+
+
+def test_data_factor_resizes_once_and_scales_K(scene_copy: Path) -> None:
+    full = read_colmap(scene_copy, ParseOptions())
+    half = read_colmap(scene_copy, ParseOptions(data_factor=2))
+    im, im2 = full.images[1], half.images[1]
+    assert (im2.width, im2.height) == (32, 24)
+    assert im2.path == scene_copy / ".exploregs" / "resized_2" / "images" / im.name
+    np.testing.assert_allclose(im2.K[:2], im.K[:2] * 0.5)
+    stamp = im2.path.stat().st_mtime_ns
+    read_colmap(scene_copy, ParseOptions(data_factor=2))
+    assert im2.path.stat().st_mtime_ns == stamp
+
+
+def test_data_factor_prefers_images_n_folder(scene_copy: Path) -> None:
+    (scene_copy / "images_4").mkdir()
+    for f in (scene_copy / "images").iterdir():
+        Image.open(f).resize((16, 12)).save(scene_copy / "images_4" / f.name)
+    scene = read_colmap(scene_copy, ParseOptions(data_factor=4))
+    assert scene.images[0].path.parent == scene_copy / "images_4"
+    assert (scene.images[0].width, scene.images[0].height) == (16, 12)
+    assert not (scene_copy / ".exploregs").exists()
+
+
+def test_read_only_dataset_caches_under_the_cache_root(scene_copy: Path, tmp_path: Path) -> None:
+    cache = tmp_path / "cache"
+    os.chmod(scene_copy, stat.S_IRUSR | stat.S_IXUSR | stat.S_IRGRP | stat.S_IXGRP)
+    try:
+        scene = read_colmap(scene_copy, ParseOptions(data_factor=2, cache_root=cache))
+    finally:
+        os.chmod(scene_copy, stat.S_IRWXU)
+    assert cache in scene.images[0].path.parents
+    assert not (scene_copy / ".exploregs").exists()
+
+
+# ---- bad input: each gets a clear error naming the file and the problem ----
+
+def test_missing_image_file(scene_copy: Path) -> None:
+    (scene_copy / "images" / "0003.png").unlink()
+    with pytest.raises(DataError, match=r"0003\.png: image file is missing"):
+        read_colmap(scene_copy, ParseOptions())
+
+
+def test_image_size_disagrees_with_camera(scene_copy: Path) -> None:
+    Image.new("RGB", (50, 40)).save(scene_copy / "images" / "0002.png")
+    with pytest.raises(DataError, match=r"0002\.png: image is 50x40 but its camera says 64x48"):
+        read_colmap(scene_copy, ParseOptions())
+
+
+def test_unreadable_image(scene_copy: Path) -> None:
+    (scene_copy / "images" / "0005.png").write_bytes(b"not a png at all")
+    with pytest.raises(DataError, match=r"0005\.png: image file is unreadable"):
+        read_colmap(scene_copy, ParseOptions())
+
+
+def test_missing_sparse_folder(scene_copy: Path) -> None:
+    shutil.rmtree(scene_copy / "sparse")
+    with pytest.raises(DataError, match="no sparse/0"):
+        read_colmap(scene_copy, ParseOptions())
+
+
+def test_empty_sparse_folder(scene_copy: Path) -> None:
+    for f in (scene_copy / "sparse" / "0").iterdir():
+        f.unlink()
+    with pytest.raises(DataError, match=r"sparse/0: COLMAP model is missing or empty"):
+        read_colmap(scene_copy, ParseOptions())
+
+
+def test_unknown_camera_model(scene_copy: Path) -> None:
+    path = scene_copy / "sparse" / "0" / "cameras.txt"
+    lines = path.read_text().splitlines()
+    lines = [ln.replace(" PINHOLE ", " FOOBAR ", 1) if ln.startswith("3 ") else ln for ln in lines]
+    path.write_text("\n".join(lines) + "\n")
+    with pytest.raises(DataError, match=r"cameras\.txt: line \d+: unknown camera model 'FOOBAR'"):
+        read_colmap(scene_copy, ParseOptions())
+
+
+def test_non_finite_pose(scene_copy: Path) -> None:
+    def break_pose(rec: pycolmap.Reconstruction) -> None:
+        frame = rec.frames[rec.images[3].frame_id]
+        pose = frame.rig_from_world
+        frame.rig_from_world = pycolmap.Rigid3d(pose.rotation, np.array([np.nan, 0.0, 0.0]))
+
+    _rewrite_model(scene_copy, break_pose, binary=True)
+    with pytest.raises(DataError, match=r"image '0002\.png'.*camera pose is not finite"):
+        read_colmap(scene_copy, ParseOptions())
+
+
+def test_zero_images(scene_copy: Path) -> None:
+    sparse = scene_copy / "sparse" / "0"
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(pycolmap.Camera(model="PINHOLE", width=64, height=48,
+                                                    params=[50, 50, 32, 24], camera_id=1))
+    for f in sparse.iterdir():
+        f.unlink()
+    rec.write_text(str(sparse))
+    with pytest.raises(DataError, match="zero images"):
+        read_colmap(scene_copy, ParseOptions())
+
+
+def test_empty_point_cloud_falls_back_to_random_init(scene_copy: Path) -> None:
+    _rewrite_model(scene_copy, lambda rec: [rec.delete_point3D(i) for i in list(rec.point3D_ids())])
+    with pytest.warns(UserWarning, match="no 3D points; using random initialisation"):
+        scene = read_colmap(scene_copy, ParseOptions(n_random_points=500, seed=3))
+    assert scene.points.shape == (500, 3) and scene.points_rgb.shape == (500, 3)
+    centers = np.stack([im.camera_center for im in scene.images])
+    lo, hi = centers.min(0), centers.max(0)
+    span = (hi - lo).max()
+    assert np.all(scene.points >= lo - 0.2 * span - 10) and np.all(scene.points <= hi + 0.2 * span + 10)
+    with pytest.warns(UserWarning):
+        again = read_colmap(scene_copy, ParseOptions(n_random_points=500, seed=3))
+    np.testing.assert_array_equal(scene.points, again.points)
+
+
+def test_dataset_folder_missing(tmp_path: Path) -> None:
+    with pytest.raises(DataError, match="dataset folder does not exist"):
+        read_colmap(tmp_path / "nothing", ParseOptions())

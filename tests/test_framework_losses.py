@@ -1,0 +1,66 @@
+"""Loss and metric maths against independent evaluations."""
+
+import math
+
+import numpy as np
+import torch
+
+from exploregs_plugin.model.losses import photometric_loss, psnr, ssim, ssim_map
+from exploregs_plugin.model.optim import OptimizerConfig
+
+
+def _ssim_numpy(x: np.ndarray, y: np.ndarray) -> float:
+    """Direct windowed evaluation of SSIM (zero padding), independent of the conv code."""
+    size, sigma = 11, 1.5
+    c = np.arange(size) - (size - 1) / 2
+    g = np.exp(-c**2 / (2 * sigma**2)); g /= g.sum(); w = np.outer(g, g)
+    h, wd, ch = x.shape
+    pad = size // 2
+    xp = np.pad(x, ((pad, pad), (pad, pad), (0, 0))); yp = np.pad(y, ((pad, pad), (pad, pad), (0, 0)))
+    total = 0.0
+    for i in range(h):
+        for j in range(wd):
+            px = xp[i:i + size, j:j + size]; py = yp[i:i + size, j:j + size]
+            for k in range(ch):
+                a, b = px[..., k], py[..., k]
+                mx, my = (w * a).sum(), (w * b).sum()
+                vx = (w * a * a).sum() - mx**2; vy = (w * b * b).sum() - my**2; cxy = (w * a * b).sum() - mx * my
+                total += ((2 * mx * my + 1e-4) * (2 * cxy + 9e-4)) / ((mx**2 + my**2 + 1e-4) * (vx + vy + 9e-4))
+    return total / (h * wd * ch)
+
+
+def test_ssim_matches_direct_evaluation():
+    gen = torch.Generator().manual_seed(0)
+    x = torch.rand(13, 17, 3, generator=gen, dtype=torch.float64)
+    y = (x + 0.2 * torch.rand(13, 17, 3, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    assert abs(float(ssim(x, y)) - _ssim_numpy(x.numpy(), y.numpy())) < 1e-10
+    assert torch.allclose(ssim_map(x, x), torch.ones_like(x))
+
+
+def test_psnr_values_and_region_mask():
+    a = torch.zeros(4, 4, 3)
+    b = torch.full((4, 4, 3), 0.1)
+    assert math.isclose(psnr(a, b), 20.0, rel_tol=1e-6)  # mse 0.01 -> 20 dB
+    assert psnr(a, a) == 100.0  # floored, not inf
+    mask = torch.zeros(4, 4, dtype=torch.bool)
+    mask[0, 0] = True
+    b2 = b.clone(); b2[0, 0] = 0.0
+    assert psnr(a, b2, mask) == 100.0
+    assert math.isnan(psnr(a, b, torch.zeros(4, 4, dtype=torch.bool)))
+
+
+def test_photometric_loss_is_the_3dgs_mix():
+    gen = torch.Generator().manual_seed(1)
+    x, y = torch.rand(16, 16, 3, generator=gen), torch.rand(16, 16, 3, generator=gen)
+    loss, terms = photometric_loss(x, y, 0.2)
+    expected = 0.8 * (x - y).abs().mean() + 0.2 * (1 - ssim(x, y))
+    assert torch.allclose(loss, expected)
+    assert set(terms) == {"l1", "dssim"}
+
+
+def test_means_lr_decays_exponentially_to_one_hundredth():
+    cfg = OptimizerConfig()
+    extent = 2.5
+    assert math.isclose(cfg.means_lr_at(0, 1000, extent), 1.6e-4 * extent)
+    assert math.isclose(cfg.means_lr_at(1000, 1000, extent), 1.6e-6 * extent)
+    assert math.isclose(cfg.means_lr_at(500, 1000, extent), 1.6e-5 * extent, rel_tol=1e-9)

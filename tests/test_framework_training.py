@@ -1,0 +1,190 @@
+"""End-to-end training on the tiny built-in scene: learning, determinism, resume, guards, logs."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+import torch
+
+from exploregs_plugin.configs import load_config
+from exploregs_plugin.evaluation import evaluate
+from exploregs_plugin.io.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
+from exploregs_plugin.pipeline import NonFiniteError, Pipeline
+from exploregs_plugin.trainer import Trainer, TrainerConfig
+
+STEPS = 40  # schedule for 40 steps: densify at steps 10 and 20 (refine_every 10, stop 20)
+
+
+def tiny_config(run_dir: Path, **overrides) -> TrainerConfig:
+    fields = dict(data="builtin:tiny", max_steps=STEPS, run_dir=run_dir, quiet=True, tensorboard=False,
+                  eval_count=1, checkpoint_every=10, save_eval_images=False)
+    fields.update(overrides)
+    return TrainerConfig(**fields)
+
+
+def params_of(trainer: Trainer) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in trainer.pipeline.params.items()}
+
+
+@pytest.fixture(scope="module")
+def default_run(tmp_path_factory, tiny_scene_dir):
+    run_dir = tmp_path_factory.mktemp("default-run")
+    trainer = tiny_config(run_dir, tensorboard=True, eval_count=2, save_eval_images=True).setup()
+    initial = evaluate(trainer.pipeline.model, trainer.pipeline.datamanager)
+    metrics = trainer.train()
+    return run_dir, trainer, initial, metrics
+
+
+def test_training_beats_initial_render_and_densifies(default_run):
+    run_dir, trainer, initial, metrics = default_run
+    assert metrics["psnr"] > initial["psnr"] + 3.0, (initial["psnr"], metrics["psnr"])
+    assert metrics["num_gaussians"] != initial["num_gaussians"]
+    saved = json.loads((run_dir / "metrics.json").read_text())
+    assert saved["psnr"] == pytest.approx(metrics["psnr"])
+    assert saved["steps"] == STEPS and len(saved["per_image"]) == saved["num_test_images"] > 0
+    assert set(saved["region_psnr"]) >= {"other"}
+    assert saved["lpips"] is None and "absent" in saved["lpips_note"]
+    assert [h["step"] for h in saved["history"]] == [20, 40]
+    assert sorted(p.name for p in (run_dir / "renders").iterdir())  # render | gt | error panels
+    assert isinstance(load_config(run_dir / "config.yml"), TrainerConfig)
+
+
+def test_tensorboard_has_the_promised_tags(default_run):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    run_dir = default_run[0]
+    acc = EventAccumulator(str(run_dir), size_guidance={"scalars": 0, "images": 0})
+    acc.Reload()
+    scalars = set(acc.Tags()["scalars"])
+    for tag in ("train/loss", "train/l1", "train/dssim", "train/psnr", "test/psnr", "test/ssim",
+                "gaussians/count", "lr/means", "lr/opacities", "perf/seconds_per_step",
+                "strategy/cloned", "strategy/split", "strategy/pruned"):
+        assert tag in scalars, tag
+    assert any(t.startswith("test/") for t in acc.Tags()["images"])
+    grown = sum(e.value for e in acc.Scalars("strategy/cloned")) + sum(e.value for e in acc.Scalars("strategy/split"))
+    assert grown > 0
+
+
+def test_eg_eval_reproduces_metrics(default_run, tmp_path):
+    from exploregs_plugin.scripts.eval import EvalArgs, main
+
+    run_dir, _, _, metrics = default_run
+    again = main(EvalArgs(path=run_dir, out=tmp_path / "eval"))
+    assert again["psnr"] == pytest.approx(metrics["psnr"], abs=1e-9)
+    assert again["ssim"] == pytest.approx(metrics["ssim"], abs=1e-9)
+    assert again["num_gaussians"] == metrics["num_gaussians"]
+    for region, value in metrics.get("region_psnr", {}).items():
+        assert again["region_psnr"][region] == pytest.approx(value, abs=1e-9)
+    assert (tmp_path / "eval" / "metrics.json").is_file()
+    assert len(list((tmp_path / "eval").glob("*.png"))) == metrics["num_test_images"]
+
+
+def test_same_seed_same_result_other_seed_differs(tmp_path, tiny_scene_dir):
+    runs = {}
+    for name, seed in (("a", 0), ("b", 0), ("c", 1)):
+        trainer = tiny_config(tmp_path / name, max_steps=12, seed=seed).setup()
+        trainer.train()
+        runs[name] = params_of(trainer)
+    assert all(torch.equal(runs["a"][k], runs["b"][k]) for k in runs["a"])
+    assert not all(runs["a"][k].shape == runs["c"][k].shape and torch.equal(runs["a"][k], runs["c"][k])
+                   for k in runs["a"])
+
+
+def test_ctrl_c_then_resume_is_bit_identical(tmp_path, tiny_scene_dir, monkeypatch):
+    full = tiny_config(tmp_path / "full").setup()
+    full.train()
+
+    interrupted = tiny_config(tmp_path / "cut").setup()
+    real_step = Pipeline.train_step
+
+    def step_then_ctrl_c(self, step):
+        out = real_step(self, step)
+        if step == 16:
+            os.kill(os.getpid(), signal.SIGINT)  # a real Ctrl-C, handled at the step boundary
+        return out
+
+    monkeypatch.setattr(Pipeline, "train_step", step_then_ctrl_c)
+    with pytest.raises(KeyboardInterrupt):
+        interrupted.train()
+    monkeypatch.setattr(Pipeline, "train_step", real_step)
+    ckpt = latest_checkpoint(tmp_path / "cut")
+    assert ckpt.name == "step-0000017.pt"
+    saved = load_checkpoint(ckpt)
+
+    resumed = Trainer.from_run(tmp_path / "cut")
+    assert resumed.start_step == 17
+    for name, opt in resumed.pipeline.optimizers.items():
+        state = next(iter(opt.state.values()))
+        saved_state = saved["optimizers"][name]["state"][0]
+        assert torch.equal(state["exp_avg"], saved_state["exp_avg"])
+        assert torch.equal(state["exp_avg_sq"], saved_state["exp_avg_sq"])
+    assert resumed.pipeline.strategy_state.keys() == saved["strategy_state"].keys()
+    resumed.train()
+
+    a, b = params_of(full), params_of(resumed)
+    assert a.keys() == b.keys()
+    for k in a:
+        assert torch.equal(a[k], b[k]), k
+    ma = json.loads((tmp_path / "full" / "metrics.json").read_text())
+    mb = json.loads((tmp_path / "cut" / "metrics.json").read_text())
+    assert ma["psnr"] == mb["psnr"] and ma["num_gaussians"] == mb["num_gaussians"]
+
+
+def test_nan_in_loss_stops_with_step_and_keeps_checkpoint(tmp_path, tiny_scene_dir, monkeypatch):
+    trainer = tiny_config(tmp_path / "nan", checkpoint_every=5).setup()
+    dm = trainer.pipeline.datamanager
+    real_next = dm.next_train
+    calls = {"n": 0}
+
+    def poisoned():
+        index, camera, image, extras = real_next()
+        calls["n"] += 1
+        if calls["n"] == 13:  # step 12
+            image = image.clone()
+            image[0, 0, 0] = float("nan")
+        return index, camera, image, extras
+
+    monkeypatch.setattr(dm, "next_train", poisoned)
+    with pytest.raises(NonFiniteError, match=r"step 12: the loss is nan.*last good checkpoint is .*step-0000010\.pt"):
+        trainer.train()
+    good = load_checkpoint(latest_checkpoint(tmp_path / "nan"))
+    assert good["step"] == 10
+    assert all(torch.isfinite(v).all() for v in good["params"].values())
+
+
+def test_nan_in_parameter_names_the_parameter(tmp_path, tiny_scene_dir, monkeypatch):
+    trainer = tiny_config(tmp_path / "nanparam", checkpoint_every=5).setup()
+    opt = trainer.pipeline.optimizers["opacities"]
+    real = opt.step
+    calls = {"n": 0}
+
+    def corrupting_step(*args, **kwargs):
+        out = real(*args, **kwargs)
+        calls["n"] += 1
+        if calls["n"] == 8:  # step 7
+            with torch.no_grad():
+                opt.param_groups[0]["params"][0][:3] = float("inf")
+        return out
+
+    monkeypatch.setattr(opt, "step", corrupting_step)
+    with pytest.raises(NonFiniteError, match=r"step 7: parameter 'opacities' has non-finite values in 3 of"):
+        trainer.train()
+    assert [p.name for p in list_checkpoints(tmp_path / "nanparam")] == ["step-0000005.pt"]
+
+
+def test_cli_lists_methods_and_rejects_unknown():
+    cmd = [sys.executable, "-m", "exploregs_plugin.scripts.train"]
+    out = subprocess.run(cmd + ["--help"], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0
+    for name in ("exploregs-default", "exploregs-seed", "exploregs-split", "exploregs-seedsplit",
+                 "exploregs-ray", "exploregs-mcmc", "exploregs-mcmc-ray"):
+        assert name in out.stdout
+    bad = subprocess.run(cmd + ["exploregs-nope"], capture_output=True, text=True, timeout=120)
+    assert bad.returncode == 2
+    assert "unknown method 'exploregs-nope'" in bad.stderr and "exploregs-seedsplit" in bad.stderr

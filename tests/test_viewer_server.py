@@ -1,0 +1,144 @@
+"""The Viewer without a browser: scene content, stats, pause/resume, frames, eg-view loading."""
+
+from __future__ import annotations
+
+import math
+import threading
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from exploregs_plugin.cameras import Camera
+from exploregs_plugin.model.gaussians import rgb_to_sh0
+from exploregs_plugin.viewer import ViewerConfig, ViewerScene
+from exploregs_plugin.viewer.conventions import intrinsics_from_fov
+from exploregs_plugin.viewer.display import render_frame
+from exploregs_plugin.viewer.snapshot import Snapshot
+
+
+def one_gaussian(rgb=(0.9, 0.1, 0.1), n_rest: int = 0, depth: float = 0.0) -> dict[str, torch.Tensor]:
+    return {
+        "means": torch.tensor([[0.0, 0.0, depth]]),
+        "scales": torch.full((1, 3), math.log(0.5)),
+        "quats": torch.tensor([[1.0, 0.0, 0.0, 0.0]]),
+        "opacities": torch.tensor([8.0]),
+        "sh0": rgb_to_sh0(torch.tensor([rgb])),
+        "shN": torch.zeros(1, n_rest, 3),
+    }
+
+
+def camera_at(x: float, z: float = -4.0, width: int = 80, height: int = 60) -> Camera:
+    """Looking along +z from (x, 0, z); world-to-camera is a pure translation."""
+    viewmat = torch.eye(4)
+    viewmat[0, 3], viewmat[2, 3] = -x, -z
+    return Camera(viewmat, intrinsics_from_fov(math.radians(60), width, height), width, height, f"cam{x}")
+
+
+@pytest.fixture()
+def viewer():
+    params = one_gaussian()
+    scene = ViewerScene(
+        params=lambda: params,
+        max_sh_degree=0,
+        cameras=[camera_at(0.0), camera_at(1.0), camera_at(-1.0)],
+        thumbnail=lambda i: torch.full((60, 80, 3), 0.2 * i),
+        points=torch.randn(500, 3, generator=torch.Generator().manual_seed(0)),
+        points_rgb=torch.rand(500, 3, generator=torch.Generator().manual_seed(1)),
+        extent=2.0,
+    )
+    v = ViewerConfig(port=0, max_thumbnails=2, max_points=100).setup(scene, training=True)
+    v.test_params = params  # the live set the "trainer" changes
+    yield v
+    v.close()
+
+
+def test_scene_content_and_stats(viewer) -> None:
+    assert viewer.port > 0 and viewer.url.endswith(f":{viewer.port}")
+    assert len(viewer._frustums) == 3
+    # Two thumbnails, evenly spread: the first and the last camera.
+    assert [h.image is not None for h in viewer._frustums] == [True, False, True]
+    assert viewer._frustums[0].image.shape == (60, 80, 3)  # never upscaled past the 60-row source
+    # The initial view stands at camera 0, so its frustum is hidden.
+    assert [h.visible for h in viewer._frustums] == [False, True, True]
+    assert viewer._points.points.shape == (100, 3)
+    viewer.update(12, {"psnr": 20.0}, seconds=0.5)
+    viewer.update(13, {"psnr": 22.0}, seconds=0.25)
+    text = viewer._stats_text()
+    assert "**Iteration:** 13" in text and "**Gaussians:** 1" in text
+    assert "21.00 dB" in text and "0.375" in text
+
+
+def test_update_copies_only_when_asked(viewer) -> None:
+    copies = viewer.store.copies
+    viewer.store._requested = False
+    viewer.update(1, {})
+    assert viewer.store.copies == copies
+    viewer.store.request()
+    viewer.test_params["sh0"] = rgb_to_sh0(torch.tensor([[0.1, 0.9, 0.1]]))
+    viewer.update(2, {})
+    assert viewer.store.copies == copies + 1 and viewer.store.latest().step == 2
+
+
+def test_pause_blocks_training_until_resumed(viewer) -> None:
+    viewer.wait_if_paused()  # not paused: returns at once
+    viewer.set_paused(True)
+    assert viewer._pause_button.label == "Resume training"
+    returned = threading.Event()
+    trainer = threading.Thread(target=lambda: (viewer.wait_if_paused(), returned.set()))
+    trainer.start()
+    assert not returned.wait(0.3)  # still blocked while paused
+    viewer.set_paused(False)
+    assert returned.wait(10.0)
+    trainer.join()
+    assert viewer._pause_button.label == "Pause training"
+
+    viewer.set_paused(True)
+    stop = threading.Event()
+    stop.set()
+    viewer.wait_if_paused(stop.is_set)  # Ctrl-C while paused must not hang
+    viewer.close()  # closing releases a paused trainer as well
+    viewer.wait_if_paused()
+
+
+def test_render_frame_outputs() -> None:
+    params = one_gaussian(n_rest=3)
+    snap = Snapshot(params, 0, 1)
+    camera = camera_at(0.0, width=40, height=30)
+    rgb = render_frame(snap, camera, "rgb", sh_degree=3, background=torch.zeros(3))  # degree clipped to 1
+    assert rgb.shape == (30, 40, 3) and rgb.dtype == np.uint8
+    centre = rgb[15, 20].astype(int)
+    assert centre[0] > 200 and centre[1] < 40 and centre[2] < 40
+    assert rgb[0, 0].max() < 10  # far from the Gaussian: the black background
+    alpha = render_frame(snap, camera, "alpha", 0, None)
+    assert alpha[15, 20, 0] > 240 and (alpha[..., 0] == alpha[..., 2]).all()
+    depth = render_frame(snap, camera, "depth", 0, None)
+    assert depth[15, 20].max() > 0 and depth[0, 0].max() == 0  # coloured where covered, black elsewhere
+    with pytest.raises(ValueError, match="output"):
+        render_frame(snap, camera, "normals", 0, None)  # type: ignore[arg-type]
+
+
+def test_config_rejects_bad_values() -> None:
+    for kwargs, word in [({"max_render_share": 0.0}, "max_render_share"), ({"port": 70000}, "port"),
+                         ({"output": "normals"}, "output"), ({"moving_resolution": 4}, "resolution"),
+                         ({"sh_degree": 5}, "sh_degree")]:
+        with pytest.raises(ValueError, match=word):
+            ViewerConfig(**kwargs)
+
+
+def test_eg_view_serves_a_ply(tmp_path: Path) -> None:
+    from exploregs_plugin.io.ply import export_ply
+    from exploregs_plugin.scripts.view import ViewArgs, main
+
+    path = tmp_path / "one.ply"
+    export_ply(path, one_gaussian(rgb=(0.2, 0.3, 0.9), n_rest=3))
+    viewer = main(ViewArgs(path=path, viewer=ViewerConfig(port=0)))
+    try:
+        snap = viewer.store.latest()
+        assert snap.num_gaussians == 1 and snap.params["shN"].shape == (1, 3, 3)
+        assert not viewer.training and viewer.scene.max_sh_degree == 1
+    finally:
+        viewer.close()
+    with pytest.raises(FileNotFoundError, match="no such"):
+        main(ViewArgs(path=tmp_path / "missing.ply", viewer=ViewerConfig(port=0)))
