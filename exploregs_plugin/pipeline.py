@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import inspect
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -56,9 +57,23 @@ class Pipeline:
         self.optimizers = config.optim.setup(self.model.params, self.scene_extent)
         self.strategy = config.strategy.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
-        self.strategy_state = self.strategy.initialize_state(scene_scale=self.scene_extent)
+        self.strategy_state = self.strategy.initialize_state(
+            scene_scale=self.scene_extent, **self._scene_center_kwarg(dm))
         if config.random_background and not getattr(dm, "has_alpha", False):
             raise ValueError("random_background needs a dataset whose images have an alpha channel")
+
+    def _scene_center_kwarg(self, dm) -> dict[str, Tensor]:
+        """Scene centre = mean training-camera centre (seeding measures distances from it).
+        Passed only to strategies that take it (gsplat-style ones take scene_scale alone)."""
+        if "scene_center" not in inspect.signature(self.strategy.initialize_state).parameters:
+            return {}
+        centers = torch.stack([camera.camera_center for camera in dm.train_cameras])
+        return {"scene_center": centers.mean(dim=0)}
+
+    def exploration_summary(self) -> dict[str, int]:
+        """Current totals a strategy reports about its exploration (e.g. seeds alive)."""
+        summary = getattr(self.strategy, "seed_summary", None)
+        return dict(summary(self.strategy_state)) if summary is not None else {}
 
     @property
     def params(self) -> nn.ParameterDict:

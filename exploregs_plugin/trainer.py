@@ -99,6 +99,7 @@ class Trainer:
         self.start_step = 0
         self.train_seconds = 0.0
         self.history: list[dict[str, Any]] = []
+        self.op_totals: dict[str, int] = {}  # run-long sum of every strategy operation's count
         self.last_checkpoint: Path | None = None
         if checkpoint is not None:
             self._restore(checkpoint)
@@ -135,6 +136,8 @@ class Trainer:
                 start = time.perf_counter()
                 stats = self._train_step(step)
                 self.train_seconds += time.perf_counter() - start
+                for op, n in stats["counts"].items():
+                    self.op_totals[op] = self.op_totals.get(op, 0) + int(n)
                 logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
                 if step + 1 in eval_steps:
                     self.run_eval(step + 1)
@@ -170,6 +173,8 @@ class Trainer:
                              **({"region_psnr": metrics["region_psnr"]} if "region_psnr" in metrics else {})})
         if getattr(self, "logger", None) is not None:
             self.logger.log_eval(step, metrics, self._eval_panels())
+            for name, value in self.pipeline.exploration_summary().items():
+                self.logger.scalar(f"strategy/{name}", value, step)
         self.last_metrics = metrics
         return metrics
 
@@ -193,6 +198,8 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "seconds_per_step": self.train_seconds / max(self.schedule.max_steps, 1),
             "history": self.history,
+            "strategy_counts": dict(sorted(self.op_totals.items())),
+            "exploration": self.pipeline.exploration_summary(),
         })
         write_metrics_json(self.run_dir / METRICS_NAME, metrics)
         return metrics
@@ -204,6 +211,7 @@ class Trainer:
             "step": step,
             "train_seconds": self.train_seconds,
             "history": self.history,
+            "op_totals": self.op_totals,
             **self.pipeline.state_dict(),
         }
         self.last_checkpoint = save_checkpoint(self.run_dir, step, payload, self.config.keep_checkpoints)
@@ -215,6 +223,7 @@ class Trainer:
         self.start_step = int(payload["step"])
         self.train_seconds = float(payload.get("train_seconds", 0.0))
         self.history = list(payload.get("history", []))
+        self.op_totals = dict(payload.get("op_totals", {}))
         self.last_checkpoint = Path(path)
         if self.start_step >= self.schedule.max_steps:
             self.last_metrics = evaluate(self.pipeline.model, self.pipeline.datamanager)

@@ -52,7 +52,7 @@ def test_model_directly_in_sparse_folder(scene_copy: Path) -> None:
     for f in (scene_copy / "sparse" / "0").iterdir():
         f.rename(scene_copy / "sparse" / f.name)
     (scene_copy / "sparse" / "0").rmdir()
-    assert len(read_colmap(scene_copy, ParseOptions()).images) == 8
+    assert len(read_colmap(scene_copy, ParseOptions()).images) == 10
 
 
 def test_distorted_model_is_refused_or_undistorted_into_a_cache(scene_copy: Path) -> None:

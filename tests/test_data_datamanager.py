@@ -16,8 +16,8 @@ from exploregs_plugin.data import DataError, DataManagerConfig
 def test_interface_types_and_shapes(tiny_dm) -> None:
     dm = tiny_dm
     assert dm.scene_name == "tiny"
-    assert len(dm.train_cameras) == 7 and len(dm.test_cameras) == 1  # the scene's split.json
-    assert dm.test_cameras[0].name == "0000.png"
+    assert len(dm.train_cameras) == 8 and len(dm.test_cameras) == 2  # the scene's split.json
+    assert [c.name for c in dm.test_cameras] == ["0000.png", "0008.png"]
     for cam in dm.train_cameras + dm.test_cameras:
         assert isinstance(cam, Camera) and cam.viewmat.dtype == torch.float32 and cam.K.dtype == torch.float32
         assert cam.viewmat.shape == (4, 4) and cam.K.shape == (3, 3) and (cam.width, cam.height) == (64, 48)
@@ -54,10 +54,10 @@ def test_unnormalised_keeps_file_units(tiny_scene_dir: Path) -> None:
 
 def test_test_every_split(tiny_scene_dir: Path) -> None:
     dm = DataManagerConfig(data=str(tiny_scene_dir), use_dataset_split=False, test_every=3).setup()
-    assert [c.name for c in dm.test_cameras] == ["0000.png", "0003.png", "0006.png"]
-    assert len(dm.train_cameras) == 5
+    assert [c.name for c in dm.test_cameras] == ["0000.png", "0003.png", "0006.png", "0009.png"]
+    assert len(dm.train_cameras) == 6
     dm = DataManagerConfig(data=str(tiny_scene_dir), use_dataset_split=False, test_every=0).setup()
-    assert len(dm.train_cameras) == 8 and dm.test_cameras == []
+    assert len(dm.train_cameras) == 10 and dm.test_cameras == []
 
 
 def test_next_train_is_a_seeded_permutation_per_epoch(tiny_scene_dir: Path) -> None:

@@ -83,9 +83,11 @@ def test_render_sequence_writes_rgb_alpha_and_depth_frames(tmp_path):
     expected = F.colorize_depth(depth * 10.0, alpha, dp.near, dp.far, "viridis")
     assert np.array_equal(np.array(Image.open(dp.frames[0])), expected)
 
-    fixed = F.render_sequence(params, cameras[:1], tmp_path / "fixed", mode="depth", sh_degree=0, video=False,
+    fixed = F.render_sequence(params, cameras[:1], tmp_path / "depth", mode="depth", sh_degree=0, video=False,
                               near=0.0, far=50.0)
     assert (fixed.near, fixed.far) == (0.0, 50.0)
+    # re-rendering fewer frames into the same folder leaves no stale frame behind
+    assert sorted(p.name for p in (tmp_path / "depth").iterdir()) == ["frame_00000.png"]
     with pytest.raises(ValueError, match="far > near"):
         F.render_sequence(params, cameras, tmp_path / "bad", mode="depth", near=3.0, far=1.0)
     with pytest.raises(ValueError, match="unknown render mode"):

@@ -92,7 +92,7 @@ def test_export_writes_standard_layout_channel_major(tmp_path):
         assert [vertex[f"f_dc_{c}"][n] for c in range(3)] == params["sh0"][n, 0].tolist()
         assert [vertex[f"rot_{i}"][n] for i in range(4)] == params["quats"][n].tolist()
         assert vertex["opacity"][n] == params["opacities"][n].item()
-        assert [vertex[f"nx"][n], vertex["ny"][n], vertex["nz"][n]] == [0.0, 0.0, 0.0]
+        assert [vertex["nx"][n], vertex["ny"][n], vertex["nz"][n]] == [0.0, 0.0, 0.0]
 
 
 @pytest.mark.parametrize("degree", [0, 1, 2, 3])

@@ -229,3 +229,15 @@ def test_bad_input_names_the_argument():
         rasterize(*s.args(), sh_degree=4)
     with pytest.raises(ValueError, match="colors"):
         rasterize(s.means, s.quats, s.scales, s.opacities, None, s.viewmat, s.K, 8, 8)
+
+
+def test_windowed_reference_is_a_crop_and_threads_are_restored():
+    s = _base(n=60, width=40, height=32)
+    full, *_ = reference_rasterize(*s.args())
+    win, *_ = reference_rasterize(*s.args(), window=(7, 5, 20, 16))
+    assert torch.allclose(win, full[5:21, 7:27], atol=1e-14)
+    threads = torch.get_num_threads()
+    m = s.means.clone().requires_grad_()
+    img, *_ = rasterize(m, *s.args()[1:])
+    img.sum().backward()
+    assert torch.get_num_threads() == threads and m.grad.abs().sum() > 0

@@ -286,3 +286,63 @@ def test_info_from_another_set_is_rejected():
     stale = synthetic_info(torch.zeros(3, 2), torch.ones(3, dtype=torch.bool), W, H)
     with pytest.raises(StrategyError, match="6 Gaussians"):
         s.step_post_backward(params, make_optimizers(params), s.initialize_state(), 1, stale)
+
+
+def test_default_with_the_project_rasterizer():
+    """The real rasterizer's info drives the statistic and densification (16x16 toy scene)."""
+    from exploregs_plugin.rasterizer import rasterize
+
+    size = 16
+    K = torch.tensor([[16.0, 0, 8.0], [0, 16.0, 8.0], [0, 0, 1]])
+    view = torch.eye(4)
+    view[2, 3] = 3.0
+    g = torch.Generator().manual_seed(0)
+    target_params = make_gaussians(8, g, sh_degree=0, extent=0.5)
+    params = make_gaussians(12, g, sh_degree=0, extent=0.5)
+    optimizers = make_optimizers(params, lr=1e-2)
+
+    def render(p):
+        return rasterize(p["means"], p["quats"], torch.exp(p["scales"]) * 4, torch.sigmoid(p["opacities"]),
+                         torch.cat([p["sh0"], p["shN"]], 1), view, K, size, size)
+
+    with torch.no_grad():
+        target = render(target_params)[0]
+    s = _strategy(refine_start_iter=0, refine_every=5)
+    state = s.initialize_state(scene_scale=0.5)
+    grown = 0
+    for step in range(1, 6):
+        n = params["means"].shape[0]
+        image, _, _, info = render(params)
+        s.step_pre_backward(params, optimizers, state, step, info)
+        (image - target).abs().mean().backward()
+        for opt in optimizers.values():
+            opt.step()
+            opt.zero_grad()
+        if step == 4:
+            stats = state["stats"]
+            assert stats["grad2d"].shape == (n,) and torch.isfinite(stats["grad2d"]).all()
+            assert stats["count"].max() == 3 and float(stats["grad2d"].max()) > 0.0  # steps 1-3
+        counts = s.step_post_backward(params, optimizers, state, step, info, lr=1e-3, generator=g)
+        grown += counts["cloned"] + counts["split"]
+    assert grown > 0
+    s.check_sanity(params, optimizers)
+
+
+def test_state_is_checkpointable_and_validated(tmp_path):
+    g = torch.Generator().manual_seed(0)
+    params = make_gaussians(5, g)
+    s = _strategy()
+    state = s.initialize_state(scene_scale=2.0, scene_center=torch.tensor([1.0, 2.0, 3.0]))
+    s.step_post_backward(params, make_optimizers(params), state, 1,
+                         synthetic_info(torch.full((5, 2), 1e-4), torch.ones(5, dtype=torch.bool), W, H))
+    torch.save(state, tmp_path / "state.pt")
+    loaded = torch.load(tmp_path / "state.pt")
+    assert loaded["scene_scale"] == 2.0 and torch.equal(loaded["stats"]["grad2d"], state["stats"]["grad2d"])
+    for bad in (0.0, -1.0, float("nan"), float("inf")):
+        with pytest.raises(StrategyError, match="scene_scale"):
+            s.initialize_state(scene_scale=bad)
+    with pytest.raises(StrategyError, match="lack required keys"):
+        s.check_sanity({"means": params["means"]}, {"means": torch.optim.Adam([params["means"]])})
+    with pytest.raises(StrategyError, match="does not hold"):
+        other = make_optimizers(make_gaussians(5, g))
+        s.check_sanity(params, other)

@@ -57,7 +57,7 @@ def test_seeding_counts_box_and_disable():
     # Seeds of the first round lie in the box of the original centres.
     first = params["means"].detach()[50:57]
     assert torch.all(first >= lo - 1e-6) and torch.all(first <= hi + 1e-6)
-    assert history[-1]["seeds_alive"] == 28
+    assert s.seed_summary(state)["seeds_alive"] == 28
     assert int(state["stats"][SEED_FLAG].sum()) == 28
 
     off = SeedingStrategy(n_seed=0, seed_every=10, **WINDOW)
@@ -149,13 +149,14 @@ def test_seeds_outside_every_view_are_counted():
     optimizers = make_optimizers(params)
     s = SeedingStrategy(n_seed=3, seed_every=10, grow_grad2d=1e9, prune_opa=0.0, **WINDOW)
     state = s.initialize_state()
-    counts = _run(s, params, optimizers, state, [10], gen)[0]
-    assert counts["seeds_unseen"] == 3
+    assert s.seed_summary(state) == {"seeds_alive": 0, "seeds_unseen": 0}
+    assert _run(s, params, optimizers, state, [10], gen)[0]["seeded"] == 3
+    assert s.seed_summary(state) == {"seeds_alive": 3, "seeds_unseen": 3}
     # The next view sees only the first seed.
     vis = torch.zeros(13, dtype=torch.bool)
     vis[10] = True
-    counts = s.step_post_backward(params, optimizers, state, 11, synthetic_info(torch.zeros(13, 2), vis, W, H), generator=gen)
-    assert counts["seeds_unseen"] == 2 and counts["seeds_alive"] == 3
+    s.step_post_backward(params, optimizers, state, 11, synthetic_info(torch.zeros(13, 2), vis, W, H), generator=gen)
+    assert s.seed_summary(state) == {"seeds_alive": 3, "seeds_unseen": 2}
 
 
 # ------------------------------------------------------------------------------ splitting

@@ -12,7 +12,6 @@ import torch
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.strategies import MCMCStrategy, RayPerturbationStrategy, StrategyError, ops
 from exploregs_plugin.strategies.geometry import covariance
-from exploregs_plugin.strategies.mcmc import random_initial_points
 from exploregs_plugin.strategies.perturbation import position_noise
 from exploregs_plugin.strategies.relocation import binomial_table, relocation_update
 from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers, synthetic_info
@@ -174,8 +173,6 @@ def test_mcmc_schedule_regulariser_and_errors():
     from exploregs_plugin.strategies import DefaultStrategy
 
     assert float(DefaultStrategy().regularization_loss(params)) == 0.0
-    pts, rgb = random_initial_points(100, 3.0, torch.Generator().manual_seed(0))
-    assert pts.abs().max() <= 3.0 and pts.shape == (100, 3) and rgb.min() >= 0 and rgb.max() <= 1
 
 
 def test_mcmc_hard_cases():

@@ -55,7 +55,7 @@ class ScenePreset:
 
 
 PRESETS: dict[str, ScenePreset] = {
-    "tiny": ScenePreset("combined", 64, 48, 8, n_points=400),
+    "tiny": ScenePreset("combined", 64, 48, 10, n_points=400),
     "default": ScenePreset("combined", 144, 108, 32, n_points=3000),
     "farside": ScenePreset("farside", 144, 108, 32, n_points=3000),
     "nearside": ScenePreset("nearside", 144, 108, 32, n_points=3000),

@@ -192,5 +192,10 @@ def render_sequence(
     finally:
         if sink is not None:
             sink.close()
+    # frames left from an earlier, longer render into the same folder would join this sequence
+    written = set(frames)
+    for stale in out_dir.glob("frame_[0-9][0-9][0-9][0-9][0-9].png"):
+        if stale not in written:
+            stale.unlink()
     return RenderedSequence(frames, sink.path if sink is not None else None, note,
                             near if mode == "depth" else None, far if mode == "depth" else None)

@@ -53,10 +53,11 @@ class GaussianModelConfig:
     """Initial scale = this x mean distance to the 3 nearest neighbouring points."""
     random_init_count: int = 10_000
     """Number of Gaussians when the dataset has no sparse points (random initialisation)."""
-    random_init_extent: float = 1.0
-    """Random initialisation fills a cube of half-side this x the scene extent around the origin."""
+    random_init_extent: float = 3.0
+    """Random initialisation fills a cube of half-side this x the scene extent around the origin
+    (3DGS-MCMC's random initialisation uses 3)."""
     force_random_init: bool = False
-    """Ignore the dataset's points and initialise randomly (as 3DGS-MCMC's random-init option)."""
+    """Ignore the dataset's points and initialise randomly (3DGS-MCMC's random-init option)."""
     detach_paths: tuple[PositionPath, ...] = ()
     """Position-gradient paths to switch off: any of mean2d (projected 2D mean), cov (2D
     covariance via the Jacobian), sh (SH view direction). The forward pass is unchanged."""

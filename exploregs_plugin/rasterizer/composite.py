@@ -25,8 +25,10 @@ and feature tables are kept as [B, F, K].
 from __future__ import annotations
 
 import math
+import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 
 import torch
 from torch import Tensor
@@ -38,6 +40,9 @@ LOG2E = 1.4426950408889634
 # Columns of the per-Gaussian geometry table gathered per chunk.
 _MX, _MY, _A, _B, _C, _O, _LOG2O, _RX, _RY = range(9)
 _NGEOM = 9
+# Exponent penalty (log2 units) per pixel of distance outside the support box: a pixel
+# outside by more than ~1e-28 px gets alpha exactly 0.
+_OUTSIDE = 1e30
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_LOCK = threading.Lock()
@@ -51,20 +56,34 @@ def _pool(workers: int) -> ThreadPoolExecutor:
         return _POOL
 
 
+@contextmanager
+def single_threaded_ops():
+    """Runs torch ops single-threaded inside the block (restores the caller's setting).
+
+    Measured on 2-core machines shared with other processes: OpenMP barriers in parallel ops
+    cost far more than they save on the small O(N) tensors of the projection, and the
+    compositing workers below each own one core instead.
+    """
+    saved = torch.get_num_threads()
+    if saved != 1:
+        torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        if saved != 1:
+            torch.set_num_threads(saved)
+
+
 def _run_split(fn, n_items: int, workers: int) -> list:
     """Runs fn(worker_id, item_ids) with items dealt round-robin, torch ops single-threaded."""
     workers = max(1, min(workers, n_items))
     parts = [list(range(w, n_items, workers)) for w in range(workers)]
-    if workers == 1:
-        return [fn(0, parts[0])]
-    saved = torch.get_num_threads()
-    torch.set_num_threads(1)  # each worker owns one core; no OpenMP barriers between them
-    try:
+    with single_threaded_ops():
+        if workers == 1:
+            return [fn(0, parts[0])]
         futs = [_pool(workers).submit(fn, w, parts[w]) for w in range(1, workers)]
         first = fn(0, parts[0])
         return [first] + [f.result() for f in futs]
-    finally:
-        torch.set_num_threads(saved)
 
 
 def _pixel_offsets(tile_size: int, dtype: torch.dtype) -> Tensor:
@@ -103,25 +122,29 @@ class _Chunk:
 def _chunk_alpha(c: _Chunk, pix: Tensor, s: RasterSettings) -> Tensor:
     """Alphas of a chunk after clamp and skip: [B, P, K].
 
-    The quadratic form is a sum of squares through the Cholesky factor of the conic,
-    0.5 log2(e) q = u^2 + v^2 with u = l11 dx + l21 dy, v = l22 dy, so it is never negative after
-    rounding (power > 0 cannot occur, as in exact arithmetic), and alpha = exp2(log2 o - u^2 - v^2).
-    Pixels outside the support box get log2 o = -inf (alpha 0).
+    Through the Cholesky factor of the conic, 0.5 log2(e) q = u^2 + v^2 with
+    u = l11 dx + l21 dy and v = l22 dy, and alpha = exp2(log2 o - u^2 - v^2). With
+    u = ux + uy (ux = l11 dx per column, uy = l21 dy per row) the exponent is
+    [log2 o - ux^2] + [-uy^2 - v^2] - 2 ux uy: two per-column/per-row terms and one outer
+    product, so only two passes touch the [B, P, K] tensor before exp2.
+    Pixels outside the support box get -inf (alpha 0).
     """
     g = c.g
     h = 0.5 * LOG2E
     l11 = torch.sqrt(h * g[..., _A].clamp_min(1e-30))
     l21 = h * g[..., _B] / l11
-    l22 = torch.sqrt((h * g[..., _C] - l21 * l21).clamp_min(0.0))
+    l22sq = (h * g[..., _C] - l21 * l21).clamp_min(0.0)
     dx = pix[None, :, None] - c.mxr[:, None, :]  # [B, S, K] (columns)
     dy = pix[None, :, None] - c.myr[:, None, :]  # [B, S, K] (rows)
-    ninf = torch.tensor(-math.inf, dtype=dx.dtype)
-    col = torch.where(dx.abs() <= g[:, None, :, _RX], g[:, None, :, _LOG2O], ninf)
-    vy = l22[:, None, :] * dy
-    row = torch.where(dy.abs() <= g[:, None, :, _RY], -(vy * vy), ninf)
-    u = (l21[:, None, :] * dy)[:, :, None, :] + (l11[:, None, :] * dx)[:, None, :, :]  # [B, S, S, K]
-    arg = row[:, :, None, :] + col[:, None, :, :]
-    arg.addcmul_(u, u, value=-1.0)
+    ux = l11[:, None, :] * dx
+    uy = l21[:, None, :] * dy
+    # 0 inside the box, <= -1e30 * distance outside (exp2 -> 0); arithmetic, not a boolean mask
+    out_x = (g[:, None, :, _RX] - dx.abs()).clamp_max_(0.0).mul_(_OUTSIDE)
+    out_y = (g[:, None, :, _RY] - dy.abs()).clamp_max_(0.0).mul_(_OUTSIDE)
+    col = (g[:, None, :, _LOG2O] - ux * ux).add_(out_x)
+    row = (uy * uy).addcmul_(l22sq[:, None, :], dy * dy).neg_().add_(out_y)
+    arg = row[:, :, None, :] + col[:, None, :, :]  # [B, S, S, K]
+    arg.addcmul_(uy[:, :, None, :], ux[:, None, :, :], value=-2.0)
     alpha = arg.exp2_().clamp_max_(s.alpha_max)
     # keep alpha >= alpha_min: threshold keeps values strictly above its argument
     torch.nn.functional.threshold_(alpha, math.nextafter(s.alpha_min, 0.0), 0.0)
@@ -203,8 +226,16 @@ def _backward_chunks(geom, feat_t, bins, chunks, used, ids, s, grad_out, nf) -> 
     return gbuf
 
 
+def available_cpus() -> int:
+    """CPUs this process may run on."""
+    try:
+        return max(1, len(os.sched_getaffinity(0)))
+    except AttributeError:  # not on Linux
+        return max(1, os.cpu_count() or 1)
+
+
 def _workers(s: RasterSettings) -> int:
-    return s.workers if s.workers > 0 else torch.get_num_threads()
+    return s.workers if s.workers > 0 else available_cpus()
 
 
 class _Composite(torch.autograd.Function):

@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .composite import composite
+from .composite import composite, single_threaded_ops
 from .projection import project_gaussians
 from .settings import RasterSettings
 from .sh import sh_colors
@@ -16,6 +16,28 @@ from .tiling import bin_gaussians
 
 # Accumulated alpha below this gives expected depth 0 (guards the division D / A).
 ALPHA_DEPTH_MIN = 1e-10
+
+
+class _SingleThreadedBackward(torch.autograd.Function):
+    """Identity on the outputs; in backward it makes the rest of this backward pass run torch
+    ops single-threaded (restored by a callback when the pass ends).
+
+    Measured on shared 2-core machines: the projection's backward on [N, ...] tensors is slower
+    with OpenMP threads than without (barrier waits), while the compositor's own backward runs
+    one worker thread per core regardless of this setting.
+    """
+
+    @staticmethod
+    def forward(ctx, *tensors):  # type: ignore[override]
+        return tuple(t.clone() for t in tensors)
+
+    @staticmethod
+    def backward(ctx, *grads):  # type: ignore[override]
+        saved = torch.get_num_threads()
+        if saved != 1:
+            torch.set_num_threads(1)
+            torch.autograd.Variable._execution_engine.queue_callback(lambda: torch.set_num_threads(saved))
+        return grads
 
 
 def _check(name: str, t: Tensor | None, shape: tuple[int | None, ...]) -> None:
@@ -109,6 +131,17 @@ def rasterize(
         means, quats, scales, opacities, sh_coeffs, colors, viewmat, K, width, height,
         sh_degree, means_cov, means_sh, background,
     )  # fmt: skip
+    with single_threaded_ops():
+        return _rasterize(
+            means, quats, scales, opacities, sh_coeffs, viewmat, K, width, height, degree, colors, background,
+            near_plane, far_plane, means_cov, means_sh, settings,
+        )  # fmt: skip
+
+
+def _rasterize(
+    means, quats, scales, opacities, sh_coeffs, viewmat, K, width, height, degree, colors, background,
+    near_plane, far_plane, means_cov, means_sh, settings,
+):  # fmt: skip
     dtype = means.dtype
     viewmat, K = viewmat.to(dtype), K.to(dtype)
     proj = project_gaussians(
@@ -139,6 +172,8 @@ def rasterize(
     if background is not None:
         image = image + (1.0 - acc) * background.to(dtype)
     depth = img[..., 3:4] / acc.clamp_min(ALPHA_DEPTH_MIN)
+    if settings.single_threaded_backward and torch.is_grad_enabled() and image.requires_grad:
+        image, acc, depth = _SingleThreadedBackward.apply(image, acc, depth)
     info: dict[str, Any] = {
         "means2d": proj.means2d,
         "radii": proj.radii,

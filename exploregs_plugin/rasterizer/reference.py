@@ -72,9 +72,14 @@ def reference_rasterize(
     means_cov: Tensor | None = None,
     means_sh: Tensor | None = None,
     settings: RasterSettings | None = None,
+    window: tuple[int, int, int, int] | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, Tensor]:
-    """Same arguments as ``rasterize``; returns image [H, W, 3], alpha [H, W, 1],
-    expected depth [H, W, 1] and means2d [N, 2] (in the dtype of ``means``)."""
+    """Same arguments as ``rasterize``; returns image [h, w, 3], alpha [h, w, 1],
+    expected depth [h, w, 1] and means2d [N, 2] (in the dtype of ``means``).
+
+    ``window = (x0, y0, w, h)`` evaluates only those pixels of the width x height image (the
+    camera model is unchanged); None = the whole image.
+    """
     s = settings or RasterSettings()
     dt = means.dtype
     mc = means if means_cov is None else means_cov
@@ -118,6 +123,7 @@ def reference_rasterize(
         rx = torch.ceil(s.sigma_radius * torch.sqrt(cxx))
         ry = torch.ceil(s.sigma_radius * torch.sqrt(cyy))
 
+    means2d = torch.stack([u, v], -1)
     if colors is not None:
         col = colors.to(dt)
     else:
@@ -128,7 +134,15 @@ def reference_rasterize(
         basis = [f(d[:, 0], d[:, 1], d[:, 2]) for lvl in range(deg + 1) for f in _SH[lvl]]
         col = torch.clamp(torch.einsum("nb,nbc->nc", torch.stack(basis, -1), sh_coeffs[:, : len(basis)]) + 0.5, min=0)
 
-    jj, ii = torch.meshgrid(torch.arange(height, dtype=dt), torch.arange(width, dtype=dt), indexing="ij")
+    x0, y0, ww, hh = (0, 0, width, height) if window is None else window
+    jj, ii = torch.meshgrid(torch.arange(y0, y0 + hh, dtype=dt), torch.arange(x0, x0 + ww, dtype=dt), indexing="ij")
+    # Gaussians whose support box misses the window contribute nothing: drop them early.
+    with torch.no_grad():
+        near_win = alive & (u + rx >= x0 + 0.5) & (u - rx <= x0 + ww - 0.5) & (v + ry >= y0 + 0.5)
+        near_win = near_win & (v - ry <= y0 + hh - 0.5)
+    keep = torch.nonzero(near_win).squeeze(1)
+    u, v, rx, ry, op, col, depth, alive = (t[keep] for t in (u, v, rx, ry, op, col, depth, alive))
+    cxx, cyy, cxy, det = (t[keep] for t in (cxx, cyy, cxy, det))
     px = (ii.reshape(-1) + 0.5)[:, None]
     py = (jj.reshape(-1) + 0.5)[:, None]
     ddx = px - u[None, :]
@@ -157,8 +171,8 @@ def reference_rasterize(
         rgb = rgb + trans[:, None] * background.to(dt)
     ed = dep / torch.clamp(acc, min=1e-10)
     return (
-        rgb.reshape(height, width, 3),
-        acc.reshape(height, width, 1),
-        ed.reshape(height, width, 1),
-        torch.stack([u, v], -1),
+        rgb.reshape(hh, ww, 3),
+        acc.reshape(hh, ww, 1),
+        ed.reshape(hh, ww, 1),
+        means2d,
     )

@@ -27,9 +27,12 @@ class RasterSettings:
     """Scale opacity by sqrt(det(cov2d) / det(cov2d + eps2d I)) (the anti-aliased 3DGS variant)."""
     chunk_elements: int = 1 << 17
     """Target pixel x pair count of one compositing chunk (keeps temporaries cache-sized)."""
+    single_threaded_backward: bool = True
+    """Run the backward pass of a render (projection included) with single-threaded torch ops;
+    the compositor still uses ``workers`` threads. Faster on small shared machines."""
     workers: int = 0
     """Compositing threads, each running single-threaded torch ops on its own chunks
-    (0 = torch.get_num_threads()). Results agree across settings up to float rounding."""
+    (0 = the CPUs this process may use). Results agree across settings up to float rounding."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.alpha_min < self.alpha_max < 1.0:

@@ -4,7 +4,7 @@ from . import ops
 from .base import StepContext, Strategy, StrategyError
 from .budget import BUDGET_PRESETS, ExplorationBudget, resolve_budget, scaled_budget
 from .default import DefaultStrategy
-from .mcmc import MCMCStrategy, random_initial_points
+from .mcmc import MCMCStrategy
 from .perturbation import NoiseMixin, RayPerturbationMixin, position_noise
 from .ray import RayPerturbationStrategy
 from .registry import ENTRY_POINT_GROUP, StrategyPluginError, available_strategies, builtin_strategies
@@ -34,7 +34,6 @@ __all__ = [
     "builtin_strategies",
     "ops",
     "position_noise",
-    "random_initial_points",
     "resolve_budget",
     "scaled_budget",
 ]

@@ -16,6 +16,7 @@ Call shape (the same as gsplat's, so strategies can be reused across trainers)::
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass
 from typing import Any, ClassVar, TypeVar
 
@@ -128,7 +129,7 @@ class Strategy:
         ``stats`` holds the per-Gaussian statistics (first dimension N) that the ops keep
         aligned with the rows; it starts empty and is filled on first use.
         """
-        if not (scene_scale > 0.0) or scene_scale != scene_scale or scene_scale == float("inf"):
+        if not (math.isfinite(scene_scale) and scene_scale > 0.0):
             raise StrategyError(f"initialize_state: scene_scale must be positive and finite, got {scene_scale}")
         center = torch.zeros(3) if scene_center is None else torch.as_tensor(scene_center, dtype=torch.float32).reshape(3)
         return {"scene_scale": float(scene_scale), "scene_center": center.clone(), "stats": {}}

@@ -29,19 +29,6 @@ MCMC_STOP_FRACTION = 25_000 / 30_000
 """3DGS-MCMC refines until step 25k of 30k; a run of any length stops at the same fraction."""
 
 
-def random_initial_points(
-    n: int, extent: float, generator: torch.Generator, center: Tensor | None = None
-) -> tuple[Tensor, Tensor]:
-    """Random initialisation of 3DGS-MCMC: (points [n, 3] uniform in a cube of half-side
-    ``extent`` around ``center``, colours [n, 3] uniform in [0, 1])."""
-    if n <= 0 or not extent > 0:
-        raise ValueError(f"random_initial_points: n and extent must be positive, got {n}, {extent}")
-    points = (torch.rand(n, 3, generator=generator) * 2.0 - 1.0) * extent
-    if center is not None:
-        points = points + center.reshape(1, 3).to(points.dtype)
-    return points, torch.rand(n, 3, generator=generator)
-
-
 @dataclass
 class MCMCStrategy(NoiseMixin, Strategy):
     """3DGS-MCMC: relocation of dead Gaussians, 5% growth to cap_max, noise after every step."""
@@ -58,12 +45,6 @@ class MCMCStrategy(NoiseMixin, Strategy):
     """Weight of the L1 scale regulariser (mean activated scale)."""
     noise_mode: NoiseMode = "isotropic"
     """Position noise: 'isotropic' (3DGS-MCMC) or 'ray' (projected onto the camera ray)."""
-    random_init: bool = False
-    """Initialise from random points instead of the sparse point cloud (read by the model)."""
-    init_num_points: int = 10_000
-    """Number of random initial points when random_init is set."""
-    init_extent: float = 3.0
-    """Random initial points fill a cube of this half-side, in units of the scene extent."""
 
     def __post_init__(self) -> None:
         super().__post_init__()

@@ -178,11 +178,22 @@ class SeedingMixin(BudgetMixin):
             and ctx.step % self.seed_every == 0
         ):
             seeded = self.seed(ctx.params, ctx.optimizers, ctx.state, ctx.rng("seeding"))
-        flag = ctx.state["stats"].get(SEED_FLAG)
         counts["seeded"] = seeded
-        counts["seeds_alive"] = int(flag.sum()) if flag is not None else 0
-        counts["seeds_unseen"] = int(((flag > 0) & (ctx.state["stats"][SEED_SEEN] == 0)).sum()) if flag is not None else 0
         return counts
+
+    def seed_summary(self, state: dict[str, Any]) -> dict[str, int]:
+        """Current totals (not events): ``seeds_alive``, seeds and their descendants still in
+        the set, and ``seeds_unseen``, those that no training view has seen since they were
+        added (no gradient ever reaches them, so only pruning or the end of the run removes them).
+        """
+        flag = state["stats"].get(SEED_FLAG)
+        if flag is None:
+            return {"seeds_alive": 0, "seeds_unseen": 0}
+        alive = flag > 0
+        return {
+            "seeds_alive": int(alive.sum()),
+            "seeds_unseen": int((alive & (state["stats"][SEED_SEEN] == 0)).sum()),
+        }
 
     def seed(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator) -> int:
         """Append up to n_seed seeds (fewer under cap_max; none when N = 0: no box)."""

@@ -42,7 +42,7 @@ class ViewerConfig:
     thumbnail_height: int = 64
     """Height in pixels of the frustum thumbnails."""
     frustum_scale: float | None = None
-    """Length of the drawn camera frustums in world units (unset: 5% of the scene extent)."""
+    """Length of the drawn camera frustums in world units (unset: 3% of the scene extent)."""
     max_points: int = 100_000
     """Largest number of initial points shown (evenly subsampled beyond it)."""
     point_size: float | None = None

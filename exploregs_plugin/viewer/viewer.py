@@ -35,7 +35,7 @@ _RECENT_STEPS = 20
 _STATS_INTERVAL = 0.25
 """Seconds between stats refreshes sent to the browser (steps can be much faster)."""
 _FRUSTUM_COLOR = (40, 90, 200)
-_FRUSTUM_FRACTION = 0.05  # default frustum length: this x scene extent
+_FRUSTUM_FRACTION = 0.03  # default frustum length: this x scene extent
 _POINT_FRACTION = 0.003  # default point size: this x scene extent
 _UNHIDE_FRACTION = 0.5  # a hidden frustum shows again once the view is this x its length away
 

@@ -1,0 +1,1 @@
+"""Example ExploreGS plugin: an opacity-budget strategy and a method that uses it."""

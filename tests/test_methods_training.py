@@ -1,0 +1,83 @@
+"""Each built-in method, trained briefly on the tiny scene, changes the Gaussian set as it claims.
+
+With 30 steps the resolved schedule densifies in steps (0, 15) every 10 steps, so ADC and
+seeding fire at step 10 and random splitting on steps 1..14; MCMC refines until 25/30 of the
+run, at steps 10 and 20.
+"""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from exploregs_plugin.method_configs import get_method
+from exploregs_plugin.trainer import Trainer
+
+STEPS = 30
+
+
+def train_method(name: str, run_dir, **strategy_fields) -> tuple[Trainer, dict]:
+    from dataclasses import replace
+
+    config = get_method(name).config
+    strategy = replace(config.pipeline.strategy, **strategy_fields)
+    config = replace(config, data="builtin:tiny", max_steps=STEPS, run_dir=run_dir, quiet=True,
+                     tensorboard=False, eval_count=1, save_eval_images=False, checkpoint_every=1000,
+                     pipeline=replace(config.pipeline, strategy=strategy))
+    trainer = config.setup()
+    initial = trainer.pipeline.model.num_gaussians
+    metrics = trainer.train()
+    metrics["initial_gaussians"] = initial
+    return trainer, metrics
+
+
+def test_schedule_of_these_tests():
+    trainer_schedule = get_method("exploregs-default").config.schedule.resolve(STEPS)
+    assert (trainer_schedule.refine_start, trainer_schedule.refine_stop, trainer_schedule.refine_every) == (0, 15, 10)
+
+
+def test_seeding_adds_exactly_n_seed_per_densification_step(tmp_path, tiny_scene_dir):
+    trainer, m = train_method("exploregs-seed", tmp_path, n_seed=17)
+    counts = m["strategy_counts"]
+    assert counts["seeded"] == 17  # one seeding step (10) in the window
+    assert m["exploration"]["seeds_alive"] >= 0
+    assert "random_split" not in counts or counts["random_split"] == 0
+    assert m["num_gaussians"] == m["initial_gaussians"] + counts["cloned"] + counts["split"] + 17 - counts["pruned"]
+
+
+def test_splitting_splits_n_split_every_step_of_the_window(tmp_path, tiny_scene_dir):
+    trainer, m = train_method("exploregs-split", tmp_path, n_split=5)
+    counts = m["strategy_counts"]
+    assert counts["random_split"] == 5 * 14  # steps 1..14
+    assert counts.get("seeded", 0) == 0
+    # a split replaces one Gaussian by two: +1 each, like ADC's split
+    assert m["num_gaussians"] == (m["initial_gaussians"] + counts["cloned"] + counts["split"]
+                                  + counts["random_split"] - counts["pruned"])
+
+
+def test_seedsplit_does_both(tmp_path, tiny_scene_dir):
+    trainer, m = train_method("exploregs-seedsplit", tmp_path, n_seed=9, n_split=3)
+    counts = m["strategy_counts"]
+    assert counts["seeded"] == 9 and counts["random_split"] == 3 * 14
+    assert m["num_gaussians"] == (m["initial_gaussians"] + counts["cloned"] + counts["split"]
+                                  + counts["random_split"] + counts["seeded"] - counts["pruned"])
+
+
+def test_ray_perturbation_moves_gaussians_every_step(tmp_path, tiny_scene_dir):
+    trainer, m = train_method("exploregs-ray", tmp_path)
+    assert m["strategy_counts"]["perturbed"] > 0
+    assert m["strategy_counts"]["cloned"] + m["strategy_counts"]["split"] > 0
+
+
+@pytest.mark.parametrize("name", ["exploregs-mcmc", "exploregs-mcmc-ray"])
+def test_mcmc_grows_five_percent_and_never_deletes(tmp_path, tiny_scene_dir, name):
+    trainer, m = train_method(name, tmp_path, cap_max=10_000)
+    n0 = m["initial_gaussians"]
+    counts = m["strategy_counts"]
+    grown = int(1.05 * int(1.05 * n0))  # MCMC refines until 25/30 of the run: steps 10 and 20
+    assert counts["added"] == grown - n0
+    assert m["num_gaussians"] == grown  # relocation reuses dead Gaussians, never deletes
+    assert counts["perturbed"] > 0
+    capped_trainer, capped = train_method(name, tmp_path / "capped", cap_max=n0 + 3)
+    assert capped["num_gaussians"] == n0 + 3
+    assert torch.isfinite(capped_trainer.pipeline.params["means"]).all()
