@@ -27,7 +27,7 @@ class MethodSpecification:
     description: str
 
 
-class MethodRegistryError(RuntimeError):
+class MethodRegistryError(ValueError):
     """A method name is unknown, or a plugin's method could not be loaded."""
 
 

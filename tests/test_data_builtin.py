@@ -162,3 +162,21 @@ def test_builtin_bad_names_and_settings(tmp_path: Path) -> None:
     (tmp_path / "full" / "x").write_text("x")
     with pytest.raises(DataError, match="not empty"):
         make_scene(SMALL, tmp_path / "full")
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("name", ["default", "farside", "nearside", "combined"])
+def test_presets_contain_their_traps(name: str) -> None:
+    """Test views of far-side scenes are largely distant content with few SfM points on it;
+    near-side scenes have surface seen by few training views."""
+    preset = PRESETS[name]
+    scene = generate(preset)
+    test_ids = [scene.names.index(n) for n in scene.test]
+    labels = scene.labels[test_ids]
+    far_share = np.mean(labels == REGION_LABELS["far"])
+    occluded_share = np.mean(labels == REGION_LABELS["occluded"])
+    far_points = np.mean(np.linalg.norm(scene.points, axis=1) > preset.far_radius)
+    if preset.layout in ("farside", "combined"):
+        assert far_share > 0.3 and far_points < 0.25 * far_share
+    if preset.layout in ("nearside", "combined"):
+        assert occluded_share > 0.08

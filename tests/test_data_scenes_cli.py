@@ -40,3 +40,15 @@ def test_list_prints_every_preset(capsys: pytest.CaptureFixture) -> None:
     printed = capsys.readouterr().out
     for name in PRESETS:
         assert name in printed
+
+
+def test_stats_describes_a_generated_scene(tiny_scene_dir: Path, tmp_path: Path,
+                                           capsys: pytest.CaptureFixture) -> None:
+    assert main(["stats", str(tiny_scene_dir)]) == 0
+    stats = json.loads(capsys.readouterr().out)
+    assert (stats["train_views"], stats["test_views"], stats["points"]) == (8, 2, 400)
+    shares = stats["test_other_share"] + stats["test_far_share"] + stats["test_occluded_share"]
+    assert shares == pytest.approx(1.0)
+    assert 0 < stats["far_points_share"] < stats["test_far_share"]
+    assert main(["stats", str(tmp_path)]) == 2
+    assert "not a generated scene" in capsys.readouterr().err

@@ -5,6 +5,7 @@ loaded, a sharp ("rest") frame rendered by our rasterizer is awaited, and the sc
 show magenta over the disc where the Gaussian is nearly opaque and nowhere far from it. The
 Gaussian is then removed: the magenta must go while a training-camera frustum (green
 thumbnail) stays visible, so viser's own scene elements cannot pass the test on their own.
+Finally a click on that thumbnail must move the browser's camera to that training camera.
 
 Needs ``/usr/bin/chromium`` (``apt-get install -y chromium``) and ``pip install playwright``
 (no ``playwright install``: the Debian browser is used); skipped with the reason otherwise.
@@ -43,6 +44,7 @@ SIGMA = 0.6  # world standard deviation of the Gaussian
 MAGENTA = (0.95, 0.1, 0.85)
 THUMB_GREEN = (0.1, 0.8, 0.2)
 TIMEOUT = 30.0
+CAMERA_1 = (-1.6, 0.8, -1.5)  # a second training camera whose frustum is in view, lower left
 
 
 def gaussians(count: int) -> dict[str, torch.Tensor]:
@@ -80,6 +82,11 @@ def screenshot(page) -> np.ndarray:
     return np.asarray(Image.open(BytesIO(page.screenshot())).convert("RGB"))
 
 
+def steady(a: np.ndarray, b: np.ndarray) -> bool:
+    """Two screenshots show the same picture (the browser has finished any transition)."""
+    return bool(np.abs(a.astype(np.int16) - b.astype(np.int16)).max() <= 3)
+
+
 def wait_for(condition, what: str):
     deadline = time.monotonic() + TIMEOUT
     while time.monotonic() < deadline:
@@ -91,7 +98,7 @@ def wait_for(condition, what: str):
 
 
 def test_gaussian_rendered_in_chromium() -> None:
-    scene = ViewerScene.from_params(gaussians(1), cameras=[camera_at(0.0, 0.0, -DISTANCE), camera_at(-1.6, 0.8, -1.5)])
+    scene = ViewerScene.from_params(gaussians(1), cameras=[camera_at(0.0, 0.0, -DISTANCE), camera_at(*CAMERA_1)])
     scene.thumbnail = lambda i: torch.tensor(THUMB_GREEN).expand(120, 160, 3)
     viewer = ViewerConfig(port=0, frustum_scale=0.6, rest_resolution=512).setup(scene, training=False)
     try:
@@ -123,14 +130,22 @@ def check_gaussian_then_removed(page, viewer) -> None:
     # Magenta (r > 90 of ~242) where alpha > ~0.37, i.e. within 1.4 sigma.
     expected_area = math.pi * (1.4 * sigma_px) ** 2
 
+    shots: list[tuple[object, np.ndarray]] = []
+
     def rest_frame_with_gaussian():
-        if viewer.last_frame is None or viewer.last_frame[2] != "rest":
+        frame = viewer.last_frame  # a sharp frame of the initial view (the browser may report
+        # intermediate cameras while it applies the initial position and fov)
+        if frame is None or frame.quality != "rest" or abs(frame.camera.fov - FOV_Y) > 1e-3 \
+                or not np.allclose(frame.camera.position, (0.0, 0.0, -DISTANCE), atol=1e-3):
             return None
-        shot = screenshot(page)
+        shots.append((frame, screenshot(page)))
+        if len(shots) < 2 or shots[-2][0] is not frame or not steady(shots[-2][1], shots[-1][1]):
+            return None  # the browser is still bringing this frame on screen
+        shot = shots[-1][1]
         return shot if magenta_mask(shot)[core].mean() > 0.95 else None
 
     shot = wait_for(rest_frame_with_gaussian, "a sharp frame showing the magenta Gaussian")
-    assert viewer.last_frame[0] == 512  # rendered at the rest resolution (longest side)
+    assert max(viewer.last_frame.image.shape) == 512  # rendered at the rest resolution (longest side)
     mask = magenta_mask(shot)
     assert mask[core].mean() > 0.95
     assert mask[far].mean() < 0.002, "magenta far from the Gaussian: not our render"
@@ -149,4 +164,18 @@ def check_gaussian_then_removed(page, viewer) -> None:
 
     shot = wait_for(frame_without_gaussian, "the magenta to disappear after removing the Gaussian")
     assert magenta_mask(shot)[core].mean() < 0.01
-    assert green_mask(shot).sum() > 200, "the training-camera frustum thumbnail should be visible"
+    green = green_mask(shot)
+    assert green.sum() > 200, "the training-camera frustum thumbnail should be visible"
+
+    # Clicking that frustum's thumbnail moves the browser's camera to training camera 1.
+    ys, xs = np.nonzero(green)
+    page.mouse.click(float(xs.mean()), float(ys.mean()))
+    client = next(iter(viewer.server.get_clients().values()))
+    target = np.array(CAMERA_1)
+
+    def jumped():
+        # The one we look through is hidden, the one we left is shown again.
+        frustums = [h.visible for h in viewer._frustums]
+        return True if np.allclose(client.camera.position, target, atol=1e-3) and frustums == [True, False] else None
+
+    wait_for(jumped, "the view to jump to the clicked training camera (and swap the hidden frustum)")

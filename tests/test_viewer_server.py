@@ -142,3 +142,31 @@ def test_eg_view_serves_a_ply(tmp_path: Path) -> None:
         viewer.close()
     with pytest.raises(FileNotFoundError, match="no such"):
         main(ViewArgs(path=tmp_path / "missing.ply", viewer=ViewerConfig(port=0)))
+
+
+def test_viewer_on_a_training_pipeline(tiny_scene_dir: Path) -> None:
+    """The trainer's hooks on a real pipeline: snapshots follow the steps, the Gaussian count
+    follows densification, cameras, thumbnails and initial points come from the datamanager."""
+    from exploregs_plugin.trainer import TrainerConfig
+
+    config = TrainerConfig(data="builtin:tiny", max_steps=3).resolved()
+    pipeline = config.pipeline.setup(config.schedule.resolve(config.max_steps), config.seed)
+    dm = pipeline.datamanager
+    viewer = ViewerConfig(port=0).setup(pipeline, step=0)
+    try:
+        assert len(viewer._frustums) == len(dm.train_cameras)
+        assert all(h.image is not None for h in viewer._frustums)  # tiny has fewer than 64 views
+        assert viewer._points is not None and viewer.scene.extent == pytest.approx(dm.scene_extent)
+        for step in range(2):
+            viewer.wait_if_paused()
+            stats = pipeline.train_step(step)
+            viewer.store.request()  # as the render thread does after each frame
+            viewer.update(step + 1, stats, 0.1)
+        snap = viewer.store.latest()
+        assert snap.step == 2 and snap.num_gaussians == pipeline.model.num_gaussians
+        assert torch.equal(snap.params["means"], pipeline.params["means"].detach())
+        assert "**Iteration:** 2" in viewer._stats_text()
+        viewer.finish(2)
+        assert "finished" in viewer._stats_text()
+    finally:
+        viewer.close()

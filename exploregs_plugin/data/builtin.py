@@ -200,6 +200,7 @@ def make_scene(preset: ScenePreset, out_dir: Path, overwrite: bool = False) -> P
     start = time.perf_counter()
     scene = generate(preset)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
+    os.chmod(tmp, 0o755)  # mkdtemp makes it private; the scene is an ordinary readable folder
     try:
         write_scene(scene, tmp, time.perf_counter() - start)
         if out_dir.exists():

@@ -25,7 +25,7 @@ PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
 UNDISTORT_HINT = (
     "undistort the dataset first (for COLMAP: `colmap image_undistorter --image_path images "
     "--input_path sparse/0 --output_path undistorted`, then use `undistorted/`), or let the loader "
-    "undistort it into a cache (--data.undistort True)"
+    "undistort it into a cache (DataManagerConfig undistort=True, the default)"
 )
 
 

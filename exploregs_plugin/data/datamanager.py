@@ -35,7 +35,7 @@ class DataManagerConfig:
     use_dataset_split: bool = True
     """Use the dataset's own train/test lists (split.json, train_filenames, Blender files)."""
     seed: int = 0
-    """Seed of the training camera order and of random initial points."""
+    """Seed of the training camera order and of random initial points (eg-train sets it from --seed)."""
     normalize: bool = True
     """Translate and uniformly scale the scene so camera centres have mean 0 and max radius 1."""
     undistort: bool = True

@@ -173,17 +173,18 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0 = torch default)")
     ap.add_argument("--tile-size", type=int, default=16, help="RasterSettings.tile_size")
     ap.add_argument("--chunk-elements", type=int, default=RasterSettings.chunk_elements)
+    ap.add_argument("--workers", type=int, default=0, help="RasterSettings.workers (0 = available CPUs)")
     ap.add_argument("--child", nargs=2, metavar=("SCENE", "METHOD"), help=argparse.SUPPRESS)
     a = ap.parse_args(argv)
     if a.threads > 0:
         torch.set_num_threads(a.threads)
-    settings = RasterSettings(tile_size=a.tile_size, chunk_elements=a.chunk_elements)
+    settings = RasterSettings(tile_size=a.tile_size, chunk_elements=a.chunk_elements, workers=a.workers)
     if a.child:
         print(json.dumps(run_child(a.child[0], a.child[1], a.repeats, settings)))
         return
     scenes = [s for s in a.scenes if s != "beer" or (SCENES_DIR / "beer").is_dir()]
     print(f"# torch {torch.__version__}, {os.cpu_count()} CPUs, threads={a.threads or 'default'}, "
-          f"tile {a.tile_size}, chunk {a.chunk_elements}, repeats {a.repeats}")  # fmt: skip
+          f"workers={a.workers or 'default'}, tile {a.tile_size}, chunk {a.chunk_elements}, repeats {a.repeats}")  # fmt: skip
     print("| scene | N | W x H | method | fwd s (cpu) | fwd+bwd s (cpu) | speed-up | peak RSS MiB | pairs | "
           "Mpairs/s | image err max / mean | grad rel err | load |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
@@ -192,7 +193,7 @@ def main(argv: list[str] | None = None) -> None:
         for method in reversed(a.methods):  # baseline first, so the fast row can show the ratio
             cmd = [sys.executable, "-m", "exploregs_plugin.rasterizer.bench", "--child", scene, method,
                    "--repeats", str(a.repeats), "--threads", str(a.threads), "--tile-size", str(a.tile_size),
-                   "--chunk-elements", str(a.chunk_elements)]  # fmt: skip
+                   "--chunk-elements", str(a.chunk_elements), "--workers", str(a.workers)]  # fmt: skip
             res = subprocess.run(cmd, capture_output=True, text=True, check=False)
             if res.returncode != 0:
                 raise RuntimeError(f"bench child {scene}/{method} failed:\n{res.stderr}")

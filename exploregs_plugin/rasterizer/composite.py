@@ -38,8 +38,7 @@ from .tiling import TileBins, gather_table, plan_chunks
 
 LOG2E = 1.4426950408889634
 # Columns of the per-Gaussian geometry table gathered per chunk.
-_MX, _MY, _A, _B, _C, _O, _LOG2O, _RX, _RY = range(9)
-_NGEOM = 9
+_MX, _MY, _A, _B, _C, _O, _LOG2O, _RX, _RY, _L11, _L21, _L22SQ = range(12)
 # Exponent penalty (log2 units) per pixel of distance outside the support box: a pixel
 # outside by more than ~1e-28 px gets alpha exactly 0.
 _OUTSIDE = 1e30
@@ -119,9 +118,11 @@ class _Chunk:
         self.bsz, self.k = bsz, k
 
 
-def _chunk_alpha(c: _Chunk, pix: Tensor, s: RasterSettings) -> Tensor:
+def _chunk_alpha(g: Tensor, mxr: Tensor, myr: Tensor, pix: Tensor, alpha_max: float, alpha_keep: float) -> Tensor:
     """Alphas of a chunk after clamp and skip: [B, P, K].
 
+    g: [B, K, 12] gathered geometry; mxr, myr: [B, K] means relative to the tile centre;
+    pix: [S] pixel offsets; alpha values <= ``alpha_keep`` are skipped (set to 0).
     Through the Cholesky factor of the conic, 0.5 log2(e) q = u^2 + v^2 with
     u = l11 dx + l21 dy and v = l22 dy, and alpha = exp2(log2 o - u^2 - v^2). With
     u = ux + uy (ux = l11 dx per column, uy = l21 dy per row) the exponent is
@@ -129,13 +130,10 @@ def _chunk_alpha(c: _Chunk, pix: Tensor, s: RasterSettings) -> Tensor:
     product, so only two passes touch the [B, P, K] tensor before exp2.
     Pixels outside the support box get -inf (alpha 0).
     """
-    g = c.g
-    h = 0.5 * LOG2E
-    l11 = torch.sqrt(h * g[..., _A].clamp_min(1e-30))
-    l21 = h * g[..., _B] / l11
-    l22sq = (h * g[..., _C] - l21 * l21).clamp_min(0.0)
-    dx = pix[None, :, None] - c.mxr[:, None, :]  # [B, S, K] (columns)
-    dy = pix[None, :, None] - c.myr[:, None, :]  # [B, S, K] (rows)
+    bsz, k = mxr.shape
+    l11, l21, l22sq = g[..., _L11], g[..., _L21], g[..., _L22SQ]
+    dx = pix[None, :, None] - mxr[:, None, :]  # [B, S, K] (columns)
+    dy = pix[None, :, None] - myr[:, None, :]  # [B, S, K] (rows)
     ux = l11[:, None, :] * dx
     uy = l21[:, None, :] * dy
     # 0 inside the box, <= -1e30 * distance outside (exp2 -> 0); arithmetic, not a boolean mask
@@ -145,25 +143,48 @@ def _chunk_alpha(c: _Chunk, pix: Tensor, s: RasterSettings) -> Tensor:
     row = (uy * uy).addcmul_(l22sq[:, None, :], dy * dy).neg_().add_(out_y)
     arg = row[:, :, None, :] + col[:, None, :, :]  # [B, S, S, K]
     arg.addcmul_(uy[:, :, None, :], ux[:, None, :, :], value=-2.0)
-    alpha = arg.exp2_().clamp_max_(s.alpha_max)
-    # keep alpha >= alpha_min: threshold keeps values strictly above its argument
-    torch.nn.functional.threshold_(alpha, math.nextafter(s.alpha_min, 0.0), 0.0)
-    return alpha.view(c.bsz, -1, c.k)
+    alpha = arg.exp2_().clamp_max_(alpha_max)
+    # threshold keeps values strictly above its argument
+    torch.nn.functional.threshold_(alpha, alpha_keep, 0.0)
+    return alpha.view(bsz, -1, k)
 
 
-def _transmittance(alpha: Tensor, s: RasterSettings) -> tuple[Tensor, Tensor]:
+def _transmittance(alpha: Tensor, t_keep: float) -> tuple[Tensor, Tensor]:
     """T before each pair [B, P, K] and the inclusion indicator [B, P, K] (1 until the stop, then 0).
 
-    A pair is included when the transmittance after it stays >= T_min; T only decreases, so the
-    excluded pairs form a suffix.
+    A pair is included when the transmittance after it stays above ``t_keep``; T only
+    decreases, so the excluded pairs form a suffix.
     """
-    bsz, p, k = alpha.shape
-    tb = alpha.new_empty(bsz, p, k + 1)
-    tb[..., 0] = 1.0
-    torch.sub(alpha.new_ones(()), alpha, out=tb[..., 1:])
-    tb.cumprod_(-1)
-    keep = torch.nn.functional.threshold(tb[..., 1:], math.nextafter(s.transmittance_min, 0.0), 0.0).sign_()
+    tb = torch.nn.functional.pad(1.0 - alpha, (1, 0), value=1.0).cumprod_(-1)
+    keep = torch.nn.functional.threshold(tb[..., 1:], t_keep, 0.0).sign_()
     return tb[..., :-1], keep
+
+
+def _forward_kernel(g, mxr, myr, pix, alpha_max: float, alpha_keep: float, t_keep: float):
+    """Compositing weights w = alpha T (0 after the stop) [B, P, K] and the largest number of
+    included pairs of any pixel (a 0-d tensor)."""
+    alpha = _chunk_alpha(g, mxr, myr, pix, alpha_max, alpha_keep)
+    t_before, keep = _transmittance(alpha, t_keep)
+    return alpha.mul_(t_before).mul_(keep), keep.sum(-1).amax()
+
+
+def _backward_kernel(g, mxr, myr, pix, gf, alpha_max: float, alpha_keep: float, t_keep: float):
+    """Recomputes the weights w [B, P, K] and returns them with dL/dpower [B, P, K], given
+    gf = dL/dF . f_m [B, P, K] (overwritten)."""
+    alpha = _chunk_alpha(g, mxr, myr, pix, alpha_max, alpha_keep)
+    t_before, keep = _transmittance(alpha, t_keep)
+    free = (alpha < alpha_max).to(alpha.dtype)  # clamp inactive: 1, else 0
+    odds = (alpha / (1.0 - alpha)).mul_(keep).mul_(free)
+    w = alpha.mul_(t_before).mul_(keep)
+    wg = gf.mul_(w)
+    suffix = wg.cumsum(-1)
+    suffix = (suffix[..., -1:] - suffix).mul_(odds)  # S_m alpha_m / (1 - alpha_m)
+    return w, wg.mul_(free).sub_(suffix)
+
+
+def _thresholds(s: RasterSettings) -> tuple[float, float, float]:
+    """(alpha_max, alpha_keep, t_keep): keep alpha >= alpha_min and T >= T_min as strict '>'."""
+    return s.alpha_max, math.nextafter(s.alpha_min, 0.0), math.nextafter(s.transmittance_min, 0.0)
 
 
 def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used):
@@ -171,10 +192,8 @@ def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used):
     for i in ids:
         tiles, k = chunks[i]
         c = _Chunk(geom, feat_t, bins, tiles, k)
-        alpha = _chunk_alpha(c, pix, s)
-        t_before, keep = _transmittance(alpha, s)
-        used[i] = int(keep.sum(-1).max())
-        w = alpha.mul_(t_before).mul_(keep)
+        w, n_used = _forward_kernel(c.g, c.mxr, c.myr, pix, *_thresholds(s))
+        used[i] = int(n_used)
         out[tiles] = torch.bmm(w, c.f.transpose(1, 2))
 
 
@@ -182,48 +201,55 @@ def _backward_chunks(geom, feat_t, bins, chunks, used, ids, s, grad_out, nf) -> 
     dtype = geom.dtype
     pix = _pixel_offsets(bins.tile_size, dtype)
     fm = _moment_features(bins.tile_size, dtype)  # [6, P]
-    gbuf = torch.zeros(geom.shape[0], 6 + nf, dtype=dtype)  # d mx, my, a, b, c, o, features
+    rows: list[Tensor] = []  # per pair: moments, relative mean, dL/dfeatures
+    gids: list[Tensor] = []
     for i in ids:
         tiles, _ = chunks[i]
         if used[i] == 0:
             continue
         c = _Chunk(geom, feat_t, bins, tiles, used[i])
-        alpha = _chunk_alpha(c, pix, s)
-        t_before, keep = _transmittance(alpha, s)
-        free = torch.lt(alpha, s.alpha_max, out=torch.empty_like(alpha))  # clamp inactive: 1, else 0
-        odds = alpha / torch.rsub(alpha, 1.0)
-        odds.mul_(keep).mul_(free)
-        w = alpha.mul_(t_before).mul_(keep)
         gpix = grad_out.index_select(0, tiles)  # [B, P, F+1]
         gf = torch.bmm(gpix, c.f)  # [B, P, K] = dL/dF . f_m
+        w, g_power = _backward_kernel(c.g, c.mxr, c.myr, pix, gf, *_thresholds(s))
         dfeat = torch.bmm(gpix.transpose(1, 2).contiguous(), w)  # [B, F+1, K]
-        wg = gf.mul_(w)
-        suffix = wg.cumsum(-1)
-        suffix = torch.sub(suffix[..., -1:], suffix).mul_(odds)  # S_m alpha_m / (1 - alpha_m)
-        g_power = wg.mul_(free).sub_(suffix)
         mom = torch.matmul(fm, g_power)  # [B, 6, K]: sums of g_power * (1, x, y, x^2, xy, y^2)
-        s0, s1, s2, s3, s4, s5 = mom.unbind(1)
-        mxr, myr = c.mxr, c.myr
-        sdx = s1 - mxr * s0
-        sdy = s2 - myr * s0
-        sdxx = s3 - 2.0 * mxr * s1 + mxr * mxr * s0
-        sdxy = s4 - mxr * s2 - myr * s1 + mxr * myr * s0
-        sdyy = s5 - 2.0 * myr * s2 + myr * myr * s0
-        ca, cb, cc = c.g[..., _A], c.g[..., _B], c.g[..., _C]
-        pair = torch.stack(
-            [
-                ca * sdx + cb * sdy,  # dpower/dmx = a dx + b dy
-                cb * sdx + cc * sdy,  # dpower/dmy = b dx + c dy
-                -0.5 * sdxx,
-                -sdxy,
-                -0.5 * sdyy,
-                s0 / c.g[..., _O].clamp_min(1e-30),  # dalpha/do = alpha / o
-            ],
-            dim=-1,
-        )
-        rows = torch.cat([pair, dfeat[:, :nf].transpose(1, 2)], -1).reshape(c.bsz * c.k, -1)
-        gbuf.index_add_(0, c.gidx, rows)
-    return gbuf
+        row = torch.cat([mom, torch.stack([c.mxr, c.myr], 1), dfeat[:, :nf]], 1)  # [B, 8 + F, K]
+        rows.append(row.transpose(1, 2).reshape(-1, 8 + nf))
+        gids.append(c.gidx)
+    if not rows:
+        return torch.zeros(geom.shape[0], 6 + nf, dtype=dtype)
+    return _pair_gradients(geom, torch.cat(gids), torch.cat(rows), nf)
+
+
+def _pair_gradients(geom: Tensor, gidx: Tensor, rows: Tensor, nf: int) -> Tensor:
+    """Per-Gaussian gradients [M + 1, 6 + F] (mx, my, a, b, c, o, features) from per-pair rows
+    [moments of dL/dpower (6), mean relative to the tile centre (2), dL/dfeatures (F)].
+
+    With dx = x - mxr: sum g dx = s1 - mxr s0, sum g dx^2 = s3 - 2 mxr s1 + mxr^2 s0, and so on;
+    dpower/dmx = a dx + b dy, dpower/dmy = b dx + c dy, dpower/d(a, b, c) = -(dx^2/2, dx dy, dy^2/2).
+    """
+    s0, s1, s2, s3, s4, s5, mxr, myr = rows[:, :8].unbind(1)
+    g = geom.index_select(0, gidx)
+    sdx = s1 - mxr * s0
+    sdy = s2 - myr * s0
+    sdxx = s3 - 2.0 * mxr * s1 + mxr * mxr * s0
+    sdxy = s4 - mxr * s2 - myr * s1 + mxr * myr * s0
+    sdyy = s5 - 2.0 * myr * s2 + myr * myr * s0
+    ca, cb, cc = g[:, _A], g[:, _B], g[:, _C]
+    pair = torch.stack(
+        [
+            ca * sdx + cb * sdy,
+            cb * sdx + cc * sdy,
+            -0.5 * sdxx,
+            -sdxy,
+            -0.5 * sdyy,
+            s0 / g[:, _O].clamp_min(1e-30),  # dalpha/do = alpha / o
+            *rows[:, 8:].unbind(1),
+        ],
+        dim=1,
+    )
+    gbuf = torch.zeros(geom.shape[0], pair.shape[1], dtype=geom.dtype)
+    return gbuf.index_add_(0, gidx, pair)
 
 
 def available_cpus() -> int:
@@ -274,14 +300,19 @@ class _Composite(torch.autograd.Function):
 
 
 def _tables(means2d: Tensor, conics: Tensor, opacities: Tensor, support: Tensor, feats: Tensor) -> tuple[Tensor, Tensor]:
-    """Per-Gaussian geometry [M + 1, 9] and transposed features [F + 1, M + 1] (a last row of
+    """Per-Gaussian geometry [M + 1, 12] and transposed features [F + 1, M + 1] (a last row of
     ones for the alpha). The extra last Gaussian is the padding entry (never drawn)."""
     o = opacities[:, None]
-    geom = torch.cat([means2d, conics, o, torch.log2(o), support], -1)
+    # Cholesky factor of 0.5 log2(e) [[a, b], [b, c]] (see _chunk_alpha), once per Gaussian
+    h = 0.5 * LOG2E
+    l11 = torch.sqrt(h * conics[:, :1].clamp_min(1e-30))
+    l21 = h * conics[:, 1:2] / l11
+    l22sq = (h * conics[:, 2:3] - l21 * l21).clamp_min(0.0)
+    geom = torch.cat([means2d, conics, o, torch.log2(o), support, l11, l21, l22sq], -1)
     pad = torch.zeros(1, geom.shape[1], dtype=geom.dtype)
     pad[0, _LOG2O] = -math.inf
     pad[0, _RX] = pad[0, _RY] = -1.0  # |dx| <= -1 never holds
-    pad[0, _A] = pad[0, _C] = 1.0
+    pad[0, _A] = pad[0, _C] = pad[0, _L11] = 1.0
     geom = torch.cat([geom, pad], 0).detach()
     feat_t = torch.cat([feats, torch.ones_like(feats[:, :1])], -1).detach()
     feat_t = torch.cat([feat_t, torch.zeros_like(feat_t[:1])], 0).T.contiguous()

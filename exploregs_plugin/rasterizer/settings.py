@@ -25,7 +25,7 @@ class RasterSettings:
     """Side of the square screen tiles in pixels."""
     antialiased: bool = False
     """Scale opacity by sqrt(det(cov2d) / det(cov2d + eps2d I)) (the anti-aliased 3DGS variant)."""
-    chunk_elements: int = 1 << 17
+    chunk_elements: int = 1 << 18
     """Target pixel x pair count of one compositing chunk (keeps temporaries cache-sized)."""
     single_threaded_backward: bool = True
     """Run the backward pass of a render (projection included) with single-threaded torch ops;

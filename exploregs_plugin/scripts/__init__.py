@@ -1,1 +1,28 @@
-"""Console entry points."""
+"""Console entry points (eg-train, eg-eval, eg-export, eg-render, eg-view, eg-scenes)."""
+
+from __future__ import annotations
+
+import os
+import sys
+from typing import Any, Callable, TypeVar
+
+from exploregs_plugin.io.checkpoint import CheckpointError
+
+T = TypeVar("T")
+
+USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, CheckpointError)
+"""Problems with the user's input: reported as one clear line, not a traceback."""
+
+
+def run_cli(command: str, main: Callable[[T], Any], args: T) -> Any:
+    """Run ``main(args)``; a user error prints ``COMMAND: error: ...`` and exits with code 2.
+
+    Set EXPLOREGS_DEBUG=1 to get the traceback instead.
+    """
+    try:
+        return main(args)
+    except USER_ERRORS as err:
+        if os.environ.get("EXPLOREGS_DEBUG"):
+            raise
+        print(f"{command}: error: {err}", file=sys.stderr)
+        raise SystemExit(2) from err

@@ -6,15 +6,14 @@ run's own metrics.json is left untouched.
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 
 import tyro
 
 from exploregs_plugin.evaluation import evaluate, write_metrics_json
-from exploregs_plugin.io.checkpoint import CheckpointError
 from exploregs_plugin.runs import load_run
+from exploregs_plugin.scripts import run_cli
 
 
 @dataclass
@@ -40,12 +39,7 @@ def main(args: EvalArgs) -> dict:
 
 
 def entrypoint() -> None:
-    args = tyro.cli(EvalArgs, description="Re-evaluate a trained ExploreGS run.")
-    try:
-        main(args)
-    except (ValueError, FileNotFoundError, CheckpointError) as err:
-        print(f"eg-eval: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from err
+    run_cli("eg-eval", main, tyro.cli(EvalArgs, description="Re-evaluate a trained ExploreGS run."))
 
 
 if __name__ == "__main__":

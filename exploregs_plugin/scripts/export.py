@@ -6,17 +6,16 @@ undone), so it lines up with the dataset's own cameras and points in other tools
 
 from __future__ import annotations
 
-import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
 import tyro
 
-from exploregs_plugin.io.checkpoint import CheckpointError
 from exploregs_plugin.io.ply import PlyExport, export_ply, normalization_terms
 from exploregs_plugin.io.scene_source import dataset_normalization
 from exploregs_plugin.runs import load_run
+from exploregs_plugin.scripts import run_cli
 
 
 @dataclass
@@ -46,12 +45,7 @@ def main(args: ExportArgs) -> PlyExport:
 
 
 def entrypoint() -> None:
-    args = tyro.cli(ExportArgs, description="Export a trained ExploreGS run as a standard 3DGS PLY.")
-    try:
-        main(args)
-    except (ValueError, FileNotFoundError, CheckpointError) as err:
-        print(f"eg-export: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from err
+    run_cli("eg-export", main, tyro.cli(ExportArgs, description="Export a trained ExploreGS run as a standard 3DGS PLY."))
 
 
 if __name__ == "__main__":

@@ -14,10 +14,10 @@ import torch
 import tyro
 
 from exploregs_plugin.io.camera_path import CameraOrder, Trajectory, trajectory_cameras
-from exploregs_plugin.io.checkpoint import CheckpointError
 from exploregs_plugin.io.frames import RenderedSequence, RenderMode, render_sequence
 from exploregs_plugin.io.ply import normalization_terms
 from exploregs_plugin.io.scene_source import PlyFrame, RenderableScene, load_scene
+from exploregs_plugin.scripts import run_cli
 
 
 @dataclass
@@ -113,12 +113,7 @@ def main(args: RenderArgs) -> RenderedSequence:
 
 
 def entrypoint() -> None:
-    args = tyro.cli(RenderArgs, description="Render an ExploreGS run or a 3DGS PLY to frames and video.")
-    try:
-        main(args)
-    except (ValueError, FileNotFoundError, CheckpointError) as err:
-        print(f"eg-render: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from err
+    run_cli("eg-render", main, tyro.cli(RenderArgs, description="Render an ExploreGS run or a 3DGS PLY to frames and video."))
 
 
 if __name__ == "__main__":

@@ -1,6 +1,7 @@
-"""eg-scenes: write a built-in ground-truth scene anywhere, or list the presets.
+"""eg-scenes: write a built-in ground-truth scene anywhere, list the presets, describe a scene.
 
     eg-scenes list
+    eg-scenes stats scenes/default               # what docs/data.md tabulates
     eg-scenes make default --out scenes/default
     eg-scenes make farside --out /tmp/fs --width 320 --height 240 --views 48 --seed 3
 """
@@ -14,10 +15,14 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Annotated, Union
 
+import numpy as np
 import tyro
+from PIL import Image
 
 from exploregs_plugin.data.builtin import PRESETS, make_scene, preset_by_name
+from exploregs_plugin.data.colmap import read_colmap
 from exploregs_plugin.data.errors import DataError
+from exploregs_plugin.data.parsed import REGION_LABELS, ParseOptions
 
 
 @dataclass
@@ -47,10 +52,43 @@ class List:
     """Print the presets and their settings."""
 
 
+@dataclass
+class Stats:
+    """Print a generated scene's split, sparse points and test-view region fractions."""
+
+    folder: Annotated[Path, tyro.conf.Positional, tyro.conf.arg(metavar="DIR")]
+    """A folder written by `eg-scenes make` (or a cached builtin scene)."""
+
+
 Command = Union[
     Annotated[Make, tyro.conf.subcommand("make")],
     Annotated[List, tyro.conf.subcommand("list")],
+    Annotated[Stats, tyro.conf.subcommand("stats")],
 ]
+
+
+def scene_stats(folder: Path) -> dict[str, float | int]:
+    """Split sizes, point count, share of points beyond the far radius, region shares over the
+    test views, size on disk (MB)."""
+    meta = json.loads((folder / "scene.json").read_text())
+    scene = read_colmap(folder, ParseOptions())
+    test = set(scene.split["test"]) if scene.split else set()
+    labels = [np.asarray(Image.open(im.mask_path)) for im in scene.images
+              if im.name in test and im.mask_path is not None]
+    labels_all = np.stack(labels) if labels else np.zeros((0,), dtype=np.uint8)
+    points = scene.points if scene.points is not None else np.zeros((0, 3))
+    far_points = np.linalg.norm(points, axis=1) > meta["preset"]["far_radius"]
+    stats: dict[str, float | int] = {
+        "train_views": len(scene.images) - len(test),
+        "test_views": len(test),
+        "points": len(points),
+        "far_points_share": float(far_points.mean()) if len(points) else 0.0,
+    }
+    for region, value in REGION_LABELS.items():
+        stats[f"test_{region}_share"] = float((labels_all == value).mean()) if labels_all.size else 0.0
+    stats["megabytes"] = sum(f.stat().st_size for f in folder.rglob("*") if f.is_file()) / 1e6
+    stats["generation_seconds"] = meta["seconds"]
+    return stats
 
 
 def main(argv: list[str]) -> int:
@@ -58,6 +96,14 @@ def main(argv: list[str]) -> int:
     if isinstance(command, List):
         for name, preset in PRESETS.items():
             print(f"{name:16s} {json.dumps(asdict(preset))}")
+        return 0
+    if isinstance(command, Stats):
+        try:
+            stats = scene_stats(command.folder)
+        except (DataError, OSError, KeyError, ValueError) as err:
+            print(f"eg-scenes: error: {command.folder}: not a generated scene ({err})", file=sys.stderr)
+            return 2
+        print(json.dumps(stats, indent=1))
         return 0
     try:
         preset = preset_by_name(command.name)

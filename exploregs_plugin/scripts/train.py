@@ -6,12 +6,11 @@
 
 from __future__ import annotations
 
-import os
 import sys
 
 import tyro
 
-from exploregs_plugin.io.checkpoint import CheckpointError
+from exploregs_plugin.scripts import run_cli
 from exploregs_plugin.method_configs import MethodRegistryError, all_methods
 from exploregs_plugin.pipeline import NonFiniteError
 from exploregs_plugin.trainer import Trainer, TrainerConfig
@@ -58,12 +57,7 @@ def main(argv: list[str]) -> dict:
 
 
 def entrypoint() -> None:
-    try:
-        main(sys.argv[1:])
-    except (ValueError, FileNotFoundError, CheckpointError, MethodRegistryError) as err:
-        if os.environ.get("EXPLOREGS_DEBUG"):
-            raise
-        raise _fail(str(err), 2) from err
+    run_cli("eg-train", main, sys.argv[1:])
 
 
 if __name__ == "__main__":

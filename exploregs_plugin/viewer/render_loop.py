@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 from typing import Literal
 
 import numpy as np
+import torch
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.viewer.config import OutputKind
@@ -103,6 +104,7 @@ class Frame:
     quality: Quality
     step: int
     num_gaussians: int
+    camera: BrowserCamera
 
 
 RenderFn = Callable[[Snapshot, Camera, ViewSettings], np.ndarray]
@@ -204,7 +206,7 @@ class RenderLoop:
         start = self._clock()
         try:
             image = self._render(snapshot, view.camera.camera(resolution), settings)
-            self._send(Frame(client_id, image, quality, snapshot.step, snapshot.num_gaussians))
+            self._send(Frame(client_id, image, quality, snapshot.step, snapshot.num_gaussians, view.camera))
         except Exception as err:  # a failed frame must not end the thread (nor training)
             self.errors += 1
             print(f"viewer: render failed ({type(err).__name__}: {err})", file=sys.stderr)
@@ -219,6 +221,8 @@ class RenderLoop:
 
     # ------------------------------------------------------------------ thread
     def _run(self) -> None:
+        # Denormal flushing is per thread (the CPU's MXCSR): tiny alphas slow rendering too.
+        torch.set_flush_denormal(True)
         while not self._stop.is_set():
             self._wake.clear()
             sleep = self.step()

@@ -87,7 +87,7 @@ class Viewer:
         self._closed = False
         self._frame_lock = threading.Lock()
         self.frames_sent = 0
-        self.last_frame: tuple[int, int, str] | None = None  # (width, height, quality)
+        self.last_frame: Frame | None = None  # the latest frame sent to any browser
 
         self.server = viser.ViserServer(host=config.host, port=config.port, label="ExploreGS", verbose=False)
         self.port = int(self.server.get_port())
@@ -108,10 +108,15 @@ class Viewer:
         self._frustums: list[Any] = []
         self._hidden_frustum: int | None = None
         self._hidden_reached = False
+        self._frustum_lock = threading.RLock()  # camera and click callbacks arrive on viser's pool
         self._show_cameras = True
         self._points: Any = None
-        self._add_scene()
-        self._add_gui()
+        try:
+            self._add_scene()
+            self._add_gui()
+        except BaseException:
+            self.server.stop()  # do not leave a server thread holding the port
+            raise
         self.server.on_client_connect(self._on_connect)
         self.server.on_client_disconnect(lambda client: self.loop.remove(client.client_id))
         self.loop.start()
@@ -163,40 +168,42 @@ class Viewer:
             initial.fov = vertical_fov(camera)
             self._hide_frustum(0)
         else:
-            initial.position = tuple(centre + 2.5 * self.scene.extent * np.array([1.0, 1.0, 0.6]) / math.sqrt(2.36))
+            direction = np.array([1.0, 1.0, 0.6])  # from above and aside (viser's default up is +z)
+            initial.position = tuple(centre + 2.5 * self.scene.extent * direction / np.linalg.norm(direction))
             initial.look_at = tuple(centre)
 
     def _hide_frustum(self, index: int | None) -> None:
-        if self._hidden_frustum is not None and self._hidden_frustum < len(self._frustums):
-            self._frustums[self._hidden_frustum].visible = self._show_cameras
-        self._hidden_frustum = index
-        self._hidden_reached = False
-        if index is not None:
-            self._frustums[index].visible = False
+        with self._frustum_lock:
+            if self._hidden_frustum is not None:
+                self._frustums[self._hidden_frustum].visible = self._show_cameras
+            self._hidden_frustum = index
+            self._hidden_reached = False
+            if index is not None:
+                self._frustums[index].visible = False
 
     def _unhide_when_away(self, position: np.ndarray) -> None:
         """A hidden frustum shows again once a view that reached it moves away (views still on
         their way there, e.g. a browser's default camera before the initial one applies, do
         not count)."""
-        index = self._hidden_frustum
-        if index is None:
-            return
-        centre = np.asarray(self._frustums[index].position, dtype=np.float64)
-        near = np.linalg.norm(position - centre) <= _UNHIDE_FRACTION * self._frustum_scale
-        if near:
-            self._hidden_reached = True
-        elif self._hidden_reached:
-            self._hide_frustum(None)
+        with self._frustum_lock:
+            index = self._hidden_frustum
+            if index is None:
+                return
+            centre = np.asarray(self._frustums[index].position, dtype=np.float64)
+            if np.linalg.norm(position - centre) <= _UNHIDE_FRACTION * self._frustum_scale:
+                self._hidden_reached = True
+            elif self._hidden_reached:
+                self._hide_frustum(None)
 
     def jump_to_camera(self, client: viser.ClientHandle, index: int) -> None:
         """Move ``client``'s view to training camera ``index`` (what a frustum click does)."""
         camera = self.scene.cameras[index]
         wxyz, position = camera_to_viser(camera)
+        self._hide_frustum(index)  # first, so its thumbnail never flashes across the view
         with client.atomic():
             client.camera.fov = vertical_fov(camera)
             client.camera.wxyz = wxyz
             client.camera.position = position
-        self._hide_frustum(index)
 
     # ------------------------------------------------------------------ GUI
     def _add_gui(self) -> None:
@@ -228,9 +235,10 @@ class Viewer:
                 pts.on_update(lambda _: setattr(self._points, "visible", bool(pts.value)))
 
     def _set_cameras_visible(self, visible: bool) -> None:
-        self._show_cameras = visible
-        for i, handle in enumerate(self._frustums):
-            handle.visible = visible and i != self._hidden_frustum
+        with self._frustum_lock:
+            self._show_cameras = visible
+            for i, handle in enumerate(self._frustums):
+                handle.visible = visible and i != self._hidden_frustum
 
     def _stats_text(self) -> str:
         if self._recent:
@@ -279,7 +287,7 @@ class Viewer:
         client.scene.set_background_image(frame.image, format="jpeg", jpeg_quality=self.config.jpeg_quality)
         with self._frame_lock:
             self.frames_sent += 1
-            self.last_frame = (int(frame.image.shape[1]), int(frame.image.shape[0]), frame.quality)
+            self.last_frame = frame
 
     # ------------------------------------------------------------------ training-thread hooks
     def update(self, step: int, stats: Mapping[str, Any] | None = None, seconds: float | None = None) -> None:
