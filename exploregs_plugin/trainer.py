@@ -19,6 +19,7 @@ from exploregs_plugin.io.checkpoint import load_checkpoint, resolve_run, save_ch
 from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig
 from exploregs_plugin.run_logger import RunLogger
 from exploregs_plugin.schedule import ScheduleConfig
+from exploregs_plugin.viewer.config import ViewerConfig
 
 CONFIG_NAME = "config.yml"
 METRICS_NAME = "metrics.json"
@@ -66,6 +67,10 @@ class TrainerConfig:
     """Torch CPU threads (unset: torch's default)."""
     quiet: bool = False
     """No progress bar or console lines."""
+    viewer: bool = False
+    """Serve a live viewer in the browser while training (URL printed; see docs/viewer.md)."""
+    viewer_config: ViewerConfig = field(default_factory=ViewerConfig)
+    """Live viewer settings: port, render resolutions, CPU share, output (--viewer-config.*)."""
 
     def resolved(self) -> "TrainerConfig":
         """Apply the top-level --data / --data-factor shortcuts to the datamanager config."""
@@ -126,26 +131,38 @@ class Trainer:
     def train(self) -> dict[str, Any]:
         """Run from ``start_step`` to ``max_steps``; returns the final metrics."""
         eval_steps = self._eval_steps()
-        with RunLogger(self.run_dir, self.schedule.max_steps, self.start_step, self.config.log_every,
-                       self.config.tensorboard, self.config.quiet) as logger, _StopOnSigint() as stop:
-            self.logger = logger
-            for step in range(self.start_step, self.schedule.max_steps):
-                if stop.requested:
-                    self.save_checkpoint(step)
-                    raise KeyboardInterrupt(f"interrupted before step {step}; checkpoint {self.last_checkpoint}")
-                start = time.perf_counter()
-                stats = self._train_step(step)
-                self.train_seconds += time.perf_counter() - start
-                for op, n in stats["counts"].items():
-                    self.op_totals[op] = self.op_totals.get(op, 0) + int(n)
-                logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
-                if step + 1 in eval_steps:
-                    self.run_eval(step + 1)
-                if (step + 1) % self.config.checkpoint_every == 0 and step + 1 < self.schedule.max_steps:
-                    self.save_checkpoint(step + 1)
-            if self.schedule.max_steps not in eval_steps or not self.history:
-                self.run_eval(self.schedule.max_steps)
-            self.save_checkpoint(self.schedule.max_steps)
+        viewer = self.config.viewer_config.setup(self.pipeline, step=self.start_step) if self.config.viewer else None
+        try:
+            with RunLogger(self.run_dir, self.schedule.max_steps, self.start_step, self.config.log_every,
+                           self.config.tensorboard, self.config.quiet) as logger, _StopOnSigint() as stop:
+                self.logger = logger
+                for step in range(self.start_step, self.schedule.max_steps):
+                    if viewer is not None:
+                        viewer.wait_if_paused(lambda: stop.requested)
+                    if stop.requested:
+                        self.save_checkpoint(step)
+                        raise KeyboardInterrupt(f"interrupted before step {step}; checkpoint {self.last_checkpoint}")
+                    start = time.perf_counter()
+                    stats = self._train_step(step)
+                    elapsed = time.perf_counter() - start
+                    self.train_seconds += elapsed
+                    for op, n in stats["counts"].items():
+                        self.op_totals[op] = self.op_totals.get(op, 0) + int(n)
+                    if viewer is not None:
+                        viewer.update(step + 1, stats, elapsed)
+                    logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
+                    if step + 1 in eval_steps:
+                        self.run_eval(step + 1)
+                    if (step + 1) % self.config.checkpoint_every == 0 and step + 1 < self.schedule.max_steps:
+                        self.save_checkpoint(step + 1)
+                if self.schedule.max_steps not in eval_steps or not self.history:
+                    self.run_eval(self.schedule.max_steps)
+                self.save_checkpoint(self.schedule.max_steps)
+                if viewer is not None:
+                    viewer.finish(self.schedule.max_steps, lambda: stop.requested)
+        finally:
+            if viewer is not None:
+                viewer.close()
         return self.write_metrics()
 
     def _train_step(self, step: int) -> dict[str, Any]:

@@ -49,8 +49,10 @@ def test_schedule_keeps_the_3dgs_shape():
         500, 15_000, 100, 3_000, 1_000)
     short = ScheduleConfig().resolve(3_000)
     assert (short.refine_start, short.refine_stop) == (50, 1_500)
-    assert short.refine_every == 10 and short.reset_every == 300 and short.sh_degree_interval == 100
+    # the interval keeps its 3DGS length (100 steps) instead of shrinking with the run
+    assert short.refine_every == 100 and short.reset_every == 300 and short.sh_degree_interval == 100
     tiny = ScheduleConfig().resolve(120)
-    assert tiny.refine_every == 10 and tiny.reset_every == 200 and tiny.sh_degree_interval == 25
+    assert tiny.refine_every == 100 and tiny.reset_every == 200 and tiny.sh_degree_interval == 25
+    assert ScheduleConfig(min_refine_every=10).resolve(120).refine_every == 10
     with pytest.raises(ValueError, match="max_steps"):
         ScheduleConfig().resolve(0)

@@ -16,14 +16,16 @@ from exploregs_plugin.configs import load_config
 from exploregs_plugin.evaluation import evaluate
 from exploregs_plugin.io.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
 from exploregs_plugin.pipeline import NonFiniteError, Pipeline
+from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.trainer import Trainer, TrainerConfig
 
-STEPS = 40  # schedule for 40 steps: densify at steps 10 and 20 (refine_every 10, stop 20)
+STEPS = 40  # densify at steps 10 and 20 (interval shortened to 10 for these short runs, stop 20)
 
 
 def tiny_config(run_dir: Path, **overrides) -> TrainerConfig:
     fields = dict(data="builtin:tiny", max_steps=STEPS, run_dir=run_dir, quiet=True, tensorboard=False,
-                  eval_count=1, checkpoint_every=10, save_eval_images=False)
+                  eval_count=1, checkpoint_every=10, save_eval_images=False,
+                  schedule=ScheduleConfig(min_refine_every=10))
     fields.update(overrides)
     return TrainerConfig(**fields)
 

@@ -89,10 +89,15 @@ def test_gaussians_on_tile_borders():
     assert_matches_reference(scene)
 
 
-def test_chunking_does_not_change_the_result():
+@pytest.mark.parametrize(
+    "settings",
+    [RasterSettings(chunk_elements=1), RasterSettings(tile_size=8), RasterSettings(tile_size=5, workers=1),
+     RasterSettings(workers=3, chunk_elements=4096)],  # fmt: skip
+)
+def test_tiles_chunks_and_workers_do_not_change_the_result(settings):
     scene = random_scene(200, 64, 48, torch.Generator().manual_seed(10), scale_range=(0.01, 0.2))
-    a, ga = _run(rasterize, scene, torch.float32, settings=RasterSettings(chunk_elements=1))
-    b, gb = _run(rasterize, scene, torch.float32, settings=RasterSettings(chunk_elements=1 << 22))
+    a, ga = _run(rasterize, scene, torch.float32, settings=settings)
+    b, gb = _run(rasterize, scene, torch.float32)
     for x, y in zip(a + ga, b + gb):  # float32 sums in another order: equal to rounding
         assert (x - y).abs().max() <= 1e-5 * max(1.0, y.abs().max().item())
 

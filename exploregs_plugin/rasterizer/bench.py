@@ -120,7 +120,9 @@ def run_child(scene_name: str, method: str, repeats: int, settings: RasterSettin
     fb = _median_times(forward_backward, repeats)
     peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     load1 = os.getloadavg()[0]
-    _, _, _, info = rasterize(*(p.detach() for p in params), scene.viewmat, scene.K, scene.width, scene.height)
+    _, _, _, info = rasterize(
+        *(p.detach() for p in params), scene.viewmat, scene.K, scene.width, scene.height, settings=settings
+    )
     img_err, grad_err = _errors(method, params, scene, settings, wts)
     return {
         "scene": scene_name, "method": method, "n": scene.means.shape[0], "size": f"{scene.width}x{scene.height}",
@@ -184,7 +186,8 @@ def main(argv: list[str] | None = None) -> None:
         return
     scenes = [s for s in a.scenes if s != "beer" or (SCENES_DIR / "beer").is_dir()]
     print(f"# torch {torch.__version__}, {os.cpu_count()} CPUs, threads={a.threads or 'default'}, "
-          f"workers={a.workers or 'default'}, tile {a.tile_size}, chunk {a.chunk_elements}, repeats {a.repeats}")  # fmt: skip
+          f"workers={a.workers or 'default'}, tile {a.tile_size}, chunk {a.chunk_elements}, "
+          f"repeats {a.repeats}")  # fmt: skip
     print("| scene | N | W x H | method | fwd s (cpu) | fwd+bwd s (cpu) | speed-up | peak RSS MiB | pairs | "
           "Mpairs/s | image err max / mean | grad rel err | load |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")

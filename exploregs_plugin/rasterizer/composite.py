@@ -16,10 +16,10 @@ Derivative, with S_m = sum_{i>m} w_i (dL/dF . f_i):
     dL/dpower_m = alpha_m dL/dalpha_m = w_m (dL/dF . f_m) - S_m alpha_m / (1 - alpha_m),
 zero where the clamp is active and for pairs after the stop.
 
-Speed notes (measured per element on these CPUs): exp2 is ~3x cheaper than exp, boolean masks
-(masked_fill, where) ~30x dearer than arithmetic, and bmm wants its thin operand column-major;
-so masks are arithmetic (threshold, sign), exp is exp2 with log2(e) folded into the conic,
-and feature tables are kept as [B, F, K].
+Speed notes (per-element costs from `python -m exploregs_plugin.rasterizer.opcost`): exp2 is
+~3x cheaper than exp, boolean masks (masked_fill, where) ~25x dearer than arithmetic, and bmm
+wants its thin operand column-major; so masks are arithmetic (threshold, sign), exp is exp2
+with log2(e) folded into the conic, and feature tables are kept as [B, F, K].
 """
 
 from __future__ import annotations
@@ -55,6 +55,31 @@ def _pool(workers: int) -> ThreadPoolExecutor:
         return _POOL
 
 
+_THREADS_LOCK = threading.Lock()
+_THREADS_STATE = {"depth": 0, "saved": 1}
+
+
+def enter_single_threaded() -> None:
+    """Makes torch ops single-threaded until the matching :func:`exit_single_threaded`.
+
+    Nested and concurrent callers (a viewer thread rendering beside training) share one counter,
+    so the caller's thread count is restored exactly once, when the last one leaves.
+    """
+    with _THREADS_LOCK:
+        if _THREADS_STATE["depth"] == 0:
+            _THREADS_STATE["saved"] = torch.get_num_threads()
+            if _THREADS_STATE["saved"] != 1:
+                torch.set_num_threads(1)
+        _THREADS_STATE["depth"] += 1
+
+
+def exit_single_threaded() -> None:
+    with _THREADS_LOCK:
+        _THREADS_STATE["depth"] -= 1
+        if _THREADS_STATE["depth"] == 0 and _THREADS_STATE["saved"] != 1:
+            torch.set_num_threads(_THREADS_STATE["saved"])
+
+
 @contextmanager
 def single_threaded_ops():
     """Runs torch ops single-threaded inside the block (restores the caller's setting).
@@ -63,14 +88,11 @@ def single_threaded_ops():
     cost far more than they save on the small O(N) tensors of the projection, and the
     compositing workers below each own one core instead.
     """
-    saved = torch.get_num_threads()
-    if saved != 1:
-        torch.set_num_threads(1)
+    enter_single_threaded()
     try:
         yield
     finally:
-        if saved != 1:
-            torch.set_num_threads(saved)
+        exit_single_threaded()
 
 
 def _run_split(fn, n_items: int, workers: int) -> list:
@@ -99,23 +121,31 @@ def _moment_features(tile_size: int, dtype: torch.dtype) -> Tensor:
 
 
 class _Chunk:
-    """One chunk's gathered pairs: geometry [B, K, 9], features [B, F+1, K], means relative to
-    tile centres [B, K]."""
+    """One chunk's gathered pairs (made in the forward, reused by the backward).
 
-    def __init__(self, geom: Tensor, feat_t: Tensor, bins: TileBins, tiles: Tensor, k: int):
-        m = geom.shape[0] - 1
-        self.gidx = gather_table(bins, tiles, k, m).reshape(-1)  # [B*K]
+    g: [B, K, 12] geometry; f: [B, F+1, K] features; mxr, myr: [B, K] means relative to the
+    tile centres; gidx: [B, K] Gaussian rows (the padding row for missing pairs).
+    """
+
+    def __init__(self, g: Tensor, f: Tensor, mxr: Tensor, myr: Tensor, gidx: Tensor, tiles: Tensor):
+        self.g, self.f, self.mxr, self.myr, self.gidx, self.tiles = g, f, mxr, myr, gidx, tiles
+
+    @staticmethod
+    def gather(geom: Tensor, feat_t: Tensor, bins: TileBins, tiles: Tensor, k: int) -> "_Chunk":
         bsz = len(tiles)
-        self.g = geom.index_select(0, self.gidx).view(bsz, k, -1)
+        gidx = gather_table(bins, tiles, k, geom.shape[0] - 1)  # [B, K]
+        flat = gidx.reshape(-1)
+        g = geom.index_select(0, flat).view(bsz, k, -1)
         # [F+1, B*K] -> [B, F+1, K]: bmm reads this "column-major" operand fastest
-        self.f = feat_t.index_select(1, self.gidx).view(-1, bsz, k).transpose(0, 1).contiguous()
+        f = feat_t.index_select(1, flat).view(-1, bsz, k).transpose(0, 1).contiguous()
         ts = bins.tile_size
-        dtype = geom.dtype
-        cx = (tiles % bins.tiles_x).to(dtype) * ts + 0.5 * ts
-        cy = (tiles // bins.tiles_x).to(dtype) * ts + 0.5 * ts
-        self.mxr = self.g[..., _MX] - cx[:, None]
-        self.myr = self.g[..., _MY] - cy[:, None]
-        self.bsz, self.k = bsz, k
+        cx = (tiles % bins.tiles_x).to(geom.dtype) * ts + 0.5 * ts
+        cy = (tiles // bins.tiles_x).to(geom.dtype) * ts + 0.5 * ts
+        return _Chunk(g, f, g[..., _MX] - cx[:, None], g[..., _MY] - cy[:, None], gidx, tiles)
+
+    def first(self, k: int) -> "_Chunk":
+        """The first k pairs of every tile (pairs behind every pixel's stop do not matter)."""
+        return _Chunk(self.g[:, :k], self.f[..., :k], self.mxr[:, :k], self.myr[:, :k], self.gidx[:, :k], self.tiles)
 
 
 def _chunk_alpha(g: Tensor, mxr: Tensor, myr: Tensor, pix: Tensor, alpha_max: float, alpha_keep: float) -> Tensor:
@@ -155,7 +185,11 @@ def _transmittance(alpha: Tensor, t_keep: float) -> tuple[Tensor, Tensor]:
     A pair is included when the transmittance after it stays above ``t_keep``; T only
     decreases, so the excluded pairs form a suffix.
     """
-    tb = torch.nn.functional.pad(1.0 - alpha, (1, 0), value=1.0).cumprod_(-1)
+    bsz, p, k = alpha.shape
+    tb = alpha.new_empty(bsz, p, k + 1)
+    tb[..., 0] = 1.0
+    torch.sub(alpha.new_ones(()), alpha, out=tb[..., 1:])  # one pass, no padded copy
+    tb.cumprod_(-1)
     keep = torch.nn.functional.threshold(tb[..., 1:], t_keep, 0.0).sign_()
     return tb[..., :-1], keep
 
@@ -173,7 +207,7 @@ def _backward_kernel(g, mxr, myr, pix, gf, alpha_max: float, alpha_keep: float, 
     gf = dL/dF . f_m [B, P, K] (overwritten)."""
     alpha = _chunk_alpha(g, mxr, myr, pix, alpha_max, alpha_keep)
     t_before, keep = _transmittance(alpha, t_keep)
-    free = (alpha < alpha_max).to(alpha.dtype)  # clamp inactive: 1, else 0
+    free = torch.lt(alpha, alpha_max, out=torch.empty_like(alpha))  # clamp inactive: 1, else 0
     odds = (alpha / (1.0 - alpha)).mul_(keep).mul_(free)
     w = alpha.mul_(t_before).mul_(keep)
     wg = gf.mul_(w)
@@ -187,41 +221,43 @@ def _thresholds(s: RasterSettings) -> tuple[float, float, float]:
     return s.alpha_max, math.nextafter(s.alpha_min, 0.0), math.nextafter(s.transmittance_min, 0.0)
 
 
-def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used):
+def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used, cache):
     pix = _pixel_offsets(bins.tile_size, geom.dtype)
     for i in ids:
         tiles, k = chunks[i]
-        c = _Chunk(geom, feat_t, bins, tiles, k)
+        c = _Chunk.gather(geom, feat_t, bins, tiles, k)
         w, n_used = _forward_kernel(c.g, c.mxr, c.myr, pix, *_thresholds(s))
         used[i] = int(n_used)
         out[tiles] = torch.bmm(w, c.f.transpose(1, 2))
+        if cache is not None:
+            cache[i] = c.first(used[i])
 
 
-def _backward_chunks(geom, feat_t, bins, chunks, used, ids, s, grad_out, nf) -> Tensor:
-    dtype = geom.dtype
-    pix = _pixel_offsets(bins.tile_size, dtype)
-    fm = _moment_features(bins.tile_size, dtype)  # [6, P]
+def _backward_chunks(geom, cache, ids, tile_size, s, grad_out) -> Tensor:
+    nf = grad_out.shape[-1] - 1
+    dtype = grad_out.dtype
+    pix = _pixel_offsets(tile_size, dtype)
+    fm = _moment_features(tile_size, dtype)  # [6, P]
     rows: list[Tensor] = []  # per pair: moments, relative mean, dL/dfeatures
     gids: list[Tensor] = []
     for i in ids:
-        tiles, _ = chunks[i]
-        if used[i] == 0:
+        c = cache[i]
+        if c.gidx.shape[1] == 0:
             continue
-        c = _Chunk(geom, feat_t, bins, tiles, used[i])
-        gpix = grad_out.index_select(0, tiles)  # [B, P, F+1]
+        gpix = grad_out.index_select(0, c.tiles)  # [B, P, F+1]
         gf = torch.bmm(gpix, c.f)  # [B, P, K] = dL/dF . f_m
         w, g_power = _backward_kernel(c.g, c.mxr, c.myr, pix, gf, *_thresholds(s))
         dfeat = torch.bmm(gpix.transpose(1, 2).contiguous(), w)  # [B, F+1, K]
         mom = torch.matmul(fm, g_power)  # [B, 6, K]: sums of g_power * (1, x, y, x^2, xy, y^2)
         row = torch.cat([mom, torch.stack([c.mxr, c.myr], 1), dfeat[:, :nf]], 1)  # [B, 8 + F, K]
         rows.append(row.transpose(1, 2).reshape(-1, 8 + nf))
-        gids.append(c.gidx)
+        gids.append(c.gidx.reshape(-1))
     if not rows:
         return torch.zeros(geom.shape[0], 6 + nf, dtype=dtype)
-    return _pair_gradients(geom, torch.cat(gids), torch.cat(rows), nf)
+    return _pair_gradients(geom, torch.cat(gids), torch.cat(rows))
 
 
-def _pair_gradients(geom: Tensor, gidx: Tensor, rows: Tensor, nf: int) -> Tensor:
+def _pair_gradients(geom: Tensor, gidx: Tensor, rows: Tensor) -> Tensor:
     """Per-Gaussian gradients [M + 1, 6 + F] (mx, my, a, b, c, o, features) from per-pair rows
     [moments of dL/dpower (6), mean relative to the tile centre (2), dL/dfeatures (F)].
 
@@ -274,23 +310,24 @@ class _Composite(torch.autograd.Function):
         out = torch.zeros(bins.n_tiles, npix, nf + 1, dtype=dtype)
         chunks = plan_chunks(bins, settings.chunk_elements)
         used = [0] * len(chunks)
+        # gathered pairs are kept for the backward (O(pairs), not O(pixels x pairs))
+        needs_grad = any(ctx.needs_input_grad[:4])
+        cache: list[_Chunk | None] | None = [None] * len(chunks) if needs_grad else None
         _run_split(
-            lambda _, ids: _forward_chunks(geom, feat_t, bins, chunks, ids, settings, out, used),
+            lambda _, ids: _forward_chunks(geom, feat_t, bins, chunks, ids, settings, out, used, cache),
             len(chunks), _workers(settings),
         )  # fmt: skip
-        ctx.save_for_backward(geom, feat_t)
-        ctx.chunks, ctx.used, ctx.bins, ctx.settings, ctx.nf = chunks, used, bins, settings, nf
+        ctx.save_for_backward(geom)
+        ctx.cache, ctx.tile_size, ctx.settings = cache, bins.tile_size, settings
         return out
 
     @staticmethod
     def backward(ctx, grad_out):  # type: ignore[override]
-        geom, feat_t = ctx.saved_tensors
+        (geom,) = ctx.saved_tensors
         grad_out = grad_out.contiguous()
         parts = _run_split(
-            lambda _, ids: _backward_chunks(
-                geom, feat_t, ctx.bins, ctx.chunks, ctx.used, ids, ctx.settings, grad_out, ctx.nf
-            ),
-            len(ctx.chunks), _workers(ctx.settings),
+            lambda _, ids: _backward_chunks(geom, ctx.cache, ids, ctx.tile_size, ctx.settings, grad_out),
+            len(ctx.cache), _workers(ctx.settings),
         )  # fmt: skip
         gbuf = parts[0]
         for p in parts[1:]:
@@ -299,7 +336,9 @@ class _Composite(torch.autograd.Function):
         return gbuf[:, 0:2], gbuf[:, 2:5], gbuf[:, 5], gbuf[:, 6:], None, None, None
 
 
-def _tables(means2d: Tensor, conics: Tensor, opacities: Tensor, support: Tensor, feats: Tensor) -> tuple[Tensor, Tensor]:
+def _tables(
+    means2d: Tensor, conics: Tensor, opacities: Tensor, support: Tensor, feats: Tensor
+) -> tuple[Tensor, Tensor]:
     """Per-Gaussian geometry [M + 1, 12] and transposed features [F + 1, M + 1] (a last row of
     ones for the alpha). The extra last Gaussian is the padding entry (never drawn)."""
     o = opacities[:, None]

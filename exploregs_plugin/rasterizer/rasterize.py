@@ -3,12 +3,13 @@
 from __future__ import annotations
 
 import math
+import numbers
 from typing import Any
 
 import torch
 from torch import Tensor
 
-from .composite import composite, single_threaded_ops
+from .composite import composite, enter_single_threaded, exit_single_threaded, single_threaded_ops
 from .projection import project_gaussians
 from .settings import RasterSettings
 from .sh import sh_colors
@@ -33,10 +34,8 @@ class _SingleThreadedBackward(torch.autograd.Function):
 
     @staticmethod
     def backward(ctx, *grads):  # type: ignore[override]
-        saved = torch.get_num_threads()
-        if saved != 1:
-            torch.set_num_threads(1)
-            torch.autograd.Variable._execution_engine.queue_callback(lambda: torch.set_num_threads(saved))
+        enter_single_threaded()
+        torch.autograd.Variable._execution_engine.queue_callback(exit_single_threaded)
         return grads
 
 
@@ -77,7 +76,8 @@ def _validate(
     _check("means_cov", means_cov, (n, 3))
     _check("means_sh", means_sh, (n, 3))
     _check("background", background, (3,))
-    if not (isinstance(width, int) and isinstance(height, int)) or width < 1 or height < 1:
+    integral = isinstance(width, numbers.Integral) and isinstance(height, numbers.Integral)
+    if not integral or width < 1 or height < 1:
         raise ValueError(f"rasterize: width and height must be positive ints, got {width!r}, {height!r}")
     if (sh_coeffs is None) == (colors is None):
         raise ValueError("rasterize: give exactly one of 'sh_coeffs' [N, K, 3] and 'colors' [N, 3]")
@@ -133,8 +133,8 @@ def rasterize(
     )  # fmt: skip
     with single_threaded_ops():
         return _rasterize(
-            means, quats, scales, opacities, sh_coeffs, viewmat, K, width, height, degree, colors, background,
-            near_plane, far_plane, means_cov, means_sh, settings,
+            means, quats, scales, opacities, sh_coeffs, viewmat, K, int(width), int(height), degree, colors,
+            background, near_plane, far_plane, means_cov, means_sh, settings,
         )  # fmt: skip
 
 

@@ -46,6 +46,7 @@ def trace_pixel(
         means, quats, scales, opacities, sh_coeffs, colors, viewmat, K, width, height,
         sh_degree, None, None, background,
     )  # fmt: skip
+    width, height = int(width), int(height)
     if not (0 <= x < width and 0 <= y < height):
         raise ValueError(f"trace_pixel: pixel ({x}, {y}) is outside the {width}x{height} image")
     dtype = means.dtype

@@ -13,7 +13,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from typing import Literal
 
 import numpy as np
@@ -100,7 +100,7 @@ class Frame:
     """One rendered frame, handed to ``send``."""
 
     client_id: int
-    image: np.ndarray  # uint8 [H, W, 3]
+    image: np.ndarray = field(repr=False)  # uint8 [H, W, 3]
     quality: Quality
     step: int
     num_gaussians: int
