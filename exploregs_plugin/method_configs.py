@@ -39,15 +39,19 @@ def _method(name: str, description: str, strategy: object, **trainer_fields: obj
 def builtin_methods() -> dict[str, MethodSpecification]:
     from exploregs_plugin import strategies as s
 
+    # The paper's absolute budgets (20 random splits every step, 20 seeds per densification)
+    # assume 30k steps and millions of Gaussians; the built-in methods use the CPU preset that
+    # keeps the paper's explored-to-final ratios for about 20k final Gaussians.
+    budget = "cpu-small"
     methods = [
         _method("exploregs-default", "3DGS adaptive density control (clone, split, prune), the baseline.",
                 s.DefaultStrategy()),
         _method("exploregs-seed", "Default + Random Seeding: new Gaussians uniform in the bounding box (far side).",
-                s.SeedingStrategy()),
+                s.SeedingStrategy(budget=budget)),
         _method("exploregs-split", "Default + Random Splitting: scale-weighted splits regardless of gradient (near side).",
-                s.SplittingStrategy()),
+                s.SplittingStrategy(budget=budget)),
         _method("exploregs-seedsplit", "Default + Random Seeding + Random Splitting: both Blur-Trap remedies.",
-                s.SeedSplitStrategy()),
+                s.SeedSplitStrategy(budget=budget)),
         _method("exploregs-ray", "Default + MCMC-style position noise along the viewing ray only (depth exploration).",
                 s.RayPerturbationStrategy()),
         _method("exploregs-mcmc", "3DGS-MCMC: relocation of dead Gaussians, 5% growth to a cap, isotropic noise.",

@@ -11,6 +11,7 @@ import torch
 from torch import Tensor, nn
 
 from exploregs_plugin.data import DataManagerConfig
+from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.model.losses import photometric_loss, psnr
 from exploregs_plugin.model.optim import OptimizerConfig, set_lr
@@ -37,6 +38,8 @@ class PipelineConfig:
     """Composite each training image on a random colour (needs images with an alpha channel)."""
     depth_loss_weight: float = 0.0
     """Weight of an L1 loss between rendered expected depth and the dataset's depth maps (0 = off)."""
+    depth_supervision: DepthSupervisionConfig = field(default_factory=DepthSupervisionConfig)
+    """Degrade the depth maps before the depth loss (noise, smooth bias) to play a monocular estimate."""
 
     def setup(self, schedule: Schedule, seed: int) -> "Pipeline":
         return Pipeline(self, schedule, seed)
@@ -59,7 +62,7 @@ class Pipeline:
         self.strategy.check_sanity(self.model.params, self.optimizers)
         self.strategy_state = self.strategy.initialize_state(
             scene_scale=self.scene_extent, **self._scene_center_kwarg(dm))
-        if config.random_background and not getattr(dm, "has_alpha", False):
+        if config.random_background and not dm.has_alpha:
             raise ValueError("random_background needs a dataset whose images have an alpha channel")
 
     def _scene_center_kwarg(self, dm) -> dict[str, Tensor]:
@@ -87,7 +90,7 @@ class Pipeline:
 
     def train_step(self, step: int) -> dict[str, Any]:
         """Render one training view, step the optimizers, then let the strategy change the set."""
-        _, camera, target, extras = self.datamanager.next_train()
+        index, camera, target, extras = self.datamanager.next_train()
         background = self.datamanager.background
         if self.config.random_background:
             # The target was composited on the dataset background b0 with alpha a:
@@ -101,7 +104,7 @@ class Pipeline:
         if self.config.depth_loss_weight > 0.0:
             if "depth" not in extras:
                 raise ValueError("depth_loss_weight > 0 but the dataset has no depth maps")
-            gt_depth = extras["depth"]
+            gt_depth = self.config.depth_supervision.apply(extras["depth"], index)
             valid = torch.isfinite(gt_depth) & (gt_depth > 0)
             depth_term = (depth - gt_depth).abs()[valid].mean() if valid.any() else depth.sum() * 0.0
             loss = loss + self.config.depth_loss_weight * depth_term
@@ -135,12 +138,18 @@ class Pipeline:
 
     def check_finite(self, step: int) -> None:
         for name, p in self.params.items():
+            # One reduction per tensor: NaN and inf propagate through a sum, so a finite sum
+            # means finite entries. Only a non-finite sum (or float32 overflow of a large one)
+            # pays for the element-wise scan.
+            if p.numel() == 0 or bool(torch.isfinite(p.detach().sum())):
+                continue
             bad = ~torch.isfinite(p.detach())
-            if bool(bad.any()):
-                rows = int(bad.reshape(p.shape[0], -1).any(dim=1).sum()) if p.ndim else 1
-                raise NonFiniteError(
-                    f"step {step}: parameter '{name}' has non-finite values in {rows} of {p.shape[0]} Gaussians"
-                )
+            if not bool(bad.any()):
+                continue
+            rows = int(bad.reshape(p.shape[0], -1).any(dim=1).sum()) if p.ndim else 1
+            raise NonFiniteError(
+                f"step {step}: parameter '{name}' has non-finite values in {rows} of {p.shape[0]} Gaussians"
+            )
 
     def state_dict(self) -> dict[str, Any]:
         return {

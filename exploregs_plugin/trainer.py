@@ -13,6 +13,7 @@ from typing import Annotated, Any
 import torch
 import tyro
 
+from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
 from exploregs_plugin.configs import load_config, save_config
 from exploregs_plugin.evaluation import error_map, evaluate, write_metrics_json
 from exploregs_plugin.io.checkpoint import load_checkpoint, resolve_run, save_checkpoint
@@ -36,8 +37,8 @@ class TrainerConfig:
     builtin:NAME (tiny, default, farside, nearside, combined, ...). Unset: builtin:default."""
     data_factor: int | None = None
     """Downscale images by this factor (uses images_N/ when present). Unset: the datamanager's."""
-    max_steps: int = 3000
-    """Number of training steps."""
+    max_steps: int = 1500
+    """Number of training steps (the schedule scales with it; see docs/training.md)."""
     seed: int = 0
     """Seed of every random choice (camera order, initialisation, strategies): same seed, same result."""
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
@@ -59,6 +60,12 @@ class TrainerConfig:
     """Write tensorboard scalars every this many steps."""
     tensorboard: bool = True
     """Write tensorboard event files into the run folder."""
+    grad_branches_every: int = 0
+    """Every this many steps, log the per-view mean norm of the position gradient through each
+    branch (2D mean, 2D covariance, SH direction) and the total as grad_branches/* (0 = off; costs
+    one extra render and backward per sampled view; needs --tensorboard)."""
+    grad_branches_views: int = 4
+    """Training views (evenly spaced) averaged at each --grad-branches-every step."""
     save_eval_images: bool = True
     """At the end, save render | ground truth | error PNGs of every test view into RUN/renders/."""
     flush_denormal: bool = True
@@ -100,6 +107,8 @@ class Trainer:
             torch.set_num_threads(config.num_threads)
         self.schedule = config.schedule.resolve(config.max_steps)
         self.pipeline: Pipeline = config.pipeline.setup(self.schedule, config.seed)
+        self.branch_logger = BranchGradientLogger(config.grad_branches_every if config.tensorboard else 0,
+                                                  config.grad_branches_views)
         self.run_dir = Path(run_dir or config.run_dir or self._default_run_dir())
         self.start_step = 0
         self.train_seconds = 0.0
@@ -151,6 +160,7 @@ class Trainer:
                     if viewer is not None:
                         viewer.update(step + 1, stats, elapsed)
                     logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
+                    self.branch_logger(self.pipeline, step + 1, logger)
                     if step + 1 in eval_steps:
                         self.run_eval(step + 1)
                     if (step + 1) % self.config.checkpoint_every == 0 and step + 1 < self.schedule.max_steps:

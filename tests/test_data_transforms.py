@@ -185,3 +185,63 @@ def test_wrong_aspect_ratio(exported: Path) -> None:
     _edit(exported, lambda m: m["frames"][0].__setitem__("w", 100))
     with pytest.raises(DataError, match="does not match the camera's aspect ratio"):
         read_transforms(exported, ParseOptions())
+
+
+def test_rgba_alpha_reaches_training_and_random_background(tmp_path: Path) -> None:
+    """The DataManager keeps the alpha channel, so a random background re-composites exactly:
+    target on background b = c a + b (1 - a)."""
+    import torch
+
+    from exploregs_plugin.data import DataManagerConfig
+    from exploregs_plugin.pipeline import Pipeline, PipelineConfig
+    from exploregs_plugin.schedule import ScheduleConfig
+
+    root = _blender_folder(tmp_path / "blender")
+    dm = DataManagerConfig(data=str(root), background=(0.0, 0.0, 1.0), n_random_points=50,
+                           cache_dir=str(tmp_path / "cache")).setup()
+    assert dm.has_alpha
+    _, image, extras = dm.train_item(0)
+    alpha = extras["alpha"]
+    assert alpha.shape == (8, 10, 1)
+    assert torch.equal(alpha[:, :5], torch.ones(8, 5, 1)) and torch.equal(alpha[:, 5:], torch.zeros(8, 5, 1))
+    assert torch.allclose(image[0, 9], torch.tensor([0.0, 0.0, 1.0]))  # transparent -> dataset background
+
+    pipeline = Pipeline(PipelineConfig(datamanager=DataManagerConfig(
+        data=str(root), background=(0.0, 0.0, 1.0), n_random_points=50, cache_dir=str(tmp_path / "cache")),
+        random_background=True), ScheduleConfig().resolve(10), seed=0)
+    seen = {}
+    real_render = pipeline.model.render
+
+    def spy(camera, sh_degree, background):
+        seen["background"] = background
+        return real_render(camera, sh_degree, background)
+
+    pipeline.model.render = spy
+    real_loss = __import__("exploregs_plugin.pipeline", fromlist=["photometric_loss"]).photometric_loss
+
+    def capture(img, target, lam):
+        seen["target"] = target
+        return real_loss(img, target, lam)
+
+    import exploregs_plugin.pipeline as pl
+    pl_photometric = pl.photometric_loss
+    pl.photometric_loss = capture
+    try:
+        pipeline.train_step(0)
+    finally:
+        pl.photometric_loss = pl_photometric
+    b = seen["background"]
+    assert not torch.allclose(b, torch.tensor([0.0, 0.0, 1.0]))
+    expected_right = b.expand(8, 5, 3)  # fully transparent half shows the random background
+    assert torch.allclose(seen["target"][:, 5:], expected_right, atol=1e-6)
+    assert torch.allclose(seen["target"][:, :5], torch.tensor([200 / 255, 0.0, 0.0]).expand(8, 5, 3), atol=1e-6)
+
+
+def test_random_background_refused_without_alpha(tiny_scene_dir: Path) -> None:
+    from exploregs_plugin.data import DataManagerConfig
+    from exploregs_plugin.pipeline import PipelineConfig
+    from exploregs_plugin.schedule import ScheduleConfig
+
+    config = PipelineConfig(datamanager=DataManagerConfig(data="builtin:tiny"), random_background=True)
+    with pytest.raises(ValueError, match="random_background needs .* alpha"):
+        config.setup(ScheduleConfig().resolve(10), seed=0)

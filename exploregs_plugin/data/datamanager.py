@@ -15,7 +15,7 @@ from torch import Tensor
 from ..cameras import Camera
 from .cache import cache_root
 from .errors import DataError
-from .images import read_image
+from .images import read_image_alpha
 from .parsed import REGION_LABELS, ImageRecord, ParsedScene, ParseOptions
 from .dataparser import parse_dataset
 
@@ -89,6 +89,7 @@ class _Item:
     image: Tensor  # uint8 [H, W, 3]
     depth: Tensor | None  # float32 [H, W, 1], normalised units
     labels: Tensor | None  # uint8 [H, W]
+    alpha: Tensor | None = None  # uint8 [H, W, 1] for images with an alpha channel
 
 
 class DataManager:
@@ -122,7 +123,7 @@ class DataManager:
         self._epoch = 0
 
     def _load(self, record: ImageRecord, background: np.ndarray) -> _Item:
-        pixels = read_image(record.path, background)
+        pixels, alpha = read_image_alpha(record.path, background)
         if pixels.shape[:2] != (record.height, record.width):
             raise DataError(record.path, f"image is {pixels.shape[1]}x{pixels.shape[0]}, expected "
                             f"{record.width}x{record.height}")
@@ -138,7 +139,8 @@ class DataManager:
             depth = torch.from_numpy(depth_np.astype(np.float32))[..., None]
         if record.mask_path is not None:
             labels = torch.from_numpy(_load_labels(record.mask_path, size))
-        return _Item(camera, torch.from_numpy(np.ascontiguousarray(pixels).copy()), depth, labels)
+        alpha_t = torch.from_numpy(alpha) if alpha is not None else None
+        return _Item(camera, torch.from_numpy(np.ascontiguousarray(pixels).copy()), depth, labels, alpha_t)
 
     @staticmethod
     def _item(item: _Item) -> tuple[Camera, Tensor, dict[str, Any]]:
@@ -147,7 +149,14 @@ class DataManager:
             extras["depth"] = item.depth
         if item.labels is not None:
             extras["masks"] = {name: item.labels == value for name, value in REGION_LABELS.items()}
+        if item.alpha is not None:
+            extras["alpha"] = item.alpha.to(torch.float32) / 255.0
         return item.camera, item.image.to(torch.float32) / 255.0, extras
+
+    @property
+    def has_alpha(self) -> bool:
+        """Every training image has an alpha channel (extras["alpha"] [H, W, 1] in [0, 1])."""
+        return all(item.alpha is not None for item in self._train)
 
     def train_item(self, index: int) -> tuple[Camera, Tensor, dict[str, Any]]:
         """(camera, image [H, W, 3] float32 in [0, 1], extras) of training image ``index``."""

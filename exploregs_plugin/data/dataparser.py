@@ -36,7 +36,9 @@ def resolve_data(data: str, cache_dir: Path) -> tuple[str, Path]:
         return "colmap", path
     if (path / "transforms.json").is_file():
         return "transforms", path / "transforms.json"
-    raise DataError(path, "not a dataset: expected sparse/0 (COLMAP) or transforms.json")
+    if (path / "transforms_train.json").is_file():
+        return "transforms", path  # Blender / NeRF-synthetic: transforms_{train,val,test}.json
+    raise DataError(path, "not a dataset: expected sparse/0 (COLMAP), transforms.json or transforms_train.json")
 
 
 def parse_dataset(data: str, options: ParseOptions, normalize: bool = True) -> ParsedScene:

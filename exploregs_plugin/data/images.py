@@ -26,24 +26,31 @@ def image_size(path: Path) -> tuple[int, int]:
         raise DataError(path, f"image file is unreadable ({err})") from err
 
 
-def read_image(path: Path, background: np.ndarray | None = None) -> np.ndarray:
-    """uint8 [H, W, 3]. An alpha channel is composited over ``background`` [3] in [0, 1]
-    (black when None): rgb = a * rgb + (1 - a) * background."""
+def read_image_alpha(path: Path, background: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray | None]:
+    """(rgb uint8 [H, W, 3], alpha uint8 [H, W, 1] or None). An alpha channel is composited
+    over ``background`` [3] in [0, 1] (black when None): rgb = a * rgb + (1 - a) * background,
+    and returned too, so a trainer can re-composite on another background."""
     try:
         with Image.open(path) as im:
             im.load()
             has_alpha = im.mode in ("RGBA", "LA") or (im.mode == "P" and "transparency" in im.info)
             if has_alpha:
-                rgba = np.asarray(im.convert("RGBA"), dtype=np.float32) / 255.0
+                rgba8 = np.asarray(im.convert("RGBA"), dtype=np.uint8)
+                rgba = rgba8.astype(np.float32) / 255.0
                 bg = np.zeros(3, np.float32) if background is None else np.asarray(background, np.float32)
                 alpha = rgba[..., 3:4]
                 rgb = rgba[..., :3] * alpha + bg * (1.0 - alpha)
-                return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8)
-            return np.asarray(im.convert("RGB"), dtype=np.uint8)
+                return np.clip(np.round(rgb * 255.0), 0, 255).astype(np.uint8), rgba8[..., 3:4].copy()
+            return np.asarray(im.convert("RGB"), dtype=np.uint8), None
     except FileNotFoundError as err:
         raise DataError(path, "image file is missing") from err
     except (UnidentifiedImageError, OSError) as err:
         raise DataError(path, f"image file is unreadable ({err})") from err
+
+
+def read_image(path: Path, background: np.ndarray | None = None) -> np.ndarray:
+    """uint8 [H, W, 3], an alpha channel composited over ``background`` (see read_image_alpha)."""
+    return read_image_alpha(path, background)[0]
 
 
 def resized_size(width: int, height: int, factor: int) -> tuple[int, int]:

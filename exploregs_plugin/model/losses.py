@@ -16,36 +16,37 @@ SSIM_C2 = 0.03**2
 MSE_FLOOR = 1e-10  # PSNR of a perfect match is 100 dB instead of inf
 
 
-def _gaussian_window(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
+def _gaussian_kernel_1d(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
     coords = torch.arange(size, dtype=dtype) - (size - 1) / 2.0
     g = torch.exp(-(coords**2) / (2.0 * sigma**2))
-    g = g / g.sum()
-    return torch.outer(g, g)
+    return g / g.sum()
 
 
 def ssim_map(img: Tensor, ref: Tensor) -> Tensor:
     """Per-pixel SSIM with an 11x11 Gaussian window (sigma 1.5), zero padding as in 3DGS.
 
-    img, ref: [H, W, C]. Returns [H, W, C].
+    img, ref: [H, W, C]. Returns [H, W, C]. The window is separable (an outer product of 1D
+    Gaussians), so the five local moments are filtered by one 1x11 and one 11x1 pass over the
+    stacked maps: 22 taps per pixel instead of 121, in two convolution calls instead of five.
     """
     if img.shape != ref.shape:
         raise ValueError(f"ssim: shapes differ: {tuple(img.shape)} vs {tuple(ref.shape)}")
     channels = img.shape[-1]
-    x = img.permute(2, 0, 1).unsqueeze(0)
-    y = ref.permute(2, 0, 1).unsqueeze(0)
-    w = _gaussian_window(SSIM_WINDOW, SSIM_SIGMA, img.dtype).expand(channels, 1, -1, -1)
+    x = img.permute(2, 0, 1)
+    y = ref.permute(2, 0, 1)
+    maps = torch.cat([x, y, x * x, y * y, x * y], dim=0).unsqueeze(0)  # [1, 5C, H, W]
+    g = _gaussian_kernel_1d(SSIM_WINDOW, SSIM_SIGMA, img.dtype)
+    n = maps.shape[1]
     pad = SSIM_WINDOW // 2
-
-    def blur(t: Tensor) -> Tensor:
-        return F.conv2d(t, w, padding=pad, groups=channels)
-
-    mu_x, mu_y = blur(x), blur(y)
-    sigma_xx = blur(x * x) - mu_x * mu_x
-    sigma_yy = blur(y * y) - mu_y * mu_y
-    sigma_xy = blur(x * y) - mu_x * mu_y
+    blurred = F.conv2d(maps, g.view(1, 1, 1, -1).expand(n, 1, 1, -1), padding=(0, pad), groups=n)
+    blurred = F.conv2d(blurred, g.view(1, 1, -1, 1).expand(n, 1, -1, 1), padding=(pad, 0), groups=n)
+    mu_x, mu_y, e_xx, e_yy, e_xy = blurred.squeeze(0).split(channels, dim=0)
+    sigma_xx = e_xx - mu_x * mu_x
+    sigma_yy = e_yy - mu_y * mu_y
+    sigma_xy = e_xy - mu_x * mu_y
     num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sigma_xy + SSIM_C2)
     den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sigma_xx + sigma_yy + SSIM_C2)
-    return (num / den).squeeze(0).permute(1, 2, 0)
+    return (num / den).permute(1, 2, 0)
 
 
 def ssim(img: Tensor, ref: Tensor) -> Tensor:

@@ -1,0 +1,58 @@
+"""A short training run made by an analysis command, stopping to probe at chosen iterations."""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+from exploregs_plugin.pipeline import Pipeline
+from exploregs_plugin.trainer import Trainer, TrainerConfig
+
+
+@dataclass
+class TrainSpec:
+    """A short training run made by an analysis command (when no --run is given)."""
+
+    method: str = "exploregs-default"
+    """Method to train (see eg-train --help)."""
+    data: str = "builtin:default"
+    """Dataset: builtin:NAME, a COLMAP folder or a transforms.json folder."""
+    data_factor: int | None = None
+    """Image downscale factor (unset: the datamanager's default)."""
+    max_steps: int = 300
+    """Training steps."""
+    seed: int = 0
+    """Run seed."""
+
+    def trainer_config(self, run_dir: Path) -> TrainerConfig:
+        from exploregs_plugin.method_configs import get_method
+
+        base = get_method(self.method).config
+        return replace(base, data=self.data, data_factor=self.data_factor, max_steps=self.max_steps,
+                       seed=self.seed, run_dir=run_dir, quiet=True, tensorboard=False, eval_count=1,
+                       save_eval_images=False, checkpoint_every=max(self.max_steps, 1))  # fmt: skip
+
+
+Probe = Callable[[Pipeline, int], None]
+
+
+def train_and_probe(config: TrainerConfig, steps: list[int], probe: Probe) -> Trainer:
+    """Train ``config`` and call ``probe(pipeline, step)`` after ``step`` steps for each listed step
+    (0 = before training); finishes with an evaluation, metrics.json and a final checkpoint, so
+    the folder is an ordinary run that ``--run`` accepts."""
+    trainer = Trainer(config.resolved())
+    wanted = set(steps)
+    if 0 in wanted:
+        probe(trainer.pipeline, 0)
+    for step in range(trainer.schedule.max_steps):
+        start = time.perf_counter()
+        trainer.pipeline.train_step(step)
+        trainer.train_seconds += time.perf_counter() - start  # probes are not training time
+        if step + 1 in wanted:
+            probe(trainer.pipeline, step + 1)
+    trainer.run_eval(trainer.schedule.max_steps)
+    trainer.write_metrics()
+    trainer.save_checkpoint(trainer.schedule.max_steps)
+    return trainer

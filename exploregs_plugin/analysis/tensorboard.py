@@ -1,0 +1,47 @@
+"""Gradient-branch norms during training: a small callable the trainer invokes after each step."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Protocol
+
+from .branches import sample_branch_norms
+from .sampling import train_problems
+
+if TYPE_CHECKING:  # the trainer imports this module: no runtime import of pipeline/trainer here
+    from exploregs_plugin.pipeline import Pipeline
+
+
+class ScalarSink(Protocol):
+    def scalar(self, tag: str, value: float, step: int) -> None: ...
+
+
+def pipeline_branch_norms(pipeline: Pipeline, step: int, n_views: int) -> dict[str, float]:
+    """Per-view mean gradient norm of each branch (and total) on ``n_views`` evenly spaced
+    training views, with the pipeline's loss, background, raster settings and the SH degree of
+    ``step``. Reads the state only (see :mod:`.sampling`)."""
+    return sample_branch_norms(train_problems(pipeline, n_views, step))
+
+
+@dataclass
+class BranchGradientLogger:
+    """Logs ``grad_branches/{mean2d,cov,sh,total}`` (and ``grad_branches/ratio_mean2d_cov``)
+    every ``every`` steps; ``every`` = 0 switches it off."""
+
+    every: int = 0
+    views: int = 4
+
+    def __post_init__(self) -> None:
+        if self.every < 0 or self.views < 1:
+            raise ValueError(f"grad-branch logging needs every >= 0 and views >= 1, got {self.every}, {self.views}")
+
+    def __call__(self, pipeline: Pipeline, step: int, sink: ScalarSink | Any) -> dict[str, float] | None:
+        """``step``: the number of steps completed. Returns the logged values (None when idle)."""
+        if self.every == 0 or step % self.every:
+            return None
+        norms = pipeline_branch_norms(pipeline, step, self.views)
+        for name, value in norms.items():
+            sink.scalar(f"grad_branches/{name}", value, step)
+        if norms["cov"] > 0:
+            sink.scalar("grad_branches/ratio_mean2d_cov", norms["mean2d"] / norms["cov"], step)
+        return norms

@@ -1,0 +1,63 @@
+"""Cost estimate of a bench before it starts, from measured seconds per training step.
+
+The rates were measured with ``eg-bench`` runs on the 2-core development machine while other
+jobs kept its load average at 8-11 (docs/bench.md gives the commands), so they are upper
+bounds for an idle machine. ``farside``, ``nearside`` and ``combined`` have the size of
+``default`` (144x108, 28 training views, 3000 points) and use its rates; the ``-large`` presets
+are extrapolated by pixel count; dataset paths have no estimate (the progress lines give one
+after the first run).
+"""
+
+from __future__ import annotations
+
+from exploregs_plugin.bench.spec import BenchSpec
+
+SECONDS_PER_STEP: dict[str, dict[str, float]] = {
+    "tiny": {"exploregs-default": 0.403, "exploregs-seed": 0.367, "exploregs-split": 0.547},
+    "default": {"exploregs-default": 0.597, "exploregs-split": 1.301, "exploregs-seedsplit": 1.244},
+}
+"""Scene -> method -> seconds per step over a 300-step run (Gaussian growth included)."""
+SAME_SIZE = {"farside": "default", "nearside": "default", "combined": "default"}
+RUN_OVERHEAD_SECONDS = 19.0
+"""Per run: process start-up, loading the scene, periodic evaluations, final checkpoint
+(quick preset: 452 s wall for 395 s of training in 3 runs)."""
+
+
+def _reference(name: str) -> tuple[str, float] | None:
+    """(measured scene, pixel ratio) for a built-in scene name, or None."""
+    from exploregs_plugin.data.builtin import PRESETS
+
+    if name in SECONDS_PER_STEP:
+        return name, 1.0
+    if name in SAME_SIZE:
+        return SAME_SIZE[name], 1.0
+    if name in PRESETS:
+        p, ref = PRESETS[name], PRESETS["default"]
+        return "default", (p.width * p.height) / (ref.width * ref.height)
+    return None
+
+
+def estimate_seconds(spec: BenchSpec) -> tuple[float | None, str]:
+    """(seconds for the whole bench with one job, how it was estimated) or (None, why not)."""
+    total, assumed, extrapolated, unknown = 0.0, set(), set(), set()
+    for scene, entry, _ in spec.runs():
+        ref = _reference(scene.data.split(":", 1)[1]) if scene.data.startswith("builtin:") else None
+        if ref is None or scene.options:
+            unknown.add(scene.name)
+            continue
+        measured, ratio = ref
+        rates = SECONDS_PER_STEP[measured]
+        if entry.method not in rates:
+            assumed.add(entry.method)
+        if ratio != 1.0:
+            extrapolated.add(scene.name)
+        total += RUN_OVERHEAD_SECONDS + spec.steps * rates.get(entry.method, rates["exploregs-default"]) * ratio
+    if unknown:
+        return None, (f"no measured rate for scene(s) {', '.join(sorted(unknown))}; the progress lines "
+                      f"estimate the rest after each run")
+    how = "seconds per step measured on a loaded 2-core machine"
+    if assumed:
+        how += f"; Default's rate assumed for {', '.join(sorted(assumed))}"
+    if extrapolated:
+        how += f"; {', '.join(sorted(extrapolated))} extrapolated by pixel count"
+    return total, how

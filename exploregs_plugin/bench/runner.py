@@ -1,0 +1,198 @@
+"""Running a bench: one subprocess per run, each in ``RESULTS/runs/<scene>/<entry>/seed<k>/``.
+
+Resumability, per run folder:
+- ``metrics.json`` present and the same config (fingerprint in ``bench_state.json``): reused;
+- checkpoints present, same config, no metrics: resumed from the newest checkpoint;
+- anything else (new, config changed, a failed or unreadable earlier attempt): trained afresh.
+A run that fails is tried again from scratch ``retries`` times; if it still fails it is recorded
+as failed with its error (``bench_state.json``) and shown so in every table.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable
+
+from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec, BenchSpecError, build_config, config_fingerprint
+from exploregs_plugin.bench.files import ERROR_NAME, JOB_NAME, LOG_NAME, METRICS_NAME, STATE_NAME
+from exploregs_plugin.io.checkpoint import list_checkpoints
+
+RUNS_DIR = "runs"
+
+
+@dataclass
+class RunRecord:
+    """The outcome of one (scene, entry, seed)."""
+
+    scene: str
+    entry: str
+    seed: int
+    run_dir: Path
+    status: str = "missing"
+    """``done``, ``failed`` or ``missing`` (not run: report-only on a folder without it)."""
+    error: str | None = None
+    metrics: dict[str, Any] | None = None
+    trained: bool = False
+    """True when this invocation trained (or resumed) it; False when reused."""
+    attempts: int = 0
+    wall_seconds: float = 0.0
+    """Wall-clock seconds of this invocation's subprocesses (start-up and evaluation included)."""
+
+
+@dataclass
+class RunOptions:
+    jobs: int = 1
+    """Runs in parallel (each gets cores // jobs torch threads)."""
+    retries: int = 1
+    """Fresh attempts after a failure before a run is recorded as failed."""
+    timeout: float | None = None
+    """Seconds after which a run is stopped and counts as failed (None: no limit)."""
+    train: bool = True
+    """False: only collect what the run folders hold (report-only)."""
+    log: Callable[[str], None] = field(default=lambda msg: print(msg, file=sys.stderr, flush=True))
+
+
+def run_dir_for(results: Path, scene: str, entry: str, seed: int) -> Path:
+    return Path(results) / RUNS_DIR / scene / entry / f"seed{seed}"
+
+
+def read_json(path: Path) -> dict[str, Any] | None:
+    try:
+        return json.loads(Path(path).read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _write_state(run_dir: Path, **state: Any) -> None:
+    path = run_dir / STATE_NAME
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(state, indent=2))
+    tmp.replace(path)
+
+
+def _fresh_folder(run_dir: Path) -> None:
+    if run_dir.exists():
+        shutil.rmtree(run_dir)
+    run_dir.mkdir(parents=True)
+
+
+def _launch(run_dir: Path, resume: bool, timeout: float | None) -> tuple[int, str | None]:
+    """Run the worker; returns (exit code, error line or None)."""
+    (run_dir / ERROR_NAME).unlink(missing_ok=True)
+    cmd = [sys.executable, "-m", "exploregs_plugin.bench.worker", str(run_dir)] + (["--resume"] if resume else [])
+    with open(run_dir / LOG_NAME, "a") as log:
+        log.write(f"$ {' '.join(cmd)}\n")
+        log.flush()
+        try:
+            rc = subprocess.run(cmd, stdout=log, stderr=subprocess.STDOUT, timeout=timeout).returncode
+        except subprocess.TimeoutExpired:
+            return -1, f"timed out after {timeout:g} s"
+    if rc == 130:  # Ctrl-C reached the worker too: it checkpointed; stop the bench, do not retry
+        raise KeyboardInterrupt(f"interrupted during {run_dir}")
+    if rc == 0 and (run_dir / METRICS_NAME).is_file():
+        return 0, None
+    error_file = run_dir / ERROR_NAME
+    if error_file.is_file():
+        return rc, error_file.read_text().strip()
+    tail = [ln for ln in (run_dir / LOG_NAME).read_text().splitlines() if ln.strip()][-1:]
+    return rc, f"exit code {rc}" + (f": {tail[0].strip()}" if tail else "") + (" (no metrics.json)" if rc == 0 else "")
+
+
+def run_one(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry, seed: int,
+            options: RunOptions) -> RunRecord:
+    run_dir = run_dir_for(results, scene.name, entry.name, seed)
+    record = RunRecord(scene.name, entry.name, seed, run_dir)
+    try:
+        config = build_config(spec, scene, entry, seed, run_dir)
+    except BenchSpecError as err:
+        record.status, record.error = "failed", str(err)
+        return record
+    fingerprint = config_fingerprint(config)
+    state = read_json(run_dir / STATE_NAME) or {}
+    same = state.get("fingerprint") == fingerprint
+    metrics = read_json(run_dir / METRICS_NAME)
+    if same and metrics is not None:
+        record.status, record.metrics, record.attempts = "done", metrics, int(state.get("attempts", 0))
+        return record
+    if not options.train:
+        if same and state.get("status") == "failed":
+            record.status, record.error, record.attempts = "failed", state.get("error"), int(state.get("attempts", 0))
+        return record
+    if options.jobs > 1:
+        config = replace(config, num_threads=max(1, (os.cpu_count() or 1) // options.jobs))
+    resume = same and state.get("status") != "failed" and bool(list_checkpoints(run_dir)) \
+        and (run_dir / "config.yml").is_file()
+    start = time.perf_counter()
+    for attempt in range(1 + max(0, options.retries)):
+        if not resume:
+            from exploregs_plugin.configs import save_config
+
+            _fresh_folder(run_dir)
+            save_config(config, run_dir / JOB_NAME)
+        _write_state(run_dir, fingerprint=fingerprint, status="running", attempts=attempt + 1)
+        rc, error = _launch(run_dir, resume, options.timeout)
+        record.attempts = attempt + 1
+        if error is None:
+            record.status, record.metrics, record.error = "done", read_json(run_dir / METRICS_NAME), None
+            _write_state(run_dir, fingerprint=fingerprint, status="done", attempts=attempt + 1)
+            break
+        what = "resumed run" if resume else "run"
+        options.log(f"  {scene.name}/{entry.name}/seed{seed}: {what} failed ({error})"
+                    + ("; retrying from scratch" if attempt < options.retries else ""))
+        record.status, record.error = "failed", error
+        _write_state(run_dir, fingerprint=fingerprint, status="failed", attempts=attempt + 1, error=error)
+        resume = False
+    record.trained = True
+    record.wall_seconds = time.perf_counter() - start
+    return record
+
+
+def execute(spec: BenchSpec, results: Path, options: RunOptions | None = None) -> list[RunRecord]:
+    """Run (or reuse) every run of ``spec``; returns one record per (scene, entry, seed) in spec order."""
+    options = options or RunOptions()
+    if options.jobs < 1:
+        raise BenchSpecError(f"jobs must be >= 1, got {options.jobs}")
+    plan = spec.runs()
+    lock = threading.Lock()
+    done = {"count": 0, "trained_seconds": 0.0, "trained": 0}
+
+    def one(item: tuple[BenchScene, BenchEntry, int]) -> RunRecord:
+        scene, entry, seed = item
+        record = run_one(spec, results, scene, entry, seed, options)
+        with lock:
+            done["count"] += 1
+            if record.trained:
+                done["trained"] += 1
+                done["trained_seconds"] += record.wall_seconds
+            options.log(_progress_line(record, done["count"], len(plan), done, options.jobs))
+        return record
+
+    if options.jobs == 1:
+        return [one(item) for item in plan]
+    with ThreadPoolExecutor(max_workers=options.jobs) as pool:
+        return list(pool.map(one, plan))
+
+
+def _progress_line(record: RunRecord, count: int, total: int, done: dict[str, Any], jobs: int) -> str:
+    head = f"[{count}/{total}] {record.scene}/{record.entry}/seed{record.seed}: "
+    if record.status == "done" and record.metrics is not None:
+        m = record.metrics
+        how = f"trained in {record.wall_seconds:.0f} s" if record.trained else "reused"
+        text = f"{how}, PSNR {m.get('psnr', float('nan')):.2f} dB, {m.get('num_gaussians')} Gaussians"
+    elif record.status == "failed":
+        text = f"FAILED: {record.error}"
+    else:
+        text = "not run"
+    if done["trained"] and record.trained and count < total:
+        eta = done["trained_seconds"] / done["trained"] * (total - count) / jobs
+        text += f" (at most ~{eta / 60:.0f} min left)"
+    return head + text

@@ -1,0 +1,204 @@
+"""What a benchmark runs: entries (a method plus overrides), scenes (data plus options), seeds, steps.
+
+An entry's and a scene's overrides are eg-train command-line arguments (``--strategy.n-seed 50``,
+``--data-factor 4``), parsed with tyro against the entry's method config, exactly as ``eg-train``
+would parse them, so a typo fails with tyro's message naming the argument.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import re
+import shlex
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+from typing import Any
+
+from exploregs_plugin.trainer import TrainerConfig
+
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
+
+
+class BenchSpecError(ValueError):
+    """A benchmark specification (preset, CLI arguments or spec file) is invalid."""
+
+
+def split_args(args: str | list[str] | tuple[str, ...] | None) -> list[str]:
+    """Override arguments as a list: a string is split like a shell would (``'--a 1 --b x'``)."""
+    if args is None:
+        return []
+    if isinstance(args, str):
+        return shlex.split(args)
+    if not all(isinstance(a, str) for a in args):
+        raise BenchSpecError(f"override arguments must be strings, got {list(args)!r}")
+    return list(args)
+
+
+def check_name(kind: str, name: str) -> str:
+    """Entry and scene names become folder names: letters, digits and ``_.+-`` only."""
+    if not _NAME.match(name):
+        raise BenchSpecError(f"{kind} name {name!r} must start with a letter or digit and use only "
+                             f"letters, digits and '_.+-' (it names a folder)")
+    return name
+
+
+@dataclass(frozen=True)
+class BenchEntry:
+    """One row of the tables: a registered method plus eg-train overrides."""
+
+    name: str
+    """Row name and folder name (e.g. ``default-relaxed-prune``)."""
+    method: str
+    """Registered method (``eg-train --help`` lists them), e.g. ``exploregs-default``."""
+    overrides: tuple[str, ...] = ()
+    """eg-train arguments applied to the method's config (``--strategy.prune-scale3d 10``)."""
+    description: str = ""
+    """One line for the docs and results.md."""
+
+
+@dataclass(frozen=True)
+class BenchScene:
+    """One column group of the tables: a dataset plus per-scene eg-train options."""
+
+    name: str
+    """Column and folder name (``farside``; a path's folder name unless given)."""
+    data: str
+    """``builtin:NAME`` or a dataset path (COLMAP folder, transforms.json or its folder)."""
+    options: tuple[str, ...] = ()
+    """eg-train arguments for every run on this scene (``--data-factor 4``); entry overrides win."""
+
+
+@dataclass(frozen=True)
+class BenchSpec:
+    """Entries x scenes x seeds, all with the same step budget."""
+
+    entries: tuple[BenchEntry, ...]
+    scenes: tuple[BenchScene, ...]
+    seeds: tuple[int, ...] = (0,)
+    steps: int = 1000
+    """Common step budget of every run (a scene option ``--max-steps`` may change it for one scene)."""
+    eval_count: int = 5
+    """Periodic test evaluations per run: the points of the PSNR-against-time curves."""
+    baseline: str = "default"
+    """Entry that paired differences are taken against (same scene, same seed)."""
+    name: str = "custom"
+    """Preset name, or ``custom``."""
+    notes: tuple[str, ...] = field(default_factory=tuple)
+    """Lines printed before running (e.g. scenes skipped because their data are absent)."""
+
+    def __post_init__(self) -> None:
+        if not self.entries:
+            raise BenchSpecError("a benchmark needs at least one method entry")
+        if not self.scenes:
+            raise BenchSpecError("a benchmark needs at least one scene")
+        if not self.seeds:
+            raise BenchSpecError("a benchmark needs at least one seed")
+        if self.steps < 1:
+            raise BenchSpecError(f"steps must be >= 1, got {self.steps}")
+        if self.eval_count < 1:
+            raise BenchSpecError(f"eval_count must be >= 1, got {self.eval_count}")
+        for kind, names in (("entry", [e.name for e in self.entries]), ("scene", [s.name for s in self.scenes])):
+            dup = sorted({n for n in names if names.count(n) > 1})
+            if dup:
+                raise BenchSpecError(f"{kind} names must be unique; repeated: {', '.join(dup)}")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise BenchSpecError(f"seeds must be unique, got {list(self.seeds)}")
+
+    def entry(self, name: str) -> BenchEntry:
+        for e in self.entries:
+            if e.name == name:
+                return e
+        raise BenchSpecError(f"no entry named {name!r}")
+
+    def runs(self) -> list[tuple[BenchScene, BenchEntry, int]]:
+        """Every (scene, entry, seed), seeds innermost-last so that a partial bench covers all
+        methods of a scene at seed 0 before it starts seed 1."""
+        return [(sc, e, s) for sc in self.scenes for s in self.seeds for e in self.entries]
+
+
+def parse_overrides(config: TrainerConfig, args: list[str], where: str) -> TrainerConfig:
+    """Apply eg-train arguments to ``config`` through tyro (the same parser eg-train uses).
+
+    Raises BenchSpecError naming ``where`` when tyro rejects the arguments."""
+    if not args:
+        return config
+    import contextlib
+    import io
+
+    import tyro
+
+    err = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+            return tyro.cli(type(config), args=args, default=config)
+    except SystemExit as exit_:
+        # tyro prints a boxed message; keep its words, drop the frame and the usage hint
+        lines = [ln.strip("│╭╰╮╯─- \t") for ln in err.getvalue().splitlines()]
+        lines = [ln for ln in lines if ln and not ln.startswith(("For full helptext", "usage:"))]
+        detail = " ".join(dict.fromkeys(lines)) or f"exit code {exit_.code}"
+        raise BenchSpecError(f"{where}: invalid eg-train arguments {shlex.join(args)!r}: {detail}") from None
+
+
+def build_config(spec: BenchSpec, scene: BenchScene, entry: BenchEntry, seed: int, run_dir: Path) -> TrainerConfig:
+    """The complete TrainerConfig of one run: the method's config, the bench fields (data, steps,
+    seed, run folder, evaluation count, quiet), then the scene's options, then the entry's overrides."""
+    from exploregs_plugin.method_configs import MethodRegistryError, get_method
+
+    try:
+        base = get_method(entry.method).config
+    except MethodRegistryError as err:
+        raise BenchSpecError(f"entry {entry.name!r}: {err}") from err
+    config = replace(base, data=scene.data, max_steps=spec.steps, seed=seed, eval_count=spec.eval_count,
+                     quiet=True, tensorboard=False, save_eval_images=False)
+    config = parse_overrides(config, list(scene.options), f"scene {scene.name!r} options")
+    config = parse_overrides(config, list(entry.overrides), f"entry {entry.name!r} overrides")
+    # The bench owns where and under which seed a run happens, whatever the overrides say.
+    return replace(config, seed=seed, run_dir=Path(run_dir), resume=None, viewer=False).resolved()
+
+
+def config_fingerprint(config: TrainerConfig) -> str:
+    """Hash of everything that changes a run's result (not its folder or console settings), so a
+    finished run is reused only for the same config."""
+    from exploregs_plugin.configs import config_to_dict
+
+    d = config_to_dict(replace(config, run_dir=None, output_dir=Path("outputs"), quiet=True,
+                               num_threads=None, viewer=False))
+    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+
+
+def scene_from_arg(text: str) -> BenchScene:
+    """``builtin:farside``, ``/path/to/scene`` or ``NAME=DATA``; the name defaults to the
+    built-in name or the path's folder name (``transforms.json`` -> its folder)."""
+    name, sep, data = text.partition("=")
+    if not sep:
+        data = text
+        if text.startswith("builtin:"):
+            name = text.split(":", 1)[1]
+        else:
+            p = Path(text)
+            name = (p.parent.name if p.suffix == ".json" else p.name) or "scene"
+    if not data:
+        raise BenchSpecError(f"scene {text!r} has no data")
+    return BenchScene(name=check_name("scene", name), data=data)
+
+
+def check_mapping(d: Any, where: str, kind: str, required: str, known: tuple[str, ...]) -> dict[str, Any]:
+    """A spec-file item given as a mapping: it has ``required`` and no key outside ``known``."""
+    if not isinstance(d, dict) or required not in d:
+        raise BenchSpecError(f"{where}: a {kind} is a string or a mapping with '{required}', got {d!r}")
+    unknown = set(d) - set(known)
+    if unknown:
+        raise BenchSpecError(f"{where}: unknown {kind} keys {sorted(unknown)} (known: {', '.join(known)})")
+    return d
+
+
+def scene_from_dict(d: Any, where: str) -> BenchScene:
+    if isinstance(d, str):
+        return scene_from_arg(d)
+    check_mapping(d, where, "scene", "data", ("name", "data", "data_factor", "options"))
+    base = scene_from_arg(str(d["data"]))
+    options = split_args(d.get("options"))
+    if d.get("data_factor") is not None:
+        options = ["--data-factor", str(int(d["data_factor"]))] + options
+    return BenchScene(name=check_name("scene", str(d.get("name", base.name))), data=base.data, options=tuple(options))

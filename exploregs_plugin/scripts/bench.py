@@ -1,0 +1,117 @@
+"""eg-bench: run methods x scenes x seeds and write the paper-shaped tables and plots.
+
+    eg-bench quick --out bench-quick                       # a few minutes
+    eg-bench standard --out bench-standard --dry-run       # the plan and its estimated cost
+    eg-bench --methods default seed seed50=seed --scenes builtin:farside /data/garden \\
+        --seeds 0 1 --steps 2000 --override 'seed50:--strategy.n-seed 50' \\
+        --scene-option 'garden:--data-factor 4' --out bench-mine
+    eg-bench --spec bench.yml --out bench-mine             # the same as a YAML/JSON file
+    eg-bench quick --out bench-quick --report-only         # tables from the runs already there
+"""
+
+from __future__ import annotations
+
+import shlex
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal, Optional
+
+import tyro
+
+from exploregs_plugin.scripts import run_cli
+
+
+@dataclass
+class BenchCommand:
+    """Run methods x scenes x seeds with a common step budget and write results.md, results.csv,
+    summary.csv, results.json and PNG plots. Finished runs in OUT are reused; unfinished ones are
+    resumed or redone."""
+
+    preset: tyro.conf.Positional[Optional[Literal["quick", "standard", "real"]]] = None
+    """Start from a preset: quick (minutes), standard (built-in Blur-Trap scenes, ~2 h), real
+    (../shared/scenes). Options below change it."""
+    out: Path = Path("bench-results")
+    """Results folder: tables and plots here, each run in OUT/runs/<scene>/<entry>/seed<k>/."""
+    spec: Optional[Path] = None
+    """YAML or JSON spec file (keys: preset, steps, seeds, eval_count, baseline, methods, scenes)."""
+    methods: Optional[tuple[str, ...]] = None
+    """Entries: named (default, default-relaxed-prune, default-lowthresh, seed, split, seedsplit,
+    ray, mcmc, mcmc-ray), a registered method (exploregs-seed), or NAME=METHOD for a new row."""
+    scenes: Optional[tuple[str, ...]] = None
+    """Scenes: builtin:NAME, a dataset path, or NAME=DATA."""
+    seeds: Optional[tuple[int, ...]] = None
+    """Seeds (each run uses one)."""
+    steps: Optional[int] = None
+    """Common step budget of every run."""
+    eval_count: Optional[int] = None
+    """Test evaluations per run (points of the PSNR-against-time curves)."""
+    baseline: Optional[str] = None
+    """Entry for the paired differences (default: default)."""
+    override: tuple[str, ...] = ()
+    """Per-entry eg-train arguments, 'ENTRY:ARGS', e.g. 'seed:--strategy.n-seed 50' (repeatable)."""
+    scene_option: tuple[str, ...] = ()
+    """Per-scene eg-train arguments, 'SCENE:ARGS', e.g. 'beer:--data-factor 8' (repeatable)."""
+    data_factor: Optional[int] = None
+    """Add --data-factor N to every scene."""
+    jobs: int = 1
+    """Runs in parallel, each with cores // jobs torch threads (timings then share the CPU)."""
+    retries: int = 1
+    """Fresh attempts of a failed run before it is recorded as failed."""
+    timeout: Optional[float] = None
+    """Seconds after which a run is stopped and recorded as failed."""
+    report_only: bool = False
+    """Train nothing: write the tables and plots from the runs already in OUT."""
+    dry_run: bool = False
+    """Print the plan and the estimated cost, then stop."""
+
+
+def describe(spec, options_jobs: int) -> list[str]:
+    from exploregs_plugin.bench.estimate import estimate_seconds
+
+    n = len(spec.runs())
+    lines = [f"bench {spec.name}: {len(spec.entries)} methods x {len(spec.scenes)} scenes x "
+             f"{len(spec.seeds)} seeds = {n} runs of {spec.steps} steps",
+             "  methods: " + ", ".join(e.name + (f" [{' '.join(e.overrides)}]" if e.overrides else "")
+                                       for e in spec.entries),
+             "  scenes: " + ", ".join(f"{s.name} ({s.data}{' ' + ' '.join(s.options) if s.options else ''})"
+                                      for s in spec.scenes)]
+    lines += [f"  note: {note}" for note in spec.notes]
+    seconds, how = estimate_seconds(spec)
+    if seconds is None:
+        lines.append(f"  estimate: {how}")
+    else:
+        lines.append(f"  estimate: ~{seconds / 60:.0f} min with one job at the measured rates ({how}; an idle machine is faster); "
+                     f"runs already finished in the results folder are reused")
+    return lines
+
+
+def main(argv: list[str]) -> dict | None:
+    from exploregs_plugin.bench import RunOptions, compose, execute, report
+
+    cmd = tyro.cli(BenchCommand, args=argv, description=__doc__.split("\n")[0])
+    spec = compose(cmd.preset, cmd.spec, cmd.methods, cmd.scenes, cmd.seeds, cmd.steps, cmd.eval_count,
+                   cmd.baseline, cmd.override, cmd.scene_option, cmd.data_factor)
+    for line in describe(spec, cmd.jobs):
+        print(line, file=sys.stderr)
+    if cmd.dry_run:
+        return None
+    options = RunOptions(jobs=cmd.jobs, retries=cmd.retries, timeout=cmd.timeout, train=not cmd.report_only)
+    try:
+        records = execute(spec, cmd.out, options)
+    except KeyboardInterrupt:
+        print(f"eg-bench: interrupted; run the same command again to continue (finished runs are reused, "
+              f"the interrupted one resumes from its checkpoint)", file=sys.stderr)
+        raise SystemExit(130) from None
+    payload = report(cmd.out, spec, records, command=shlex.join(["eg-bench", *argv]))
+    failed = sum(r.status == "failed" for r in records)
+    print(f"results: {cmd.out / 'results.md'} ({len(records)} runs, {failed} failed)", file=sys.stderr)
+    return payload
+
+
+def entrypoint() -> None:
+    run_cli("eg-bench", main, sys.argv[1:])
+
+
+if __name__ == "__main__":
+    entrypoint()

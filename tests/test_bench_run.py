@@ -1,0 +1,128 @@
+"""eg-bench end to end on the tiny scene: tables and plots, numbers equal to each run's
+metrics.json, reuse of finished runs, resume of unfinished ones, failed runs kept in the tables."""
+
+from __future__ import annotations
+
+import csv
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+from PIL import Image
+
+from exploregs_plugin.bench import BenchEntry, BenchScene, BenchSpec, RunOptions, run_bench, run_dir_for
+from exploregs_plugin.bench.presets import named_entries
+
+STEPS = 20
+TINY = BenchScene("tiny", "builtin:tiny", ("--schedule.min-refine-every", "5"))
+"""Densify (and seed) at step 5 of the 20, so the two methods differ."""
+
+
+def tiny_spec(*extra: BenchEntry, scenes: tuple[BenchScene, ...] | None = None) -> BenchSpec:
+    named = named_entries()
+    return BenchSpec(entries=(named["default"], named["seed"], *extra),
+                     scenes=scenes or (TINY,),
+                     seeds=(0,), steps=STEPS, eval_count=2, name="test")
+
+
+@pytest.fixture(scope="module")
+def bench(tmp_path_factory, tiny_scene_dir):
+    out = tmp_path_factory.mktemp("bench")
+    logs: list[str] = []
+    payload = run_bench(tiny_spec(), out, RunOptions(log=logs.append), command="eg-bench (test)")
+    return out, payload, logs
+
+
+def _metrics(out: Path, entry: str) -> dict:
+    return json.loads((run_dir_for(out, "tiny", entry, 0) / "metrics.json").read_text())
+
+
+def test_writes_tables_and_plots(bench):
+    out, payload, logs = bench
+    for name in ("results.md", "results.csv", "summary.csv", "results.json", "psnr_vs_gaussians.png",
+                 "psnr_vs_time_tiny.png"):
+        assert (out / name).is_file(), name
+    for png in out.glob("*.png"):
+        with Image.open(png) as im:
+            assert im.size[0] > 200 and im.size[1] > 200
+    assert [r["status"] for r in payload["runs"]] == ["done", "done"]
+    assert all("trained in" in line for line in logs)
+    md = (out / "results.md").read_text()
+    for heading in ("## Test image quality", "## Paired differences", "## Region PSNR", "## Gaussians"):
+        assert heading in md
+
+
+def test_table_numbers_equal_each_runs_metrics(bench):
+    out, payload, _ = bench
+    rows = {r["entry"]: r for r in csv.DictReader(open(out / "results.csv"))}
+    md = (out / "results.md").read_text()
+    quality = md.split("## Test image quality")[1].split("##")[0]
+    for entry in ("default", "seed"):
+        m = _metrics(out, entry)
+        row = rows[entry]
+        assert float(row["psnr"]) == pytest.approx(m["psnr"], abs=1e-9)
+        assert float(row["ssim"]) == pytest.approx(m["ssim"], abs=1e-9)
+        assert int(float(row["num_gaussians"])) == m["num_gaussians"]
+        assert float(row["train_seconds"]) == pytest.approx(m["train_seconds"], abs=1e-9)
+        for region in ("far", "occluded", "other"):
+            assert float(row[f"region_{region}"]) == pytest.approx(m["region_psnr"][region], abs=1e-9)
+        line = next(ln for ln in quality.splitlines() if ln.startswith(f"| {entry} |"))
+        assert f"| {m['psnr']:.2f} | {m['ssim']:.4f} | n/a |" in line  # one seed: no ± ; LPIPS absent
+        run = next(r for r in payload["runs"] if r["entry"] == entry)
+        assert run["history"] == m["history"] and len(run["history"]) == 2
+    # the paired difference is seed's PSNR minus default's, on the same seed
+    seed_line = next(ln for ln in quality.splitlines() if ln.startswith("| seed |"))
+    diff = _metrics(out, "seed")["psnr"] - _metrics(out, "default")["psnr"]
+    assert seed_line.rstrip(" |").endswith(f"{diff:+.2f}")
+    summary = {s["entry"]: s for s in payload["summary"]}
+    assert summary["seed"]["paired"]["psnr"]["mean"] == pytest.approx(diff, abs=1e-9)
+    assert summary["seed"]["paired"]["psnr"]["n"] == 1
+
+
+def test_rerun_reuses_finished_runs_and_resumes_unfinished(bench):
+    out, payload, _ = bench
+    default_dir, seed_dir = run_dir_for(out, "tiny", "default", 0), run_dir_for(out, "tiny", "seed", 0)
+    stamp = (default_dir / "metrics.json").stat().st_mtime_ns
+    log_before = (default_dir / "bench.log").read_text()
+    seed_metrics = _metrics(out, "seed")
+    (seed_dir / "metrics.json").unlink()  # as if it stopped after its last checkpoint
+    logs: list[str] = []
+    again = run_bench(tiny_spec(), out, RunOptions(log=logs.append))
+    assert (default_dir / "metrics.json").stat().st_mtime_ns == stamp
+    assert (default_dir / "bench.log").read_text() == log_before  # no process was started for it
+    assert "reused" in logs[0] and "trained in" in logs[1]
+    commands = [ln for ln in (seed_dir / "bench.log").read_text().splitlines() if ln.startswith("$ ")]
+    assert len(commands) == 2 and commands[1].endswith(" --resume")
+    resumed = _metrics(out, "seed")
+    assert resumed["psnr"] == pytest.approx(seed_metrics["psnr"], abs=1e-6)
+    assert resumed["num_gaussians"] == seed_metrics["num_gaussians"]
+    assert [r["psnr"] for r in again["runs"]] == [r["psnr"] for r in payload["runs"]]
+
+
+def test_failing_runs_appear_as_failed(bench, tmp_path):
+    out, _, _ = bench
+    named = named_entries()
+    bad = BenchEntry("bad-override", "exploregs-default", ("--strategy.no-such-field", "1"))
+    spec = replace(tiny_spec(), entries=(named["default"], bad),
+                   scenes=(TINY, BenchScene("gone", str(tmp_path / "missing"))))
+    logs: list[str] = []
+    payload = run_bench(spec, out, RunOptions(log=logs.append))
+    runs = {(r["scene"], r["entry"]): r for r in payload["runs"]}
+    assert len(runs) == 4  # nothing dropped
+    bad_run = runs[("tiny", "bad-override")]
+    assert bad_run["status"] == "failed" and "no-such-field" in bad_run["error"]
+    # a crash inside the training process: tried, retried from scratch, then recorded
+    gone = runs[("gone", "default")]
+    assert gone["status"] == "failed" and gone["attempts"] == 2 and "missing" in gone["error"]
+    state = json.loads((run_dir_for(out, "gone", "default", 0) / "bench_state.json").read_text())
+    assert state["status"] == "failed" and state["error"] == gone["error"]
+    assert runs[("tiny", "default")]["status"] == "done" and "reused" in logs[0]
+    md = (out / "results.md").read_text()
+    quality = md.split("## Test image quality")[1].split("##")[0]
+    assert "| bad-override | failed | failed | failed | failed | failed | failed | failed | failed |" in quality
+    assert "Failed runs:" in md and "no-such-field" in md.split("Failed runs:")[1]
+    assert "| gone | default | 0 | 2 |" in md
+    assert "4 runs: 1 finished, 3 failed" in md
+    rows = list(csv.DictReader(open(out / "results.csv")))
+    assert sum(r["status"] == "failed" for r in rows) == 3

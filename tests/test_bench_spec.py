@@ -1,0 +1,149 @@
+"""eg-bench specs without training: entries, scenes, overrides through tyro, presets, spec files,
+CLI composition, fingerprints and the paired statistics of the tables."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+
+from exploregs_plugin.bench import BenchEntry, BenchScene, BenchSpec, BenchSpecError, compose, preset
+from exploregs_plugin.bench.presets import LOWTHRESH_GROW_GRAD2D, entry_from_arg, named_entries, real
+from exploregs_plugin.bench.runner import RunRecord
+from exploregs_plugin.bench.spec import build_config, config_fingerprint, scene_from_arg
+from exploregs_plugin.bench.tables import mean_std, run_row, summarize
+from exploregs_plugin.strategies import DefaultStrategy, SeedingStrategy
+
+
+def _config(spec: BenchSpec, entry: str, scene: int = 0, seed: int = 0):
+    return build_config(spec, spec.scenes[scene], spec.entry(entry), seed, Path("/tmp/unused-run"))
+
+
+def test_controls_are_default_with_seedings_prune_and_a_lower_threshold():
+    spec = preset("standard")
+    relaxed = _config(spec, "default-relaxed-prune").pipeline.strategy
+    plain = _config(spec, "default").pipeline.strategy
+    assert type(relaxed) is DefaultStrategy and type(plain) is DefaultStrategy
+    assert relaxed.prune_scale3d == SeedingStrategy().seed_prune_scale3d == 10.0
+    assert plain.prune_scale3d == DefaultStrategy().prune_scale3d
+    low = build_config(spec, spec.scenes[0], named_entries()["default-lowthresh"], 0, Path("/tmp/x")).pipeline.strategy
+    assert low.grow_grad2d == LOWTHRESH_GROW_GRAD2D < plain.grow_grad2d
+    assert [e.name for e in spec.entries] == ["default", "default-relaxed-prune", "seed", "split", "seedsplit",
+                                              "ray", "mcmc"]
+    assert spec.seeds == (0, 1, 2) and len(spec.runs()) == 7 * 3 * len(spec.scenes)
+
+
+def test_build_config_applies_bench_fields_then_scene_options_then_entry_overrides():
+    spec = BenchSpec(entries=(BenchEntry("s50", "exploregs-seed", ("--strategy.n-seed", "50", "--data-factor", "3")),),
+                     scenes=(BenchScene("t", "builtin:tiny", ("--data-factor", "2", "--eval-count", "7")),),
+                     seeds=(4,), steps=123, eval_count=3)
+    c = _config(spec, "s50", seed=4)
+    assert c.pipeline.strategy.n_seed == 50 and type(c.pipeline.strategy) is SeedingStrategy
+    assert c.pipeline.datamanager.data == "builtin:tiny" and c.pipeline.datamanager.data_factor == 3  # entry wins
+    assert (c.max_steps, c.seed, c.eval_count, c.quiet, c.tensorboard) == (123, 4, 7, True, False)
+    assert c.run_dir == Path("/tmp/unused-run")
+
+
+def test_invalid_overrides_name_the_entry_and_argument():
+    spec = BenchSpec(entries=(BenchEntry("oops", "exploregs-seed", ("--strategy.n-seed", "many")),),
+                     scenes=(BenchScene("t", "builtin:tiny"),))
+    with pytest.raises(BenchSpecError, match=r"entry 'oops' overrides.*--strategy.n-seed"):
+        _config(spec, "oops")
+    with pytest.raises(BenchSpecError, match="unknown method"):
+        entry_from_arg("x=exploregs-nothing")
+    with pytest.raises(BenchSpecError, match="unknown entry"):
+        entry_from_arg("nothing")
+    with pytest.raises(BenchSpecError, match="unique"):
+        BenchSpec(entries=(named_entries()["seed"],) * 2, scenes=(BenchScene("t", "builtin:tiny"),))
+    with pytest.raises(BenchSpecError, match="folder"):
+        scene_from_arg("a/b=builtin:tiny")
+
+
+def test_fingerprint_changes_with_what_changes_the_result_only():
+    spec = preset("quick")
+    a = _config(spec, "default")
+    assert config_fingerprint(a) == config_fingerprint(build_config(spec, spec.scenes[0], spec.entry("default"), 0,
+                                                                    Path("/elsewhere")))
+    assert config_fingerprint(a) != config_fingerprint(_config(spec, "default", seed=1))
+    assert config_fingerprint(a) != config_fingerprint(_config(spec, "seed"))
+
+
+def test_compose_cli_and_spec_file(tmp_path):
+    spec = compose(methods=("default", "seed50=seed", "exploregs-mcmc"), scenes=("builtin:farside", "mine=/data/x",
+                                                                                 "/data/fox/transforms.json"),
+                   seeds=(0, 1), steps=2000, overrides=("seed50:--strategy.n-seed 50",),
+                   scene_options=("mine:--data-factor 4",))
+    assert [e.name for e in spec.entries] == ["default", "seed50", "exploregs-mcmc"]
+    assert spec.entry("seed50").method == "exploregs-seed" and spec.entry("seed50").overrides == ("--strategy.n-seed", "50")
+    assert [(s.name, s.data, s.options) for s in spec.scenes] == [
+        ("farside", "builtin:farside", ()), ("mine", "/data/x", ("--data-factor", "4")),
+        ("fox", "/data/fox/transforms.json", ())]
+    assert (spec.seeds, spec.steps, spec.name) == ((0, 1), 2000, "custom")
+    with pytest.raises(BenchSpecError, match="not in the bench"):
+        compose(methods=("default",), scenes=("builtin:tiny",), overrides=("seed:--strategy.n-seed 5",))
+    with pytest.raises(BenchSpecError, match="say what to run"):
+        compose(methods=("default",))
+
+    yml = tmp_path / "b.yml"
+    yml.write_text("preset: quick\nsteps: 50\nseeds: [3]\nmethods:\n  - default\n"
+                   "  - {name: s5, method: seed, overrides: --strategy.n-seed 5}\n"
+                   "scenes:\n  - builtin:tiny\n  - {name: far, data: builtin:farside, data_factor: 2}\n")
+    spec = compose(spec_file=yml, steps=60)
+    assert [e.name for e in spec.entries] == ["default", "s5"] and spec.entry("s5").overrides == ("--strategy.n-seed", "5")
+    assert spec.scenes[1].options == ("--data-factor", "2") and (spec.steps, spec.seeds) == (60, (3,))
+    assert spec.eval_count == preset("quick").eval_count and spec.name == "quick+custom"
+    js = tmp_path / "b.json"
+    js.write_text(json.dumps({"methods": ["split"], "scenes": ["builtin:tiny"], "bogus": 1}))
+    with pytest.raises(BenchSpecError, match="unknown keys.*bogus"):
+        compose(spec_file=js)
+
+
+def test_real_preset_skips_absent_scenes(tmp_path):
+    with pytest.raises(BenchSpecError, match="no captured scenes"):
+        real(tmp_path)
+    (tmp_path / "fox").mkdir()
+    spec = real(tmp_path)
+    assert [s.name for s in spec.scenes] == ["fox"] and spec.scenes[0].options == ("--data-factor", "12")
+    assert any("beer" in note for note in spec.notes)
+
+
+def _record(entry: str, seed: int, psnr: float | None, far: float = 20.0) -> RunRecord:
+    if psnr is None:
+        return RunRecord("s", entry, seed, Path("/x"), status="failed", error="boom")
+    metrics = {"psnr": psnr, "ssim": 0.5, "lpips": None, "region_psnr": {"far": far, "occluded": 1.0, "other": 2.0},
+               "num_gaussians": 100 + seed, "train_seconds": 1.0, "seconds_per_step": 0.1,
+               "render_seconds_per_image": 0.01}
+    return RunRecord("s", entry, seed, Path("/x"), status="done", metrics=metrics)
+
+
+def test_paired_differences_use_the_same_seed_and_skip_failures():
+    spec = BenchSpec(entries=(named_entries()["default"], named_entries()["seed"]), scenes=(BenchScene("s", "builtin:tiny"),),
+                     seeds=(0, 1, 2))
+    records = [_record("default", 0, 20.0), _record("default", 1, 22.0), _record("default", 2, 24.0),
+               _record("seed", 0, 21.0, far=23.0), _record("seed", 1, None), _record("seed", 2, 24.5)]
+    summary = {s["entry"]: s for s in summarize(spec, [run_row(spec, r) for r in records])}
+    d = summary["seed"]["paired"]["psnr"]
+    assert d["n"] == 2 and d["mean"] == pytest.approx(0.75) and d["std"] == pytest.approx(math.sqrt(0.125))
+    assert summary["seed"]["paired"]["region_far"]["mean"] == pytest.approx(1.5)  # (23-20 + 20-20) / 2
+    assert summary["seed"]["n_done"] == 2 and summary["seed"]["n_failed"] == 1
+    base = summary["default"]["metrics"]["psnr"]
+    assert base["mean"] == pytest.approx(22.0) and base["std"] == pytest.approx(2.0)
+    assert summary["default"]["metrics"]["lpips"] == {"mean": None, "std": None, "n": 0}
+    assert summary["default"]["paired"] == {}
+    assert mean_std([5.0]) == {"mean": 5.0, "std": None, "n": 1}
+
+
+def test_cli_dry_run_prints_the_plan_and_bad_input_is_one_line(capsys):
+    from exploregs_plugin.scripts.bench import main
+    from exploregs_plugin.scripts import run_cli
+
+    assert main(["standard", "--dry-run", "--steps", "400", "--override", "seed:--strategy.n-seed 5"]) is None
+    err = capsys.readouterr().err
+    assert "7 methods x 3 scenes x 3 seeds = 63 runs of 400 steps" in err
+    assert "seed [--strategy.n-seed 5]" in err and "estimate: ~" in err
+    with pytest.raises(SystemExit) as exit_:
+        run_cli("eg-bench", main, ["--methods", "default", "--scenes", "builtin:tiny", "--override", "nocolon"])
+    assert exit_.value.code == 2
+    assert "eg-bench: error: --override 'nocolon': expected 'ENTRY:ARGS'" in capsys.readouterr().err
