@@ -1,5 +1,5 @@
 """eg-bench specs without training: entries, scenes, overrides through tyro, presets, spec files,
-CLI composition, fingerprints and the paired statistics of the tables."""
+CLI composition, config matching and the paired statistics of the tables."""
 
 from __future__ import annotations
 
@@ -12,7 +12,7 @@ import pytest
 from exploregs_plugin.bench import BenchEntry, BenchScene, BenchSpec, BenchSpecError, compose, preset
 from exploregs_plugin.bench.presets import LOWTHRESH_GROW_GRAD2D, entry_from_arg, named_entries, real
 from exploregs_plugin.bench.runner import RunRecord
-from exploregs_plugin.bench.spec import build_config, config_fingerprint, scene_from_arg
+from exploregs_plugin.bench.spec import build_config, comparable, config_fingerprint, configs_match, scene_from_arg
 from exploregs_plugin.bench.tables import mean_std, run_row, summarize
 from exploregs_plugin.strategies import DefaultStrategy, SeedingStrategy
 
@@ -61,13 +61,25 @@ def test_invalid_overrides_name_the_entry_and_argument():
         scene_from_arg("a/b=builtin:tiny")
 
 
-def test_fingerprint_changes_with_what_changes_the_result_only():
+def test_a_run_matches_its_config_whatever_its_folder_and_across_added_fields():
+    from exploregs_plugin.configs import config_to_dict
+
     spec = preset("quick")
-    a = _config(spec, "default")
-    assert config_fingerprint(a) == config_fingerprint(build_config(spec, spec.scenes[0], spec.entry("default"), 0,
-                                                                    Path("/elsewhere")))
-    assert config_fingerprint(a) != config_fingerprint(_config(spec, "default", seed=1))
-    assert config_fingerprint(a) != config_fingerprint(_config(spec, "seed"))
+
+    def written(entry: str, seed: int = 0, run_dir: str = "/tmp/unused-run") -> dict:
+        return comparable(config_to_dict(build_config(spec, spec.scenes[0], spec.entry(entry), seed, Path(run_dir))))
+
+    a = written("default")
+    assert configs_match(a, written("default", run_dir="/elsewhere"))
+    assert not configs_match(a, written("default", seed=1))
+    assert not configs_match(a, written("seed"))  # another strategy type
+    older = json.loads(json.dumps(a))
+    del older["pipeline"]["strategy"]["grow_scale3d"]  # a field the code did not have then
+    assert configs_match(older, a)
+    older["pipeline"]["strategy"]["grow_grad2d"] = 1e-3  # a value that differs
+    assert not configs_match(older, a)
+    assert config_fingerprint(build_config(spec, spec.scenes[0], spec.entry("default"), 0, Path("/x"))) == \
+        config_fingerprint(build_config(spec, spec.scenes[0], spec.entry("default"), 0, Path("/y")))
 
 
 def test_compose_cli_and_spec_file(tmp_path):
@@ -76,7 +88,8 @@ def test_compose_cli_and_spec_file(tmp_path):
                    seeds=(0, 1), steps=2000, overrides=("seed50:--strategy.n-seed 50",),
                    scene_options=("mine:--data-factor 4",))
     assert [e.name for e in spec.entries] == ["default", "seed50", "exploregs-mcmc"]
-    assert spec.entry("seed50").method == "exploregs-seed" and spec.entry("seed50").overrides == ("--strategy.n-seed", "50")
+    assert spec.entry("seed50").method == "exploregs-seed"
+    assert spec.entry("seed50").overrides == ("--strategy.n-seed", "50")
     assert [(s.name, s.data, s.options) for s in spec.scenes] == [
         ("farside", "builtin:farside", ()), ("mine", "/data/x", ("--data-factor", "4")),
         ("fox", "/data/fox/transforms.json", ())]
@@ -91,7 +104,8 @@ def test_compose_cli_and_spec_file(tmp_path):
                    "  - {name: s5, method: seed, overrides: --strategy.n-seed 5}\n"
                    "scenes:\n  - builtin:tiny\n  - {name: far, data: builtin:farside, data_factor: 2}\n")
     spec = compose(spec_file=yml, steps=60)
-    assert [e.name for e in spec.entries] == ["default", "s5"] and spec.entry("s5").overrides == ("--strategy.n-seed", "5")
+    assert [e.name for e in spec.entries] == ["default", "s5"]
+    assert spec.entry("s5").overrides == ("--strategy.n-seed", "5")
     assert spec.scenes[1].options == ("--data-factor", "2") and (spec.steps, spec.seeds) == (60, (3,))
     assert spec.eval_count == preset("quick").eval_count and spec.name == "quick+custom"
     js = tmp_path / "b.json"
@@ -119,7 +133,8 @@ def _record(entry: str, seed: int, psnr: float | None, far: float = 20.0) -> Run
 
 
 def test_paired_differences_use_the_same_seed_and_skip_failures():
-    spec = BenchSpec(entries=(named_entries()["default"], named_entries()["seed"]), scenes=(BenchScene("s", "builtin:tiny"),),
+    named = named_entries()
+    spec = BenchSpec(entries=(named["default"], named["seed"]), scenes=(BenchScene("s", "builtin:tiny"),),
                      seeds=(0, 1, 2))
     records = [_record("default", 0, 20.0), _record("default", 1, 22.0), _record("default", 2, 24.0),
                _record("seed", 0, 21.0, far=23.0), _record("seed", 1, None), _record("seed", 2, 24.5)]

@@ -1,7 +1,7 @@
 """Cost estimate of a bench before it starts, from measured seconds per training step.
 
 The rates were measured with ``eg-bench`` runs on the 2-core development machine while other
-jobs kept its load average at 8-11 (docs/bench.md gives the commands), so they are upper
+jobs kept its load average at 4-11 (docs/bench.md gives the commands), so they are upper
 bounds for an idle machine. ``farside``, ``nearside`` and ``combined`` have the size of
 ``default`` (144x108, 28 training views, 3000 points) and use its rates; the ``-large`` presets
 are extrapolated by pixel count; dataset paths have no estimate (the progress lines give one
@@ -10,13 +10,15 @@ after the first run).
 
 from __future__ import annotations
 
-from exploregs_plugin.bench.spec import BenchSpec
+from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec
 
 SECONDS_PER_STEP: dict[str, dict[str, float]] = {
-    "tiny": {"exploregs-default": 0.403, "exploregs-seed": 0.367, "exploregs-split": 0.547},
-    "default": {"exploregs-default": 0.597, "exploregs-split": 1.301, "exploregs-seedsplit": 1.244},
+    "tiny": {"exploregs-default": 0.277, "exploregs-seed": 0.273, "exploregs-split": 0.470},
+    "default": {"exploregs-default": 0.597, "exploregs-seed": 0.625, "exploregs-split": 1.032,
+                "exploregs-seedsplit": 1.244, "exploregs-ray": 0.423, "exploregs-mcmc": 0.280},
 }
-"""Scene -> method -> seconds per step over a 300-step run (Gaussian growth included)."""
+"""Scene -> method -> seconds per step over a 300-step run (Gaussian growth included). The same
+Default run measured 0.60 and 0.92 s per step at different loads, so these are rough."""
 SAME_SIZE = {"farside": "default", "nearside": "default", "combined": "default"}
 RUN_OVERHEAD_SECONDS = 19.0
 """Per run: process start-up, loading the scene, periodic evaluations, final checkpoint
@@ -37,10 +39,12 @@ def _reference(name: str) -> tuple[str, float] | None:
     return None
 
 
-def estimate_seconds(spec: BenchSpec) -> tuple[float | None, str]:
-    """(seconds for the whole bench with one job, how it was estimated) or (None, why not)."""
+def estimate_seconds(spec: BenchSpec, runs: list[tuple[BenchScene, BenchEntry, int]] | None = None,
+                     ) -> tuple[float | None, str]:
+    """(seconds for ``runs`` (default: the whole bench) with one job, how it was estimated),
+    or (None, why not)."""
     total, assumed, extrapolated, unknown = 0.0, set(), set(), set()
-    for scene, entry, _ in spec.runs():
+    for scene, entry, _ in spec.runs() if runs is None else runs:
         ref = _reference(scene.data.split(":", 1)[1]) if scene.data.startswith("builtin:") else None
         if ref is None or scene.options:
             unknown.add(scene.name)

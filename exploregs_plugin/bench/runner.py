@@ -1,7 +1,8 @@
 """Running a bench: one subprocess per run, each in ``RESULTS/runs/<scene>/<entry>/seed<k>/``.
 
 Resumability, per run folder:
-- ``metrics.json`` present and the same config (fingerprint in ``bench_state.json``): reused;
+- ``metrics.json`` present and the same config (``bench_job.yml`` against the requested config,
+  :func:`configs_match`): reused;
 - checkpoints present, same config, no metrics: resumed from the newest checkpoint;
 - anything else (new, config changed, a failed or unreadable earlier attempt): trained afresh.
 A run that fails is tried again from scratch ``retries`` times; if it still fails it is recorded
@@ -22,7 +23,16 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
-from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec, BenchSpecError, build_config, config_fingerprint
+from exploregs_plugin.bench.spec import (
+    BenchEntry,
+    BenchScene,
+    BenchSpec,
+    BenchSpecError,
+    build_config,
+    comparable,
+    config_fingerprint,
+    configs_match,
+)
 from exploregs_plugin.bench.files import ERROR_NAME, JOB_NAME, LOG_NAME, METRICS_NAME, STATE_NAME
 from exploregs_plugin.io.checkpoint import list_checkpoints
 
@@ -107,6 +117,29 @@ def _launch(run_dir: Path, resume: bool, timeout: float | None) -> tuple[int, st
     return rc, f"exit code {rc}" + (f": {tail[0].strip()}" if tail else "") + (" (no metrics.json)" if rc == 0 else "")
 
 
+def same_config(run_dir: Path, config: Any) -> bool:
+    """Whether the run folder was made for ``config`` (its bench_job.yml matches, see configs_match)."""
+    import yaml
+
+    from exploregs_plugin.configs import config_to_dict
+
+    try:
+        old = yaml.safe_load((Path(run_dir) / JOB_NAME).read_text())
+    except (OSError, yaml.YAMLError):
+        return False
+    return isinstance(old, dict) and configs_match(comparable(old), comparable(config_to_dict(config)))
+
+
+def is_finished(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry, seed: int) -> bool:
+    """True when the run folder holds metrics.json of this config (it would be reused)."""
+    run_dir = run_dir_for(results, scene.name, entry.name, seed)
+    try:
+        config = build_config(spec, scene, entry, seed, run_dir)
+    except BenchSpecError:
+        return False
+    return (run_dir / METRICS_NAME).is_file() and same_config(run_dir, config)
+
+
 def run_one(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry, seed: int,
             options: RunOptions) -> RunRecord:
     run_dir = run_dir_for(results, scene.name, entry.name, seed)
@@ -118,7 +151,7 @@ def run_one(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry
         return record
     fingerprint = config_fingerprint(config)
     state = read_json(run_dir / STATE_NAME) or {}
-    same = state.get("fingerprint") == fingerprint
+    same = same_config(run_dir, config)
     metrics = read_json(run_dir / METRICS_NAME)
     if same and metrics is not None:
         record.status, record.metrics, record.attempts = "done", metrics, int(state.get("attempts", 0))

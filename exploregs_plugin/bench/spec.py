@@ -157,14 +157,36 @@ def build_config(spec: BenchSpec, scene: BenchScene, entry: BenchEntry, seed: in
     return replace(config, seed=seed, run_dir=Path(run_dir), resume=None, viewer=False).resolved()
 
 
+VOLATILE_FIELDS = ("run_dir", "output_dir", "resume", "quiet", "num_threads", "viewer", "viewer_config")
+"""Top-level TrainerConfig fields that do not change a run's result."""
+
+
+def comparable(config_dict: dict[str, Any]) -> dict[str, Any]:
+    """A written config (``config_to_dict`` or the YAML of a run's job file) without the fields
+    that do not change the result."""
+    return {k: v for k, v in config_dict.items() if k not in VOLATILE_FIELDS}
+
+
+def configs_match(old: Any, new: Any) -> bool:
+    """Whether a run made with config ``old`` counts as a run of ``new`` (both written dicts).
+
+    Values present in both must be equal (types included); a key present on one side only is a
+    field added to or removed from the code since the run was made, so it did not exist then and
+    is ignored: a new field must default to the old behaviour, the project's convention for new
+    options. Any changed value (steps, seed, an override, a changed default) does not match."""
+    if isinstance(old, dict) and isinstance(new, dict):
+        return all(configs_match(old[k], new[k]) for k in old.keys() & new.keys())
+    if isinstance(old, list) and isinstance(new, list):
+        return len(old) == len(new) and all(configs_match(a, b) for a, b in zip(old, new))
+    return old == new
+
+
 def config_fingerprint(config: TrainerConfig) -> str:
-    """Hash of everything that changes a run's result (not its folder or console settings), so a
-    finished run is reused only for the same config."""
+    """Short hash of the comparable config (recorded in bench_state.json for reference)."""
     from exploregs_plugin.configs import config_to_dict
 
-    d = config_to_dict(replace(config, run_dir=None, output_dir=Path("outputs"), quiet=True,
-                               num_threads=None, viewer=False))
-    return hashlib.sha256(json.dumps(d, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    text = json.dumps(comparable(config_to_dict(config)), sort_keys=True, default=str)
+    return hashlib.sha256(text.encode()).hexdigest()[:16]
 
 
 def scene_from_arg(text: str) -> BenchScene:

@@ -74,7 +74,8 @@ def read_spec_file(path: Path) -> dict[str, Any]:
         raise BenchSpecError(f"spec file {path}: expected a mapping at the top, got {type(data).__name__}")
     unknown = set(data) - SPEC_KEYS
     if unknown:
-        raise BenchSpecError(f"spec file {path}: unknown keys {sorted(unknown)} (known: {', '.join(sorted(SPEC_KEYS))})")
+        raise BenchSpecError(f"spec file {path}: unknown keys {sorted(unknown)} "
+                             f"(known: {', '.join(sorted(SPEC_KEYS))})")
     return data
 
 
@@ -93,8 +94,9 @@ def _with_args(items: tuple[Any, ...], specs: tuple[str, ...], kind: str, field_
     for text in specs:
         name, sep, args = text.partition(":")
         if not sep or not name:
-            raise BenchSpecError(f"--{'override' if kind == 'entry' else 'scene-option'} {text!r}: expected "
-                                 f"'{kind.upper()}:ARGS', e.g. '{'seed:--strategy.n-seed 50' if kind == 'entry' else 'farside:--data-factor 2'}'")
+            flag, example = (("override", "seed:--strategy.n-seed 50") if kind == "entry"
+                             else ("scene-option", "farside:--data-factor 2"))
+            raise BenchSpecError(f"--{flag} {text!r}: expected '{kind.upper()}:ARGS', e.g. '{example}'")
         if name not in names:
             raise BenchSpecError(f"{text!r} names {kind} {name!r}, which is not in the bench ({', '.join(names)})")
         k = names.index(name)
@@ -129,7 +131,8 @@ def compose(
                   "eval_count": base.eval_count, "baseline": base.baseline, "name": base.name, "notes": base.notes}
     where = f"spec file {spec_file}"
     if "methods" in data:
-        fields["entries"] = tuple(entry_from_dict(d, f"{where} methods[{i}]") for i, d in enumerate(data["methods"] or []))
+        fields["entries"] = tuple(entry_from_dict(d, f"{where} methods[{i}]")
+                                  for i, d in enumerate(data["methods"] or []))
     if "scenes" in data:
         fields["scenes"] = tuple(scene_from_dict(d, f"{where} scenes[{i}]") for i, d in enumerate(data["scenes"] or []))
     if "seeds" in data:

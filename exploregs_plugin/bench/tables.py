@@ -108,18 +108,23 @@ def _table(header: list[str], rows: list[list[str]]) -> list[str]:
     return lines + ["| " + " | ".join(r) + " |" for r in rows]
 
 
-def _grouped(spec: BenchSpec, summary: list[dict[str, Any]], columns: list[tuple[str, str, int, float, bool]],
-             scenes: list[str] | None = None) -> list[str]:
-    """Rows: entries; per scene one column per (label, key, digits, scale, paired)."""
+Column = tuple[str, str, int, float, bool]
+"""(label, metric key, digits, scale, paired difference?)"""
+
+
+def _grouped(spec: BenchSpec, summary: list[dict[str, Any]], columns: list[Column],
+             scenes: list[str] | None = None, extra: dict[str, list[Column]] | None = None) -> list[str]:
+    """Rows: entries; per scene one column per ``columns`` item, plus ``extra[scene]``."""
     by = {(s["scene"], s["entry"]): s for s in summary}
     scenes = scenes if scenes is not None else [s.name for s in spec.scenes]
-    header = ["method"] + [f"{sc} {label}" for sc in scenes for label, *_ in columns]
+    per_scene = {sc: columns + (extra or {}).get(sc, []) for sc in scenes}
+    header = ["method"] + [f"{sc} {label}" for sc in scenes for label, *_ in per_scene[sc]]
     rows = []
     for entry in spec.entries:
         row = [entry.name]
         for sc in scenes:
             item = by[(sc, entry.name)]
-            for _, key, digits, scale, paired in columns:
+            for _, key, digits, scale, paired in per_scene[sc]:
                 if paired and entry.name == spec.baseline:
                     row.append("(baseline)")
                 else:
@@ -148,14 +153,20 @@ def markdown(spec: BenchSpec, rows: list[dict[str, Any]], summary: list[dict[str
                      for e in spec.entries])
     lines += ["", "Scenes: " + "; ".join(
         f"`{s.name}` = `{s.data}`" + (f" `{' '.join(s.options)}`" if s.options else "") for s in spec.scenes), ""]
+    has_base = any(e.name == base for e in spec.entries)
     lines += ["## Test image quality", ""]
     lines += _grouped(spec, summary, [("PSNR", "psnr", 2, 1.0, False), ("SSIM", "ssim", 4, 1.0, False),
-                                      ("LPIPS", "lpips", 4, 1.0, False), ("ΔPSNR", "psnr", 2, 1.0, True)])
-    lines += ["", "## Paired differences to " + f"`{base}`", ""]
-    lines += _grouped(spec, summary, [("ΔPSNR", "psnr", 2, 1.0, True), ("ΔSSIM", "ssim", 4, 1.0, True)]
-                      + [(f"Δ{r}", f"region_{r}", 2, 1.0, True) for r in REGIONS])
+                                      ("LPIPS", "lpips", 4, 1.0, False)]
+                      + ([("ΔPSNR", "psnr", 2, 1.0, True)] if has_base else []))
     region_scenes = [s.name for s in spec.scenes
                      if any(r["scene"] == s.name and r["region_far"] is not None for r in rows)]
+    lines += ["", "## Paired differences to " + f"`{base}`", ""]
+    region_deltas: list[Column] = [(f"Δ{r}", f"region_{r}", 2, 1.0, True) for r in REGIONS]
+    if has_base:
+        lines += _grouped(spec, summary, [("ΔPSNR", "psnr", 2, 1.0, True), ("ΔSSIM", "ssim", 4, 1.0, True)],
+                          extra={sc: region_deltas for sc in region_scenes})
+    else:
+        lines += [f"No entry named `{base}` in this bench (set another with --baseline)."]
     lines += ["", "## Region PSNR (dB; far / occluded / other, pooled over test views)", ""]
     if region_scenes:
         lines += _grouped(spec, summary, [(r, f"region_{r}", 2, 1.0, False) for r in REGIONS], region_scenes)
@@ -203,7 +214,8 @@ def summary_rows(summary: list[dict[str, Any]]) -> list[dict[str, Any]]:
 RUN_COLUMNS = ["scene", "entry", "method", "seed", "status", "steps", *METRICS, "attempts", "error", "run_dir"]
 
 
-def write_tables(results: Path, spec: BenchSpec, records: list[RunRecord], command: str | None = None) -> dict[str, Any]:
+def write_tables(results: Path, spec: BenchSpec, records: list[RunRecord],
+                 command: str | None = None) -> dict[str, Any]:
     """Write results.md, results.csv (one row per run), summary.csv (one row per method and scene)
     and results.json (spec, runs with their histories, summary) into ``results``."""
     rows = [run_row(spec, r) for r in records]

@@ -19,7 +19,11 @@ from typing import Literal, Optional
 
 import tyro
 
+from exploregs_plugin.bench.presets import PRESETS
+from exploregs_plugin.bench.spec import BenchSpec
 from exploregs_plugin.scripts import run_cli
+
+PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # every key of bench.presets.PRESETS
 
 
 @dataclass
@@ -28,9 +32,10 @@ class BenchCommand:
     summary.csv, results.json and PNG plots. Finished runs in OUT are reused; unfinished ones are
     resumed or redone."""
 
-    preset: tyro.conf.Positional[Optional[Literal["quick", "standard", "real"]]] = None
+    preset: tyro.conf.Positional[Optional[PresetName]] = None
     """Start from a preset: quick (minutes), standard (built-in Blur-Trap scenes, ~2 h), real
-    (../shared/scenes). Options below change it."""
+    (../shared/scenes), branch-ablation, depth-supervision, split-ablation (the paper's ablations,
+    docs/analysis.md). Options below change it."""
     out: Path = Path("bench-results")
     """Results folder: tables and plots here, each run in OUT/runs/<scene>/<entry>/seed<k>/."""
     spec: Optional[Path] = None
@@ -66,8 +71,10 @@ class BenchCommand:
     """Print the plan and the estimated cost, then stop."""
 
 
-def describe(spec, options_jobs: int) -> list[str]:
+def describe(spec: BenchSpec, results: Path) -> list[str]:
+    """The plan in a few lines: entries, scenes, runs, notes and the estimated cost."""
     from exploregs_plugin.bench.estimate import estimate_seconds
+    from exploregs_plugin.bench.runner import is_finished
 
     n = len(spec.runs())
     lines = [f"bench {spec.name}: {len(spec.entries)} methods x {len(spec.scenes)} scenes x "
@@ -77,12 +84,15 @@ def describe(spec, options_jobs: int) -> list[str]:
              "  scenes: " + ", ".join(f"{s.name} ({s.data}{' ' + ' '.join(s.options) if s.options else ''})"
                                       for s in spec.scenes)]
     lines += [f"  note: {note}" for note in spec.notes]
-    seconds, how = estimate_seconds(spec)
+    todo = [run for run in spec.runs() if not is_finished(spec, results, *run)]
+    if len(todo) < len(spec.runs()):
+        lines.append(f"  {len(spec.runs()) - len(todo)} runs already finished in {results} are reused")
+    seconds, how = estimate_seconds(spec, todo)
     if seconds is None:
         lines.append(f"  estimate: {how}")
     else:
-        lines.append(f"  estimate: ~{seconds / 60:.0f} min with one job at the measured rates ({how}; an idle machine is faster); "
-                     f"runs already finished in the results folder are reused")
+        lines.append(f"  estimate: ~{seconds / 60:.0f} min for {len(todo)} runs with one job at the measured rates "
+                     f"({how}; an idle machine is faster)")
     return lines
 
 
@@ -92,7 +102,7 @@ def main(argv: list[str]) -> dict | None:
     cmd = tyro.cli(BenchCommand, args=argv, description=__doc__.split("\n")[0])
     spec = compose(cmd.preset, cmd.spec, cmd.methods, cmd.scenes, cmd.seeds, cmd.steps, cmd.eval_count,
                    cmd.baseline, cmd.override, cmd.scene_option, cmd.data_factor)
-    for line in describe(spec, cmd.jobs):
+    for line in describe(spec, cmd.out):
         print(line, file=sys.stderr)
     if cmd.dry_run:
         return None
