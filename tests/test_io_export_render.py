@@ -158,3 +158,17 @@ def test_imported_ply_evaluates_like_the_run(run, tmp_path):
     ours, theirs = evaluate(imported, dm), evaluate(model, dm)
     assert ours["psnr"] == pytest.approx(theirs["psnr"], abs=1e-3)
     assert ours["ssim"] == pytest.approx(theirs["ssim"], abs=1e-5)
+
+
+def test_eg_eval_on_an_exported_ply_matches_the_run(run, tmp_path):
+    from exploregs_plugin.scripts import eval as eval_script
+
+    path = export_script.main(export_script.ExportArgs(run.run_dir, out=tmp_path / "scene.ply")).path
+    of_run = eval_script.main(eval_script.EvalArgs(run.run_dir, out=tmp_path / "run-eval", save_images=False))
+    of_ply = eval_script.main(eval_script.EvalArgs(path, data="builtin:tiny", save_images=False))
+    assert of_ply["num_gaussians"] == of_run["num_gaussians"]
+    assert of_ply["psnr"] == pytest.approx(of_run["psnr"], abs=1e-3)  # original-frame float32 round trip
+    assert of_ply["ssim"] == pytest.approx(of_run["ssim"], abs=1e-5)
+    assert (tmp_path / "scene-eval" / "metrics.json").is_file()
+    with pytest.raises(ValueError, match="pass --data"):
+        eval_script.main(eval_script.EvalArgs(path))

@@ -1,17 +1,24 @@
-"""eg-eval: re-evaluate a trained run on its test views.
+"""eg-eval: evaluate a trained run, or a 3DGS PLY, on test views.
 
-Writes RUN/eval-step-XXXXXXX/metrics.json and render | ground truth | error PNGs; the
-run's own metrics.json is left untouched.
+    eg-eval RUN_DIR_OR_CHECKPOINT                       # the run's own test views
+    eg-eval scene.ply --data DATASET [--data-factor N]  # a PLY (ours or another tool's)
+
+Writes metrics.json and render | ground truth | error PNGs (for a run: RUN/eval-step-XXXXXXX/,
+leaving the run's own metrics.json untouched; for a PLY: NAME-eval/ beside it).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import tyro
 
+from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.evaluation import evaluate, write_metrics_json
+from exploregs_plugin.io.ply import read_ply
+from exploregs_plugin.io.scene_source import dataset_normalization, is_ply, model_from_params
 from exploregs_plugin.runs import load_run
 from exploregs_plugin.scripts import run_cli
 
@@ -19,19 +26,36 @@ from exploregs_plugin.scripts import run_cli
 @dataclass
 class EvalArgs:
     path: tyro.conf.Positional[Path]
-    """A run folder (uses its latest checkpoint) or a checkpoint file."""
+    """A run folder (uses its latest checkpoint), a checkpoint file, or a 3DGS PLY."""
     out: Path | None = None
-    """Output folder (default: RUN/eval-step-XXXXXXX)."""
+    """Output folder (default: RUN/eval-step-XXXXXXX, or NAME-eval/ beside a PLY)."""
     save_images: bool = True
     """Save render | ground truth | error map PNGs."""
+    data: str | None = None
+    """For a PLY: the dataset whose test views score it (a dataset path or builtin:NAME)."""
+    data_factor: int = 1
+    """For a PLY: image downscale factor of --data."""
+    ply_frame: Literal["original", "normalized"] = "original"
+    """For a PLY: it holds the dataset's original coordinates (as eg-export writes by default) or
+    the normalised training frame."""
 
 
 def main(args: EvalArgs) -> dict:
-    run = load_run(args.path)
-    out = args.out or run.run_dir / f"eval-step-{run.step:07d}"
-    metrics = evaluate(run.pipeline.model, run.pipeline.datamanager, save_dir=out if args.save_images else None)
-    metrics.update({"method": run.config.method_name, "scene": run.pipeline.datamanager.scene_name,
-                    "step": run.step, "checkpoint": str(run.checkpoint)})
+    if is_ply(args.path):
+        if args.data is None:
+            raise ValueError(f"{args.path}: a PLY holds no cameras or images; pass --data DATASET to score it")
+        dm = DataManagerConfig(data=args.data, data_factor=args.data_factor).setup()
+        scene = read_ply(args.path, dataset_normalization(dm) if args.ply_frame == "original" else None)
+        model = model_from_params(scene.params, scene.sh_degree)
+        out = args.out or args.path.with_name(args.path.stem + "-eval")
+        extra = {"ply": str(args.path), "data": args.data, "dropped_nonfinite": scene.dropped}
+    else:
+        run = load_run(args.path)
+        model, dm = run.pipeline.model, run.pipeline.datamanager
+        out = args.out or run.run_dir / f"eval-step-{run.step:07d}"
+        extra = {"method": run.config.method_name, "step": run.step, "checkpoint": str(run.checkpoint)}
+    metrics = evaluate(model, dm, save_dir=out if args.save_images else None)
+    metrics.update({"scene": dm.scene_name, **extra})
     write_metrics_json(out / "metrics.json", metrics)
     print(f"PSNR {metrics['psnr']:.3f} dB  SSIM {metrics['ssim']:.4f}  "
           f"{metrics['num_gaussians']} Gaussians  -> {out / 'metrics.json'}")
@@ -39,7 +63,7 @@ def main(args: EvalArgs) -> dict:
 
 
 def entrypoint() -> None:
-    run_cli("eg-eval", main, tyro.cli(EvalArgs, description="Re-evaluate a trained ExploreGS run."))
+    run_cli("eg-eval", main, tyro.cli(EvalArgs, description="Evaluate an ExploreGS run or a 3DGS PLY."))
 
 
 if __name__ == "__main__":
