@@ -6,7 +6,7 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import torch
@@ -28,17 +28,24 @@ def error_map(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     return (err / 0.25).clamp(0, 1).expand(-1, -1, 3)
 
 
+def evaluation_panel(image: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """render | ground truth | error map side by side: [H, 3W, 3]."""
+    return torch.cat([image, target, error_map(image, target)], dim=1)
+
+
 def evaluate(
     model: GaussianModel,
     datamanager: Any,
     save_dir: Path | None = None,
+    on_image: Callable[[int, str, torch.Tensor, torch.Tensor], None] | None = None,
 ) -> dict[str, Any]:
     """Render every test view at full SH degree and score it against the ground truth.
 
     Image PSNR/SSIM are means over test images (the usual convention). Region PSNR pools the
     squared error over all pixels of that region in all test images, since a region can cover
     only a few pixels of one view. With ``save_dir``, writes render | ground truth | error map
-    PNGs there.
+    PNGs there. ``on_image(index, name, render, target)`` sees each test render as it is made
+    (the trainer keeps a few for tensorboard without rendering them again).
     """
     per_image: list[dict[str, Any]] = []
     region_sq: dict[str, float] = {}
@@ -68,8 +75,10 @@ def evaluate(
                 region_sq[region] = region_sq.get(region, 0.0) + float(sq[mask].sum())
                 region_n[region] = region_n.get(region, 0) + int(mask.sum())
         per_image.append(entry)
+        if on_image is not None:
+            on_image(i, camera.name, image, target)
         if save_dir is not None:
-            panel = torch.cat([image, target, error_map(image, target)], dim=1)
+            panel = evaluation_panel(image, target)
             Image.fromarray(_to_uint8(panel)).save(Path(save_dir) / f"{i:04d}_{Path(camera.name).stem}.png")
     result: dict[str, Any] = {
         "num_test_images": n_test,

@@ -15,7 +15,7 @@ import tyro
 
 from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
 from exploregs_plugin.configs import load_config, save_config
-from exploregs_plugin.evaluation import error_map, evaluate, write_metrics_json
+from exploregs_plugin.evaluation import evaluate, evaluation_panel, write_metrics_json
 from exploregs_plugin.io.checkpoint import load_checkpoint, resolve_run, save_checkpoint
 from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig
 from exploregs_plugin.run_logger import RunLogger
@@ -24,6 +24,7 @@ from exploregs_plugin.viewer.config import ViewerConfig
 
 CONFIG_NAME = "config.yml"
 METRICS_NAME = "metrics.json"
+EVAL_PANELS = 2  # test views shown in tensorboard at each evaluation (render | truth | error)
 
 
 @dataclass
@@ -194,26 +195,22 @@ class Trainer:
         """Evaluate on the test views and record a point of the PSNR-against-time curve."""
         final = step >= self.schedule.max_steps
         save_dir = self.run_dir / "renders" if (final and self.config.save_eval_images) else None
-        metrics = evaluate(self.pipeline.model, self.pipeline.datamanager, save_dir=save_dir)
+        panels: list[tuple[str, torch.Tensor]] = []
+
+        def keep_panel(index: int, name: str, image: torch.Tensor, target: torch.Tensor) -> None:
+            if index < EVAL_PANELS:
+                panels.append((name or f"view{index}", evaluation_panel(image, target)))
+
+        metrics = evaluate(self.pipeline.model, self.pipeline.datamanager, save_dir=save_dir, on_image=keep_panel)
         self.history.append({"step": step, "train_seconds": self.train_seconds, "psnr": metrics["psnr"],
                              "ssim": metrics["ssim"], "num_gaussians": metrics["num_gaussians"],
                              **({"region_psnr": metrics["region_psnr"]} if "region_psnr" in metrics else {})})
         if getattr(self, "logger", None) is not None:
-            self.logger.log_eval(step, metrics, self._eval_panels())
+            self.logger.log_eval(step, metrics, panels)
             for name, value in self.pipeline.exploration_summary().items():
                 self.logger.scalar(f"strategy/{name}", value, step)
         self.last_metrics = metrics
         return metrics
-
-    def _eval_panels(self, limit: int = 2) -> list[tuple[str, torch.Tensor]]:
-        dm, model = self.pipeline.datamanager, self.pipeline.model
-        panels = []
-        for i in range(min(limit, len(dm.test_cameras))):
-            camera, target, _ = dm.test_item(i)
-            with torch.no_grad():
-                image = model.render(camera, model.config.sh_degree, dm.background)[0].clamp(0, 1)
-            panels.append((camera.name or f"view{i}", torch.cat([image, target, error_map(image, target)], dim=1)))
-        return panels
 
     def write_metrics(self) -> dict[str, Any]:
         metrics = dict(self.last_metrics)

@@ -1,4 +1,4 @@
-"""Console entry points (eg-train, eg-eval, eg-export, eg-render, eg-view, eg-scenes)."""
+"""Console entry points (eg-train, eg-eval, eg-export, eg-render, eg-view, eg-scenes, eg-analyze, eg-bench)."""
 
 from __future__ import annotations
 
