@@ -183,3 +183,28 @@ def test_view_problem_rejects_a_target_of_the_wrong_size():
 
     with pytest.raises(ValueError, match="target image has shape"):
         ViewProblem(params, camera, target[:-1], 3, _mse)
+
+
+def test_switching_off_the_2d_mean_branch_keeps_the_densification_statistic():
+    """Detaching the 2D-mean path removes its share of the position gradient, but the projected
+    means keep the same screen-space gradient (ADC's statistic), so the ablated run still
+    densifies."""
+    params, camera, target = _setup()
+    leaves = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    image, _, _, info = render_params(leaves, camera, 3, None)
+    info["means2d"].retain_grad()
+    _mse(image, target).backward()
+    full_means, full_2d = leaves["means"].grad.clone(), info["means2d"].grad.clone()
+
+    grads = branch_gradients(ViewProblem(params, camera, target, 3, _mse))
+    ablated = {k: v.clone().requires_grad_(True) for k, v in params.items()}
+    image2, _, _, info2 = render_params(ablated, camera, 3, None, detach_paths=("mean2d",))
+    assert info2["means2d"].requires_grad
+    info2["means2d"].retain_grad()
+    _mse(image2, target).backward()
+    torch.testing.assert_close(image2, image, rtol=0, atol=0)
+    torch.testing.assert_close(info2["means2d"].grad, full_2d, rtol=1e-12, atol=1e-15)
+    assert float(full_2d.norm()) > 0
+    # What reaches the mean is the total less the 2D-mean branch.
+    torch.testing.assert_close(ablated["means"].grad, full_means - grads.mean2d, rtol=1e-9, atol=1e-12)
+    assert float(grads.mean2d.norm()) > 0

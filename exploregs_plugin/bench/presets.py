@@ -75,11 +75,14 @@ QUICK_ENTRIES = ("default", "seed", "split")
 QUICK_STEPS = 300
 STANDARD_ENTRIES = ("default", "default-relaxed-prune", "seed", "split", "seedsplit", "ray", "mcmc")
 STANDARD_SCENES = ("farside", "nearside", "combined")
-STANDARD_STEPS = 300
+STANDARD_STEPS = 1000
 STANDARD_SEEDS = (0, 1, 2)
 REAL_SCENES = {"beer": ("beer", 8), "fox": ("fox", 12)}
 """name -> (folder in ../shared/scenes, data factor): beer 720x1280 -> 90x160, fox 1080x1920 -> 90x160."""
-REAL_STEPS = 300
+REAL_STEPS = 600
+ANALYSIS_STEPS = 600
+ANALYSIS_BASELINES = {"branch-ablation": "all-branches", "split-ablation": "default-grad0.0002"}
+"""Entry each ablation's paired differences are taken against (the unablated configuration)."""
 
 
 def _entries(names: tuple[str, ...]) -> tuple[BenchEntry, ...]:
@@ -126,7 +129,8 @@ def _analysis(name: str, scenes: tuple[str, ...]) -> BenchSpec:
     description, entries = EXPERIMENTS[name]
     rows = tuple(BenchEntry(n, e[METHOD_KEY], cli_overrides(e), description) for n, e in entries.items())
     return BenchSpec(entries=rows, scenes=tuple(BenchScene(s, f"builtin:{s}") for s in scenes),
-                     seeds=(0,), steps=STANDARD_STEPS, eval_count=4, name=name)
+                     seeds=(0,), steps=ANALYSIS_STEPS, eval_count=4, name=name,
+                     baseline=ANALYSIS_BASELINES.get(name, "default"))
 
 
 PRESETS = {

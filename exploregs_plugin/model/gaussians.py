@@ -60,7 +60,8 @@ class GaussianModelConfig:
     """Ignore the dataset's points and initialise randomly (3DGS-MCMC's random-init option)."""
     detach_paths: tuple[PositionPath, ...] = ()
     """Position-gradient paths to switch off: any of mean2d (projected 2D mean), cov (2D
-    covariance via the Jacobian), sh (SH view direction). The forward pass is unchanged."""
+    covariance via the Jacobian), sh (SH view direction). The forward pass is unchanged, and
+    so is the screen-space gradient of the projected means that densification uses."""
     raster: RasterSettings = field(default_factory=RasterSettings)
     """Rasterizer constants."""
 
@@ -167,8 +168,11 @@ def render_params(
     if unknown:
         raise ValueError(f"unknown position paths {sorted(unknown)}; choose from mean2d, cov, sh")
     # Each path gets its own view of the means so any subset can be switched off (detached)
-    # while the forward pass stays identical.
-    means_2d = means.detach() if "mean2d" in detach_paths else means
+    # while the forward pass stays identical. A switched-off 2D-mean path still goes through a
+    # fresh leaf that requires grad: the projected means then keep their screen-space gradient,
+    # which is the densification statistic, not a position-gradient branch; only its flow
+    # into params["means"] is cut.
+    means_2d = means.detach().requires_grad_(means.requires_grad) if "mean2d" in detach_paths else means
     means_cov = means.detach() if "cov" in detach_paths else means
     means_sh = means.detach() if "sh" in detach_paths else means
     sh = torch.cat([params["sh0"], params["shN"]], dim=1)
