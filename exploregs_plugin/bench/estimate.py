@@ -1,8 +1,7 @@
 """Cost estimate of a bench before it starts, from measured seconds per training step.
 
-The rates were measured with ``eg-bench`` runs on the 2-core development machine while other
-jobs kept its load average at 4-11 (docs/bench.md gives the commands), so they are upper
-bounds for an idle machine. ``farside``, ``nearside`` and ``combined`` have the size of
+The rates were measured with ``eg-bench`` runs on the 2-core development machine, one thread
+per run (see SECONDS_PER_STEP for the conditions of each). ``farside``, ``nearside`` and ``combined`` have the size of
 ``default`` (144x108, 28 training views, 3000 points) and use its rates; the ``-large`` presets
 are extrapolated by pixel count; dataset paths have no estimate (the progress lines give one
 after the first run).
@@ -14,11 +13,14 @@ from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec
 
 SECONDS_PER_STEP: dict[str, dict[str, float]] = {
     "tiny": {"exploregs-default": 0.277, "exploregs-seed": 0.273, "exploregs-split": 0.470},
-    "default": {"exploregs-default": 0.597, "exploregs-seed": 0.625, "exploregs-split": 1.032,
-                "exploregs-seedsplit": 1.244, "exploregs-ray": 0.423, "exploregs-mcmc": 0.280},
+    "default": {"exploregs-default": 0.106, "exploregs-seed": 0.114, "exploregs-split": 0.116,
+                "exploregs-seedsplit": 0.127, "exploregs-ray": 0.101, "exploregs-mcmc": 0.062},
 }
-"""Scene -> method -> seconds per step over a 300-step run (Gaussian growth included). The same
-Default run measured 0.60 and 0.92 s per step at different loads, so these are rough."""
+"""Scene -> method -> training seconds per step. ``default``: the mean over the three seeds of
+``builtin:combined`` (its size) in the 1000-step ``standard`` bench, run with ``--jobs 2`` (one
+thread per run, one run per core) with nothing else on the machine (docs/results.md). ``tiny``:
+300-step runs at load 4-11 (docs/bench.md), so an upper bound. Growth is included, so a
+shorter run costs less per step than these."""
 SAME_SIZE = {"farside": "default", "nearside": "default", "combined": "default"}
 RUN_OVERHEAD_SECONDS = 19.0
 """Per run: process start-up, loading the scene, periodic evaluations, final checkpoint
@@ -59,7 +61,7 @@ def estimate_seconds(spec: BenchSpec, runs: list[tuple[BenchScene, BenchEntry, i
     if unknown:
         return None, (f"no measured rate for scene(s) {', '.join(sorted(unknown))}; the progress lines "
                       f"estimate the rest after each run")
-    how = "seconds per step measured on a loaded 2-core machine"
+    how = "seconds per step of single-threaded runs measured on an otherwise idle 2-core machine; load slows them"
     if assumed:
         how += f"; Default's rate assumed for {', '.join(sorted(assumed))}"
     if extrapolated:

@@ -92,7 +92,7 @@ def describe(spec: BenchSpec, results: Path) -> list[str]:
         lines.append(f"  estimate: {how}")
     else:
         lines.append(f"  estimate: ~{seconds / 60:.0f} min for {len(todo)} runs with one job at the measured rates "
-                     f"({how}; an idle machine is faster)")
+                     f"({how})")
     return lines
 
 
