@@ -13,7 +13,7 @@ from torch import Tensor, nn
 from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
 from exploregs_plugin.model import GaussianModelConfig
-from exploregs_plugin.model.losses import photometric_loss, psnr
+from exploregs_plugin.model.losses import DepthSpace, depth_l1, photometric_loss, psnr
 from exploregs_plugin.model.optim import OptimizerConfig, set_lr
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
@@ -38,6 +38,8 @@ class PipelineConfig:
     """Composite each training image on a random colour (needs images with an alpha channel)."""
     depth_loss_weight: float = 0.0
     """Weight of an L1 loss between rendered expected depth and the dataset's depth maps (0 = off)."""
+    depth_loss_space: DepthSpace = "depth"
+    """Compare depth ('depth', z) or inverse depth ('inverse', 1/z: far pixels weigh less)."""
     depth_supervision: DepthSupervisionConfig = field(default_factory=DepthSupervisionConfig)
     """Degrade the depth maps before the depth loss (noise, smooth bias) to play a monocular estimate."""
 
@@ -105,8 +107,7 @@ class Pipeline:
             if "depth" not in extras:
                 raise ValueError("depth_loss_weight > 0 but the dataset has no depth maps")
             gt_depth = self.config.depth_supervision.apply(extras["depth"], index)
-            valid = torch.isfinite(gt_depth) & (gt_depth > 0)
-            depth_term = (depth - gt_depth).abs()[valid].mean() if valid.any() else depth.sum() * 0.0
+            depth_term = depth_l1(depth, gt_depth, self.config.depth_loss_space)
             loss = loss + self.config.depth_loss_weight * depth_term
             terms["depth"] = depth_term.detach()
         regularization = getattr(self.strategy, "regularization_loss", None)

@@ -64,3 +64,29 @@ def test_means_lr_decays_exponentially_to_one_hundredth():
     assert math.isclose(cfg.means_lr_at(0, 1000, extent), 1.6e-4 * extent)
     assert math.isclose(cfg.means_lr_at(1000, 1000, extent), 1.6e-6 * extent)
     assert math.isclose(cfg.means_lr_at(500, 1000, extent), 1.6e-5 * extent, rel_tol=1e-9)
+
+
+def test_depth_l1_in_depth_and_inverse_space():
+    from exploregs_plugin.model.losses import depth_l1
+
+    depth = torch.tensor([[2.0], [4.0], [0.0], [5.0]]).reshape(2, 2, 1).requires_grad_(True)
+    target = torch.tensor([[1.0], [8.0], [3.0], [float("nan")]]).reshape(2, 2, 1)
+    # z space: pixels 0..2 have a target (the rendered 0 counts as an error of 3); pixel 3 has none.
+    assert math.isclose(float(depth_l1(depth, target).detach()), (1.0 + 4.0 + 3.0) / 3, rel_tol=1e-6)
+    # 1/z space: the unrendered pixel is left out too; |1/2 - 1| and |1/4 - 1/8|.
+    loss = depth_l1(depth, target, "inverse")
+    assert math.isclose(float(loss.detach()), (0.5 + 0.125) / 2, rel_tol=1e-6)
+    loss.backward()
+    grad = depth.grad.reshape(-1)
+    # d|1/d - 1/t|/dd = -sign(1/d - 1/t) / d^2, averaged over the two pixels.
+    torch.testing.assert_close(grad, torch.tensor([0.5 * 0.25, -0.5 / 16, 0.0, 0.0]))
+    assert bool(torch.isfinite(grad).all())
+    # No usable pixel: zero, still differentiable.
+    empty = depth_l1(depth, torch.zeros(2, 2, 1), "inverse")
+    assert float(empty.detach()) == 0.0 and empty.requires_grad
+    try:
+        depth_l1(depth, target, "log")
+    except ValueError as err:
+        assert "inverse" in str(err)
+    else:
+        raise AssertionError("an unknown space must raise")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -80,3 +81,26 @@ def photometric_loss(img: Tensor, ref: Tensor, ssim_lambda: float) -> tuple[Tens
     ssim_term = 1.0 - ssim(img, ref)
     loss = (1.0 - ssim_lambda) * l1_term + ssim_lambda * ssim_term
     return loss, {"l1": l1_term.detach(), "dssim": ssim_term.detach()}
+
+
+DepthSpace = Literal["depth", "inverse"]
+
+
+def depth_l1(depth: Tensor, target: Tensor, space: DepthSpace = "depth") -> Tensor:
+    """Mean L1 between rendered and target depth over pixels where both are usable.
+
+    depth: [H, W, 1] rendered expected depth (0 where nothing was rendered); target: [H, W, 1]
+    (<= 0 or non-finite: no depth). ``space`` 'depth' compares z; 'inverse' compares 1/z, so an
+    error at depth z weighs about 1/z^2 as much and far pixels do not dominate. In inverse space
+    pixels with no rendered depth are left out (1/0 has no meaning there). Returns a scalar (0,
+    still attached to ``depth``, when no pixel is usable).
+    """
+    valid = torch.isfinite(target) & (target > 0)
+    if space == "depth":
+        diff = depth - target
+    elif space == "inverse":
+        valid = valid & (depth > 0)
+        diff = 1.0 / depth.clamp_min(1e-12) - 1.0 / target.clamp_min(1e-12)
+    else:
+        raise ValueError(f"depth loss space must be 'depth' or 'inverse', got {space!r}")
+    return diff.abs()[valid].mean() if bool(valid.any()) else depth.sum() * 0.0
