@@ -1,10 +1,10 @@
 """Cost estimate of a bench before it starts, from measured seconds per training step.
 
 The rates were measured with ``eg-bench`` runs on the 2-core development machine, one thread
-per run (see SECONDS_PER_STEP for the conditions of each). ``farside``, ``nearside`` and ``combined`` have the size of
-``default`` (144x108, 28 training views, 3000 points) and use its rates; the ``-large`` presets
-are extrapolated by pixel count; dataset paths have no estimate (the progress lines give one
-after the first run).
+per run (see SECONDS_PER_STEP for the conditions of each). ``farside``, ``nearside`` and
+``combined`` have the size of ``default`` (144x108, 28 training views, 3000 points) and use its
+rates; the ``-large`` presets are extrapolated by pixel count; dataset paths have no estimate
+(the progress lines give one after the first run).
 """
 
 from __future__ import annotations
