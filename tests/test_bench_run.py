@@ -126,3 +126,34 @@ def test_failing_runs_appear_as_failed(bench, tmp_path):
     assert "4 runs: 1 finished, 3 failed" in md
     rows = list(csv.DictReader(open(out / "results.csv")))
     assert sum(r["status"] == "failed" for r in rows) == 3
+
+
+def test_parallel_runs_parse_overrides_before_threads_and_lose_no_output(bench, monkeypatch, capsys):
+    # Parsing an entry's overrides swaps the process-wide stderr for a moment; done inside the
+    # worker threads it swallowed other threads' progress lines and could leave stderr captured.
+    import sys
+    import threading
+
+    from exploregs_plugin.bench import runner
+
+    out, _, _ = bench
+    named = named_entries()
+    entries = tuple(replace(named["default"], name=f"default-{i}", overrides=("--strategy.prune-opa", f"0.00{i}"))
+                    for i in range(1, 7))
+    spec = replace(tiny_spec(), entries=entries)
+    threads: list[threading.Thread] = []
+    build = runner.build_config
+
+    def recording_build(*args, **kwargs):
+        threads.append(threading.current_thread())
+        return build(*args, **kwargs)
+
+    monkeypatch.setattr(runner, "build_config", recording_build)
+    stderr = sys.stderr
+    records = runner.execute(spec, out, RunOptions(jobs=3, train=False))
+    assert len(records) == 6 and all(r.status == "not run" or r.metrics is None for r in records)
+    assert len(threads) == 6 and all(t is threading.main_thread() for t in threads)
+    assert sys.stderr is stderr
+    printed = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("[")]
+    assert sorted(ln.split("] ")[0] for ln in printed) == [f"[{k}/6" for k in range(1, 7)]
+    assert sorted(ln.split("] ")[1] for ln in printed) == [f"tiny/default-{i}/seed0: not run" for i in range(1, 7)]

@@ -143,12 +143,17 @@ def test_seeds_respect_cap_max():
     assert params["means"].shape[0] == 25
 
 
-def test_seeds_outside_every_view_are_counted():
+def _seeding_setup(n: int, **fields):
+    """(generator, params, optimizers, strategy, state): n random Gaussians, a seeding strategy
+    every 10 steps with ADC growth off."""
     gen = torch.Generator().manual_seed(0)
-    params = make_gaussians(10, gen)
-    optimizers = make_optimizers(params)
-    s = SeedingStrategy(n_seed=3, seed_every=10, grow_grad2d=1e9, prune_opa=0.0, **WINDOW)
-    state = s.initialize_state()
+    params = make_gaussians(n, gen)
+    s = SeedingStrategy(seed_every=10, grow_grad2d=1e9, **WINDOW, **fields)
+    return gen, params, make_optimizers(params), s, s.initialize_state()
+
+
+def test_seeds_outside_every_view_are_counted():
+    gen, params, optimizers, s, state = _seeding_setup(10, n_seed=3, prune_opa=0.0)
     assert s.seed_summary(state) == {"seeds_alive": 0, "seeds_unseen": 0}
     assert _run(s, params, optimizers, state, [10], gen)[0]["seeded"] == 3
     assert s.seed_summary(state) == {"seeds_alive": 3, "seeds_unseen": 3}
@@ -157,6 +162,48 @@ def test_seeds_outside_every_view_are_counted():
     vis[10] = True
     s.step_post_backward(params, optimizers, state, 11, synthetic_info(torch.zeros(13, 2), vis, W, H), generator=gen)
     assert s.seed_summary(state) == {"seeds_alive": 3, "seeds_unseen": 2}
+
+
+def test_seed_probation_schedule():
+    s = SeedingStrategy(n_seed=3, seed_every=10, refine_start_iter=2, refine_stop_iter=10_000, refine_every=100,
+                        reset_every=200)
+    # Default grace: half the reset interval. The prune at a reset step comes before that reset.
+    assert [s.seeds_judged_at(t) for t in (100, 200, 300, 400, 500)] == [True] * 5
+    s.reset_every = 3000
+    assert [s.seeds_judged_at(t) for t in (2900, 3000, 3100, 4400, 4500, 6000, 6100)] == [
+        True, True, False, False, True, True, False]
+    s.seed_grace = 0
+    assert s.seeds_judged_at(3100)
+    for bad in (dict(seed_prune_opa=-0.1), dict(seed_prune_opa=1.0), dict(seed_grace=-1)):
+        with pytest.raises(StrategyError):
+            SeedingStrategy(n_seed=3, seed_every=10, **WINDOW, **bad)
+
+
+def test_seed_probation_prunes_faded_seeds_only():
+    gen, params, optimizers, s, state = _seeding_setup(10, n_seed=4, prune_opa=0.005)
+    assert _run(s, params, optimizers, state, [10], gen)[0]["seeded"] == 4
+    # Two seeds and two original Gaussians fade to 0.02: under seed_prune_opa (0.05), over prune_opa.
+    with torch.no_grad():
+        params["opacities"][:] = torch.logit(torch.tensor(0.5))
+        params["opacities"][[0, 1, 10, 11]] = torch.logit(torch.tensor(0.02))
+    kept = params["means"].detach()[[0, 1, 12, 13]].clone()
+    counts = _run(s, params, optimizers, state, [20], gen)[0]
+    assert counts["seeds_pruned"] == 2 and counts["pruned"] == 2
+    assert torch.equal(params["means"].detach()[[0, 1, 10, 11]], kept)  # faded originals stay
+    assert s.seed_summary(state)["seeds_alive"] == 2 + 4  # the two left and the next batch
+
+    # Within the grace period after a reset nothing is judged; with seed_prune_opa = 0 never.
+    with torch.no_grad():
+        params["opacities"][10:] = torch.logit(torch.tensor(0.02))
+    assert _run(s, params, optimizers, state, [110], gen)[0]["seeds_pruned"] == 0
+    off = SeedingStrategy(n_seed=4, seed_every=10, grow_grad2d=1e9, seed_prune_opa=0.0, **WINDOW)
+    p2 = make_gaussians(10, gen)
+    st2 = off.initialize_state()
+    _run(off, p2, make_optimizers(p2), st2, [10], gen)
+    with torch.no_grad():
+        p2["opacities"][10:] = torch.logit(torch.tensor(0.02))
+    assert _run(off, p2, make_optimizers(p2), st2, [20], gen)[0]["seeds_pruned"] == 0
+    assert p2["means"].shape[0] == 14 + 4
 
 
 # ------------------------------------------------------------------------------ splitting

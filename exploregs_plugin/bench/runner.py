@@ -35,6 +35,7 @@ from exploregs_plugin.bench.spec import (
 )
 from exploregs_plugin.bench.files import ERROR_NAME, JOB_NAME, LOG_NAME, METRICS_NAME, STATE_NAME
 from exploregs_plugin.io.checkpoint import list_checkpoints
+from exploregs_plugin.trainer import TrainerConfig
 
 RUNS_DIR = "runs"
 
@@ -140,14 +141,23 @@ def is_finished(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchE
     return (run_dir / METRICS_NAME).is_file() and same_config(run_dir, config)
 
 
+def _config_or_error(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry,
+                     seed: int) -> TrainerConfig | BenchSpecError:
+    try:
+        return build_config(spec, scene, entry, seed, run_dir_for(results, scene.name, entry.name, seed))
+    except BenchSpecError as err:
+        return err
+
+
 def run_one(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry, seed: int,
-            options: RunOptions) -> RunRecord:
+            options: RunOptions, prepared: TrainerConfig | BenchSpecError | None = None) -> RunRecord:
+    """Run or reuse one run. ``prepared``: its config (or the error building it), when the
+    caller built it already."""
     run_dir = run_dir_for(results, scene.name, entry.name, seed)
     record = RunRecord(scene.name, entry.name, seed, run_dir)
-    try:
-        config = build_config(spec, scene, entry, seed, run_dir)
-    except BenchSpecError as err:
-        record.status, record.error = "failed", str(err)
+    config = prepared if prepared is not None else _config_or_error(spec, results, scene, entry, seed)
+    if isinstance(config, BenchSpecError):
+        record.status, record.error = "failed", str(config)
         return record
     fingerprint = config_fingerprint(config)
     state = read_json(run_dir / STATE_NAME) or {}
@@ -195,12 +205,15 @@ def execute(spec: BenchSpec, results: Path, options: RunOptions | None = None) -
     if options.jobs < 1:
         raise BenchSpecError(f"jobs must be >= 1, got {options.jobs}")
     plan = spec.runs()
+    # Configs are built here, before any thread starts: parsing overrides swaps the process-wide
+    # stderr for a moment (to catch tyro's message), which would swallow other threads' output.
+    prepared = [_config_or_error(spec, results, *item) for item in plan]
     lock = threading.Lock()
     done = {"count": 0, "trained_seconds": 0.0, "trained": 0}
 
-    def one(item: tuple[BenchScene, BenchEntry, int]) -> RunRecord:
-        scene, entry, seed = item
-        record = run_one(spec, results, scene, entry, seed, options)
+    def one(index: int) -> RunRecord:
+        scene, entry, seed = plan[index]
+        record = run_one(spec, results, scene, entry, seed, options, prepared[index])
         with lock:
             done["count"] += 1
             if record.trained:
@@ -210,9 +223,9 @@ def execute(spec: BenchSpec, results: Path, options: RunOptions | None = None) -
         return record
 
     if options.jobs == 1:
-        return [one(item) for item in plan]
+        return [one(i) for i in range(len(plan))]
     with ThreadPoolExecutor(max_workers=options.jobs) as pool:
-        return list(pool.map(one, plan))
+        return list(pool.map(one, range(len(plan))))
 
 
 def _progress_line(record: RunRecord, count: int, total: int, done: dict[str, Any], jobs: int) -> str:

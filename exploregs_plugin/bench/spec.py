@@ -11,6 +11,7 @@ import hashlib
 import json
 import re
 import shlex
+import threading
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -117,6 +118,9 @@ class BenchSpec:
         return [(sc, e, s) for sc in self.scenes for s in self.seeds for e in self.entries]
 
 
+_STREAM_LOCK = threading.Lock()
+
+
 def parse_overrides(config: TrainerConfig, args: list[str], where: str) -> TrainerConfig:
     """Apply eg-train arguments to ``config`` through tyro (the same parser eg-train uses).
 
@@ -130,7 +134,9 @@ def parse_overrides(config: TrainerConfig, args: list[str], where: str) -> Train
 
     err = io.StringIO()
     try:
-        with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        # The redirect swaps the process-wide streams: serialise it, so two threads can never
+        # restore each other's buffer and leave stderr captured for good.
+        with _STREAM_LOCK, contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
             return tyro.cli(type(config), args=args, default=config)
     except SystemExit as exit_:
         # tyro prints a boxed message; keep its words, drop the frame and the usage hint

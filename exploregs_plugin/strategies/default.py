@@ -8,9 +8,9 @@ clone Gaussians whose statistic exceeds ``grow_grad2d`` and whose largest scale 
 first opacity reset, world size > ``prune_scale3d`` x extent), then clear the statistics. Every
 ``reset_every`` steps the opacities are clamped to ``reset_opacity``.
 
-Subclasses add exploration through two hooks: :meth:`DefaultStrategy.explore` (called on every
-step after densification and before the opacity reset) and
-:meth:`DefaultStrategy.size_prune_factor`.
+Subclasses add exploration through three hooks: :meth:`DefaultStrategy.explore` (called on every
+step after densification and before the opacity reset), :meth:`DefaultStrategy.size_prune_factor`
+and :meth:`DefaultStrategy.extra_prune` (more rows to remove at a refinement step).
 """
 
 from __future__ import annotations
@@ -149,6 +149,14 @@ class DefaultStrategy(Strategy):
         """World-size prune threshold as a fraction of the extent (Seeding relaxes it)."""
         return self.prune_scale3d
 
+    def extra_prune(self, params: Params, state: dict[str, Any], step: int) -> tuple[Tensor | None, dict[str, int]]:
+        """More rows to prune at a refinement step, beside the opacity and size criteria.
+
+        Returns (mask [N] bool or None for none, counts to report). Default: none. Mixins
+        extend it, calling super() first and OR-ing their mask in.
+        """
+        return None, {}
+
     def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
         """Read this step's render ``info`` before the Gaussian set changes (inside the window).
 
@@ -179,7 +187,7 @@ class DefaultStrategy(Strategy):
             counts.update(self.observe(params, state, ctx.info))
             if step > self.refine_start_iter and step % self.refine_every == 0:
                 counts["cloned"], counts["split"] = self._grow(params, optimizers, state, ctx.generator)
-                counts["pruned"] = self._prune(params, optimizers, state, step)
+                counts.update(self._prune(params, optimizers, state, step))
                 for key in GRAD_STATS:
                     if key in state["stats"]:
                         state["stats"][key].zero_()
@@ -243,12 +251,15 @@ class DefaultStrategy(Strategy):
             n_split = ops.split(params, optimizers, stats, split, gen, self.split_scale_factor)
         return n_cloned, n_split
 
-    def _prune(self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int) -> int:
+    def _prune(self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int) -> dict[str, int]:
         if num_gaussians(params) == 0:
-            return 0
+            return {"pruned": 0}
         # 3DGS turns the world-size criterion on only once the first opacity reset has happened.
         max_size = None
         if step > self.reset_every:
             max_size = self.size_prune_factor(step) * state["scene_scale"]
         mask = prune_mask(params["opacities"].detach(), params["scales"].detach(), self.prune_opa, max_size)
-        return ops.remove(params, optimizers, state["stats"], mask)
+        extra, counts = self.extra_prune(params, state, step)
+        if extra is not None:
+            mask = mask | extra
+        return {**counts, "pruned": ops.remove(params, optimizers, state["stats"], mask)}

@@ -11,6 +11,13 @@ from the scene centre, their attributes follow the authors' reference implementa
 
 While seeding is active the world-size prune threshold is relaxed (0.1 -> 10 x extent) so far
 seeds survive.
+
+Seed probation: a seed that lands in empty space fades (its colour cannot match what lies
+behind it in every view), but joint optimisation lets the Gaussians behind it compensate, so it
+settles at opacity 0.005-0.05 instead of crossing the normal prune threshold (0.005). At every
+refinement step, outside a grace period after an opacity reset, seeds and their descendants
+below ``seed_prune_opa`` are therefore pruned as well: a seed that has not grown opaque has
+found nothing to explain.
 """
 
 from __future__ import annotations
@@ -133,6 +140,12 @@ class SeedingMixin(BudgetMixin):
     """While seeding is active, prune only Gaussians larger than this fraction of the extent."""
     seed_min_scale: float = 1e-6
     """Smallest seed scale, as a fraction of the scene extent (guards r = 0)."""
+    seed_prune_opa: float = 0.05
+    """Seed probation: at refinement steps, prune seeds (and descendants) whose opacity is below
+    this; faded seeds otherwise linger above prune_opa. 0 disables (normal pruning only)."""
+    seed_grace: int | None = None
+    """Steps after an opacity reset before seeds are judged again, so useful ones can climb back
+    from the reset value. None: half the reset interval."""
 
     def __post_init__(self) -> None:
         super().__post_init__()  # type: ignore[misc]
@@ -144,6 +157,10 @@ class SeedingMixin(BudgetMixin):
             raise StrategyError(f"seed_box_quantile must be in [0, 0.5), got {self.seed_box_quantile}")
         if not 0.0 < self.seed_opacity_base + self.seed_opacity_gain < 1.0 or self.seed_opacity_base <= 0:
             raise StrategyError("seed opacities base and base + gain must lie in (0, 1)")
+        if not 0.0 <= self.seed_prune_opa < 1.0:
+            raise StrategyError(f"seed_prune_opa must be in [0, 1), got {self.seed_prune_opa}")
+        if self.seed_grace is not None and self.seed_grace < 0:
+            raise StrategyError(f"seed_grace must be >= 0, got {self.seed_grace}")
 
     def deferred_fields(self) -> tuple[str, ...]:
         return super().deferred_fields() + ("n_seed", "seed_every")  # type: ignore[misc]
@@ -160,6 +177,31 @@ class SeedingMixin(BudgetMixin):
         if self.seeding_active(step):
             return self.seed_prune_scale3d
         return super().size_prune_factor(step)  # type: ignore[misc]
+
+    def seeds_judged_at(self, step: int) -> bool:
+        """Whether a refinement at ``step`` applies seed probation: no opacity reset yet, or the
+        last one (at a multiple of reset_every before this step) at least the grace period ago."""
+        reset_every = self.reset_every  # type: ignore[attr-defined]
+        last_reset = (step - 1) // reset_every * reset_every  # this step's own reset comes after its prune
+        if last_reset <= 0:
+            return True
+        grace = self.seed_grace if self.seed_grace is not None else reset_every // 2
+        return step - last_reset >= grace
+
+    def extra_prune(self, params: Params, state: dict[str, Any], step: int) -> tuple[Tensor | None, dict[str, int]]:
+        mask, counts = super().extra_prune(params, state, step)  # type: ignore[misc]
+        counts = {**counts, "seeds_pruned": 0}
+        flag = state["stats"].get(SEED_FLAG)
+        if flag is None or self.seed_prune_opa <= 0.0 or not self.seeds_judged_at(step):
+            return mask, counts
+        faded = (flag > 0) & (torch.sigmoid(params["opacities"].detach().flatten()) < self.seed_prune_opa)
+        counts["seeds_pruned"] = int(faded.sum())
+        return (faded if mask is None else mask | faded), counts
+
+    def post_backward(self, ctx: StepContext) -> dict[str, int]:
+        counts = super().post_backward(ctx)  # type: ignore[misc]
+        counts.setdefault("seeds_pruned", 0)  # same keys on every call, not only at refinements
+        return counts
 
     def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
         counts = super().observe(params, state, info)  # type: ignore[misc]
