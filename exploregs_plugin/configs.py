@@ -15,6 +15,8 @@ from typing import Any
 
 import yaml
 
+from exploregs_plugin.io.atomic import atomic_write_text
+
 _TYPE_KEY = "_type"
 
 
@@ -86,11 +88,7 @@ def config_from_dict(value: Any) -> Any:
 
 def save_config(config: Any, path: Path) -> None:
     """Write ``config`` as YAML to ``path`` (atomically: temporary file, then rename)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(yaml.safe_dump(config_to_dict(config), sort_keys=False))
-    tmp.replace(path)
+    atomic_write_text(path, yaml.safe_dump(config_to_dict(config), sort_keys=False))
 
 
 def load_config(path: Path) -> Any:

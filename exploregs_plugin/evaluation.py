@@ -14,6 +14,7 @@ from PIL import Image
 
 from exploregs_plugin.model.losses import MSE_FLOOR, psnr, ssim
 from exploregs_plugin.model import GaussianModel
+from exploregs_plugin.io.atomic import atomic_write_text
 
 LPIPS_ABSENT = "absent: LPIPS needs pretrained network weights, which are not available on this machine"
 
@@ -112,8 +113,4 @@ def _finite_or_none(value: Any) -> Any:
 
 def write_metrics_json(path: Path, metrics: dict[str, Any]) -> None:
     """Write metrics as JSON atomically (temporary file, then rename); NaN/inf become null."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(_finite_or_none(metrics), indent=2))
-    tmp.replace(path)
+    atomic_write_text(path, json.dumps(_finite_or_none(metrics), indent=2))

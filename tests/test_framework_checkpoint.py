@@ -58,3 +58,22 @@ def test_corrupt_and_missing_checkpoints_are_named(tmp_path):
         ck.resolve_run(tmp_path / "missing")
     run_dir, path = ck.resolve_run(bad)
     assert run_dir == tmp_path and path == bad
+
+
+@pytest.mark.parametrize("failure", [OSError(errno.ENOSPC, "No space left on device"), KeyboardInterrupt()])
+def test_interrupted_text_write_keeps_the_old_file(tmp_path, monkeypatch, failure):
+    # metrics.json, config.yml, bench tables and states all go through atomic_write_text
+    from exploregs_plugin.io import atomic
+
+    path = tmp_path / "run" / "metrics.json"
+    atomic.atomic_write_text(path, '{"psnr": 20.0}')
+    assert path.read_text() == '{"psnr": 20.0}'
+
+    def failing_replace(src, dst):
+        raise failure
+
+    monkeypatch.setattr(atomic.os, "replace", failing_replace)
+    with pytest.raises(type(failure)):
+        atomic.atomic_write_text(path, '{"psnr": 30.0}')
+    assert path.read_text() == '{"psnr": 20.0}'
+    assert [p.name for p in path.parent.iterdir()] == ["metrics.json"]  # no temp file left

@@ -34,6 +34,7 @@ from exploregs_plugin.bench.spec import (
     configs_match,
 )
 from exploregs_plugin.bench.files import ERROR_NAME, JOB_NAME, LOG_NAME, METRICS_NAME, STATE_NAME
+from exploregs_plugin.io.atomic import atomic_write_text
 from exploregs_plugin.io.checkpoint import list_checkpoints
 from exploregs_plugin.trainer import TrainerConfig
 
@@ -84,10 +85,7 @@ def read_json(path: Path) -> dict[str, Any] | None:
 
 
 def _write_state(run_dir: Path, **state: Any) -> None:
-    path = run_dir / STATE_NAME
-    tmp = path.with_name(path.name + ".tmp")
-    tmp.write_text(json.dumps(state, indent=2))
-    tmp.replace(path)
+    atomic_write_text(run_dir / STATE_NAME, json.dumps(state, indent=2))
 
 
 def _fresh_folder(run_dir: Path) -> None:

@@ -4,6 +4,7 @@ to results.md / results.csv / summary.csv / results.json."""
 from __future__ import annotations
 
 import csv
+import io
 import json
 import math
 from pathlib import Path
@@ -11,6 +12,7 @@ from typing import Any
 
 from exploregs_plugin.bench.runner import RunRecord
 from exploregs_plugin.bench.spec import BenchSpec
+from exploregs_plugin.io.atomic import atomic_write_text
 
 REGIONS = ("far", "occluded", "other")
 QUALITY = ("psnr", "ssim", "lpips")
@@ -191,11 +193,12 @@ def markdown(spec: BenchSpec, rows: list[dict[str, Any]], summary: list[dict[str
 
 
 def write_csv(path: Path, records: list[dict[str, Any]], columns: list[str]) -> None:
-    with open(path, "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=columns, extrasaction="ignore")
-        writer.writeheader()
-        for r in records:
-            writer.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in columns})
+    buffer = io.StringIO()
+    writer = csv.DictWriter(buffer, fieldnames=columns, extrasaction="ignore")
+    writer.writeheader()
+    for r in records:
+        writer.writerow({k: ("" if r.get(k) is None else r.get(k)) for k in columns})
+    atomic_write_text(path, buffer.getvalue(), newline="")
 
 
 def summary_rows(summary: list[dict[str, Any]]) -> list[dict[str, Any]]:
@@ -222,7 +225,7 @@ def write_tables(results: Path, spec: BenchSpec, records: list[RunRecord],
     summary = summarize(spec, rows)
     results = Path(results)
     results.mkdir(parents=True, exist_ok=True)
-    (results / "results.md").write_text(markdown(spec, rows, summary, command))
+    atomic_write_text(results / "results.md", markdown(spec, rows, summary, command))
     write_csv(results / "results.csv", rows, RUN_COLUMNS)
     flat = summary_rows(summary)
     write_csv(results / "summary.csv", flat, list(dict.fromkeys(k for r in flat for k in r)))
@@ -237,5 +240,5 @@ def write_tables(results: Path, spec: BenchSpec, records: list[RunRecord],
         "runs": [{**row, "history": histories[(row["scene"], row["entry"], row["seed"])]} for row in rows],
         "summary": summary,
     }
-    (results / "results.json").write_text(json.dumps(payload, indent=2))
+    atomic_write_text(results / "results.json", json.dumps(payload, indent=2))
     return payload

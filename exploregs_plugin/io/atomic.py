@@ -1,0 +1,24 @@
+"""Small text files written atomically: a temporary file in the same folder, then a rename.
+
+A crash, Ctrl-C or a full disk leaves either the old file or the new one, never half of one.
+(Checkpoints use :func:`exploregs_plugin.io.checkpoint.atomic_torch_save`, which also fsyncs.)
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+
+def atomic_write_text(path: Path, text: str, newline: str | None = None) -> None:
+    """Write ``text`` to ``path`` (parents created); on failure ``path`` keeps its old content."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        with open(tmp, "w", newline=newline) as f:
+            f.write(text)
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
