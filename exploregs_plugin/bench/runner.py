@@ -129,22 +129,20 @@ def same_config(run_dir: Path, config: Any) -> bool:
     return isinstance(old, dict) and configs_match(comparable(old), comparable(config_to_dict(config)))
 
 
-def is_finished(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry, seed: int) -> bool:
-    """True when the run folder holds metrics.json of this config (it would be reused)."""
-    run_dir = run_dir_for(results, scene.name, entry.name, seed)
-    try:
-        config = build_config(spec, scene, entry, seed, run_dir)
-    except BenchSpecError:
-        return False
-    return (run_dir / METRICS_NAME).is_file() and same_config(run_dir, config)
-
-
 def _config_or_error(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry,
                      seed: int) -> TrainerConfig | BenchSpecError:
     try:
         return build_config(spec, scene, entry, seed, run_dir_for(results, scene.name, entry.name, seed))
     except BenchSpecError as err:
         return err
+
+
+def is_finished(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry, seed: int) -> bool:
+    """True when the run folder holds metrics.json of this config (it would be reused)."""
+    config = _config_or_error(spec, results, scene, entry, seed)
+    if isinstance(config, BenchSpecError):
+        return False
+    return (config.run_dir / METRICS_NAME).is_file() and same_config(config.run_dir, config)
 
 
 def run_one(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry, seed: int,
