@@ -14,7 +14,7 @@ from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.gaussians import render_params
 from exploregs_plugin.rasterizer import rasterize
-from exploregs_plugin.rasterizer.scenes import random_scene
+from exploregs_plugin.bench.raster_scenes import random_scene
 
 F64 = torch.float64
 

@@ -11,7 +11,7 @@ from plyfile import PlyData
 from exploregs_plugin.data import ParseOptions, parse_dataset
 from exploregs_plugin.io import ply as P
 from exploregs_plugin.io.frames import to_uint8
-from exploregs_plugin.io.scene_source import dataset_normalization, load_scene
+from exploregs_plugin.runs.scene import dataset_normalization, load_scene
 from exploregs_plugin.model.gaussians import render_params
 from exploregs_plugin.runs import load_run
 from exploregs_plugin.scripts import export as export_script
@@ -148,7 +148,7 @@ def test_cli_errors_are_clear(run, tmp_path, monkeypatch, capsys):
 
 def test_imported_ply_evaluates_like_the_run(run, tmp_path):
     from exploregs_plugin.evaluation import evaluate
-    from exploregs_plugin.io.scene_source import model_from_params
+    from exploregs_plugin.runs.scene import model_from_params
 
     model, dm = run.pipeline.model, run.pipeline.datamanager
     path = export_script.main(export_script.ExportArgs(run.run_dir, out=tmp_path / "s.ply")).path

@@ -2,6 +2,7 @@
 
 import importlib.util
 import math
+from functools import partial
 
 import matplotlib
 import numpy as np
@@ -11,6 +12,7 @@ from PIL import Image
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.io import frames as F
+from exploregs_plugin.model.gaussians import render_camera
 
 
 def test_depth_range_uses_covered_pixels_and_never_collapses():
@@ -62,19 +64,20 @@ def _scene():
 
 def test_render_sequence_writes_rgb_alpha_and_depth_frames(tmp_path):
     params, cameras = _scene()
-    image, alpha, depth = F.render_camera(params, cameras[0], 0, None)
+    render = partial(render_camera, params, sh_degree=0, background=None)
+    image, alpha, depth = render_camera(params, cameras[0], 0, None)
     assert image.shape == (24, 32, 3) and alpha.shape == depth.shape == (24, 32)
 
-    rgb = F.render_sequence(params, cameras, tmp_path / "rgb", mode="rgb", sh_degree=0, video=False)
+    rgb = F.render_sequence(render, cameras, tmp_path / "rgb", mode="rgb", video=False)
     assert [p.name for p in rgb.frames] == ["frame_00000.png", "frame_00001.png"] and rgb.video is None
     assert np.array_equal(np.array(Image.open(rgb.frames[0])), F.to_uint8(image))
     assert rgb.near is None
 
-    al = F.render_sequence(params, cameras, tmp_path / "alpha", mode="alpha", sh_degree=0, video=False)
+    al = F.render_sequence(render, cameras, tmp_path / "alpha", mode="alpha", video=False)
     grey = np.array(Image.open(al.frames[1]))
     assert np.array_equal(grey[..., 0], F.to_uint8(alpha)) and np.array_equal(grey[..., 0], grey[..., 2])
 
-    dp = F.render_sequence(params, cameras, tmp_path / "depth", mode="depth", sh_degree=0, video=False,
+    dp = F.render_sequence(render, cameras, tmp_path / "depth", mode="depth", video=False,
                            depth_scale=10.0, cmap="viridis")
     covered = np.concatenate([depth[alpha >= 0.5] * 10.0] * 2)  # both cameras see the same
     assert dp.near == pytest.approx(np.percentile(covered, 1.0), rel=1e-6)
@@ -83,17 +86,17 @@ def test_render_sequence_writes_rgb_alpha_and_depth_frames(tmp_path):
     expected = F.colorize_depth(depth * 10.0, alpha, dp.near, dp.far, "viridis")
     assert np.array_equal(np.array(Image.open(dp.frames[0])), expected)
 
-    fixed = F.render_sequence(params, cameras[:1], tmp_path / "depth", mode="depth", sh_degree=0, video=False,
+    fixed = F.render_sequence(render, cameras[:1], tmp_path / "depth", mode="depth", video=False,
                               near=0.0, far=50.0)
     assert (fixed.near, fixed.far) == (0.0, 50.0)
     # re-rendering fewer frames into the same folder leaves no stale frame behind
     assert sorted(p.name for p in (tmp_path / "depth").iterdir()) == ["frame_00000.png"]
     with pytest.raises(ValueError, match="far > near"):
-        F.render_sequence(params, cameras, tmp_path / "bad", mode="depth", near=3.0, far=1.0)
+        F.render_sequence(render, cameras, tmp_path / "bad", mode="depth", near=3.0, far=1.0)
     with pytest.raises(ValueError, match="unknown render mode"):
-        F.render_sequence(params, cameras, tmp_path / "bad", mode="normals")
+        F.render_sequence(render, cameras, tmp_path / "bad", mode="normals")
     with pytest.raises(ValueError, match="no cameras"):
-        F.render_sequence(params, [], tmp_path / "bad")
+        F.render_sequence(render, [], tmp_path / "bad")
 
 
 def test_without_a_video_writer_frames_are_still_written(tmp_path, monkeypatch):
@@ -101,7 +104,8 @@ def test_without_a_video_writer_frames_are_still_written(tmp_path, monkeypatch):
     monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "imageio_ffmpeg" else real(name, *a))
     assert "imageio_ffmpeg not installed" in F.video_writer_status()
     params, cameras = _scene()
-    out = F.render_sequence(params, cameras, tmp_path, sh_degree=0)
+    render = partial(render_camera, params, sh_degree=0, background=None)
+    out = F.render_sequence(render, cameras, tmp_path)
     assert out.video is None and "PNG frames only" in out.video_note and len(out.frames) == 2
     assert not list(tmp_path.glob("*.mp4"))
 
@@ -111,8 +115,9 @@ def test_mp4_when_imageio_ffmpeg_is_installed(tmp_path):
     import imageio.v2 as imageio
 
     params, cameras = _scene()
+    render = partial(render_camera, params, sh_degree=0, background=None)
     cameras = [Camera(c.viewmat, c.K, 31, 24, c.name) for c in cameras] * 3  # odd width: padded for H.264
-    out = F.render_sequence(params, cameras, tmp_path, sh_degree=0, fps=12)
+    out = F.render_sequence(render, cameras, tmp_path, fps=12)
     assert out.video == tmp_path / "rgb.mp4" and out.video_note is None
     reader = imageio.get_reader(str(out.video))
     frames = [frame for frame in reader]

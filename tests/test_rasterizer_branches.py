@@ -6,7 +6,7 @@ import torch
 
 from exploregs_plugin.rasterizer import rasterize, trace_pixel
 from exploregs_plugin.rasterizer.reference import reference_rasterize
-from exploregs_plugin.rasterizer.scenes import random_scene
+from exploregs_plugin.bench.raster_scenes import random_scene
 
 F64 = torch.float64
 

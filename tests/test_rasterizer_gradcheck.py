@@ -6,7 +6,7 @@ from __future__ import annotations
 import torch
 
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
-from exploregs_plugin.rasterizer.scenes import GaussianScene, random_scene
+from exploregs_plugin.bench.raster_scenes import GaussianScene, random_scene
 
 F64 = torch.float64
 S = RasterSettings()

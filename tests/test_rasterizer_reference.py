@@ -10,7 +10,7 @@ import torch
 
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
 from exploregs_plugin.rasterizer.reference import reference_rasterize
-from exploregs_plugin.rasterizer.scenes import GaussianScene, random_scene
+from exploregs_plugin.bench.raster_scenes import GaussianScene, random_scene
 
 F64 = torch.float64
 

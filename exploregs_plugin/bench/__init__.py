@@ -1,36 +1,32 @@
-"""eg-bench: methods x scenes x seeds through the normal trainer, the paper's tables and plots.
+"""Benchmarks and experiment harnesses, in one home.
+
+eg-bench (methods x scenes x seeds through the normal trainer, the paper's tables and plots)::
 
     from exploregs_plugin.bench import preset, run_bench
     payload = run_bench(preset("quick"), Path("bench-quick"))
+
+and the component benchmarks, each a script that prints a table: ``python -m
+exploregs_plugin.bench.rasterizer`` (speed, memory and error of the rasterizer),
+``python -m exploregs_plugin.bench.opcost`` (per-element cost of torch ops) and ``python -m
+exploregs_plugin.bench.viewer`` (training speed with the live viewer). Names are imported on
+first use, so a component benchmark does not load the trainer.
 """
 
 from __future__ import annotations
 
-from pathlib import Path
+import importlib
 from typing import Any
 
-from exploregs_plugin.bench.plots import write_plots
-from exploregs_plugin.bench.presets import PRESETS, named_entries, preset
-from exploregs_plugin.bench.runner import RunOptions, RunRecord, execute, run_dir_for
-from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec, BenchSpecError
-from exploregs_plugin.bench.specfile import compose
-from exploregs_plugin.bench.tables import write_tables
-
-__all__ = [
-    "BenchEntry", "BenchScene", "BenchSpec", "BenchSpecError", "PRESETS", "RunOptions", "RunRecord",
-    "compose", "execute", "named_entries", "preset", "report", "run_bench", "run_dir_for",
-]
+_EXPORTS = {
+    "BenchEntry": "spec", "BenchScene": "spec", "BenchSpec": "spec", "BenchSpecError": "spec",
+    "PRESETS": "presets", "named_entries": "presets", "preset": "presets",
+    "RunOptions": "runner", "RunRecord": "runner", "execute": "runner", "run_dir_for": "runner",
+    "compose": "specfile", "report": "report", "run_bench": "report",
+}
+__all__ = sorted(_EXPORTS)
 
 
-def report(results: Path, spec: BenchSpec, records: list[RunRecord], command: str | None = None) -> dict[str, Any]:
-    """Write the tables (results.md/.csv/.json, summary.csv) and the PNG plots; returns results.json's content."""
-    payload = write_tables(results, spec, records, command)
-    write_plots(results, spec, payload)
-    return payload
-
-
-def run_bench(spec: BenchSpec, results: Path, options: RunOptions | None = None,
-              command: str | None = None) -> dict[str, Any]:
-    """Run (or reuse) every run of ``spec`` under ``results/runs/`` and write the report."""
-    records = execute(spec, Path(results), options)
-    return report(Path(results), spec, records, command)
+def __getattr__(name: str) -> Any:
+    if name not in _EXPORTS:
+        raise AttributeError(f"module 'exploregs_plugin.bench' has no attribute {name!r}")
+    return getattr(importlib.import_module(f"exploregs_plugin.bench.{_EXPORTS[name]}"), name)

@@ -123,11 +123,9 @@ def real(root: Path | None = None) -> BenchSpec:
 
 def _analysis(name: str, scenes: tuple[str, ...]) -> BenchSpec:
     """An eg-analyze ablation (branch ablation, depth supervision, split ablation) as a bench."""
-    from exploregs_plugin.analysis.experiments import EXPERIMENTS, METHOD_KEY, cli_overrides
+    from exploregs_plugin.bench.experiments import EXPERIMENTS
 
-    description, entries = EXPERIMENTS[name]
-    rows = tuple(BenchEntry(n, e[METHOD_KEY], cli_overrides(e), description) for n, e in entries.items())
-    return BenchSpec(entries=rows, scenes=tuple(BenchScene(s, f"builtin:{s}") for s in scenes),
+    return BenchSpec(entries=EXPERIMENTS[name], scenes=tuple(BenchScene(s, f"builtin:{s}") for s in scenes),
                      seeds=(0,), steps=ANALYSIS_STEPS, eval_count=4, name=name,
                      baseline=ANALYSIS_BASELINES.get(name, "default"))
 

@@ -1,4 +1,4 @@
-"""Rendering a sequence of cameras to PNG frames (and an MP4 when a video writer is installed).
+"""Writing a sequence of rendered cameras as PNG frames (and an MP4 when a video writer is installed).
 
 Three kinds of frame: ``rgb`` (the colour image on the background), ``alpha`` (accumulated
 opacity as grey) and ``depth`` (expected depth, colour-mapped between one ``near`` and ``far``
@@ -10,15 +10,12 @@ from __future__ import annotations
 import importlib.util
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Literal, Mapping, Sequence
+from typing import Callable, Literal, Sequence
 
 import numpy as np
-import torch
 from PIL import Image
-from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
-from exploregs_plugin.model.gaussians import render_params
 
 RenderMode = Literal["rgb", "depth", "alpha"]
 DEPTH_PERCENTILES = (1.0, 99.0)
@@ -106,28 +103,16 @@ class _VideoSink:
         self.writer.close()
 
 
-def render_camera(
-    params: Mapping[str, Tensor],
-    camera: Camera,
-    sh_degree: int,
-    background: Tensor | None,
-    settings: Any = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Render raw parameters from ``camera``: image [H, W, 3], alpha [H, W], depth [H, W] (numpy)."""
-    with torch.no_grad():
-        image, alpha, depth, _ = render_params(params, camera, sh_degree, background, settings=settings)
-    return image.float().numpy(), alpha[..., 0].float().numpy(), depth[..., 0].float().numpy()
+ViewRenderer = Callable[[Camera], tuple[np.ndarray, np.ndarray, np.ndarray]]
+"""Renders one camera: image [H, W, 3], alpha [H, W], depth [H, W] (numpy, float)."""
 
 
 def render_sequence(
-    params: Mapping[str, Tensor],
+    render: ViewRenderer,
     cameras: Sequence[Camera],
     out_dir: Path,
     *,
     mode: RenderMode = "rgb",
-    sh_degree: int = 3,
-    background: Tensor | None = None,
-    settings: Any = None,
     fps: float = 30.0,
     video: bool = True,
     near: float | None = None,
@@ -137,7 +122,8 @@ def render_sequence(
     alpha_min: float = 0.5,
     on_frame: Callable[[int, int], None] | None = None,
 ) -> RenderedSequence:
-    """Render every camera and write ``out_dir/frame_XXXXX.png`` (+ ``out_dir/<mode>.mp4``).
+    """Render every camera with ``render`` and write ``out_dir/frame_XXXXX.png`` (+
+    ``out_dir/<mode>.mp4``).
 
     depth: expected depth times ``depth_scale`` (e.g. 1 / normalisation scale for the dataset's
     units), colour-mapped between ``near`` and ``far``; either left None is taken from the
@@ -172,7 +158,7 @@ def render_sequence(
 
     try:
         for i, camera in enumerate(cameras):
-            image, alpha, depth = render_camera(params, camera, sh_degree, background, settings)
+            image, alpha, depth = render(camera)
             if mode == "rgb":
                 emit(to_uint8(image))
             elif mode == "alpha":

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal
+from typing import Literal, Mapping
+
+import numpy as np
 
 import torch
 from torch import Tensor, nn
@@ -192,3 +194,18 @@ def render_params(
         means_sh=means_sh,
         settings=settings,
     )
+
+
+def render_camera(
+    params: Mapping[str, Tensor],
+    camera: Camera,
+    sh_degree: int,
+    background: Tensor | None,
+    settings: RasterSettings | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Render raw parameters from ``camera`` without gradients, as numpy on the host:
+    image [H, W, 3], alpha [H, W], depth [H, W]."""
+    with torch.no_grad():
+        image, alpha, depth, _ = render_params(params, camera, sh_degree, background, settings=settings)
+    return (image.float().cpu().numpy(), alpha[..., 0].float().cpu().numpy(),
+            depth[..., 0].float().cpu().numpy())

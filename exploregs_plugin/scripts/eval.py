@@ -18,7 +18,7 @@ import tyro
 from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.evaluation import evaluate, write_metrics_json
 from exploregs_plugin.io.ply import read_ply
-from exploregs_plugin.io.scene_source import dataset_normalization, is_ply, model_from_params
+from exploregs_plugin.runs.scene import dataset_normalization, is_ply, model_from_params
 from exploregs_plugin.runs import load_run
 from exploregs_plugin.scripts import run_cli
 

@@ -13,7 +13,7 @@ from typing import Literal
 import tyro
 
 from exploregs_plugin.io.ply import PlyExport, export_ply, normalization_terms
-from exploregs_plugin.io.scene_source import dataset_normalization
+from exploregs_plugin.runs.scene import dataset_normalization
 from exploregs_plugin.runs import load_run
 from exploregs_plugin.scripts import run_cli
 

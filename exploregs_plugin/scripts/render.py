@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import sys
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import torch
@@ -16,7 +17,8 @@ import tyro
 from exploregs_plugin.io.camera_path import CameraOrder, Trajectory, trajectory_cameras
 from exploregs_plugin.io.frames import RenderedSequence, RenderMode, render_sequence
 from exploregs_plugin.io.ply import normalization_terms
-from exploregs_plugin.io.scene_source import PlyFrame, RenderableScene, load_scene
+from exploregs_plugin.model.gaussians import render_camera
+from exploregs_plugin.runs.scene import PlyFrame, RenderableScene, load_scene
 from exploregs_plugin.scripts import run_cli
 
 
@@ -97,8 +99,8 @@ def main(args: RenderArgs) -> RenderedSequence:
     out = args.out or _default_out(args, scene)
     print(f"rendering {len(cameras)} {args.trajectory} frames ({args.mode}) of {scene.label} -> {out}")
     result = render_sequence(
-        scene.params, cameras, out, mode=args.mode, sh_degree=sh_degree, background=background,
-        settings=source.settings, fps=args.fps, video=args.video, near=args.near, far=args.far,
+        partial(render_camera, scene.params, sh_degree=sh_degree, background=background, settings=source.settings),
+        cameras, out, mode=args.mode, fps=args.fps, video=args.video, near=args.near, far=args.far,
         depth_scale=1.0 / scale, cmap=args.cmap,
         on_frame=_progress,
     )

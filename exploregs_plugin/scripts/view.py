@@ -15,7 +15,7 @@ from pathlib import Path
 import tyro
 
 from exploregs_plugin.io.checkpoint import CheckpointError
-from exploregs_plugin.io.scene_source import PlyFrame, is_ply, load_scene
+from exploregs_plugin.runs.scene import PlyFrame, is_ply, load_scene
 from exploregs_plugin.viewer import Viewer, ViewerConfig, ViewerScene
 
 

@@ -10,8 +10,9 @@ import numpy as np
 from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
-from exploregs_plugin.io.frames import colorize_depth, depth_range, render_camera, to_uint8
+from exploregs_plugin.io.frames import colorize_depth, depth_range, to_uint8
 from exploregs_plugin.io.ply import sh_degree_for_rest
+from exploregs_plugin.model.gaussians import render_camera
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.viewer.config import OutputKind
 from exploregs_plugin.viewer.snapshot import Snapshot

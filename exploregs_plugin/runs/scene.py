@@ -129,7 +129,7 @@ def load_scene(path: Path, cameras: str | Path | None = None, ply_frame: PlyFram
         return RenderableScene(scene.params, scene.sh_degree, source, str(path), dropped=scene.dropped)
     if cameras is not None:
         raise ValueError(f"--cameras-from is for PLY input; {path} is a run, which has its own cameras")
-    from exploregs_plugin.runs import load_run
+    from exploregs_plugin.runs.load import load_run
 
     run = load_run(path)
     model, dm = run.pipeline.model, run.pipeline.datamanager

@@ -1,7 +1,7 @@
 """Per-element cost of the torch ops the compositor is built from, and the effect of
 ``torch.set_flush_denormal`` on a full render (thread CPU time, one thread).
 
-    python -m exploregs_plugin.rasterizer.opcost
+    python -m exploregs_plugin.bench.opcost
 """
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import time
 
 import torch
 
-from .rasterize import rasterize
-from .scenes import random_scene
-from .settings import RasterSettings
+from exploregs_plugin.rasterizer import rasterize
+from .raster_scenes import random_scene
+from exploregs_plugin.rasterizer.settings import RasterSettings
 
 
 def _ns_per_element(fn, n_elements: int, repeats: int = 200) -> float:

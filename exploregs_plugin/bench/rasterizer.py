@@ -1,6 +1,6 @@
 """Speed / memory / error benchmark of the rasterizer against a plain autograd compositor.
 
-    python -m exploregs_plugin.rasterizer.bench            # S, M and (if present) the beer scene
+    python -m exploregs_plugin.bench.rasterizer            # S, M and (if present) the beer scene
 
 Every (scene, method) runs in a fresh subprocess, so its peak resident memory is its own.
 Times are medians of ``--repeats`` runs after warm-up: wall clock and process CPU time (the
@@ -23,11 +23,11 @@ from pathlib import Path
 
 import torch
 
-from .baseline import rasterize_baseline
-from .rasterize import rasterize
-from .reference import reference_rasterize
-from .scenes import GaussianScene, random_scene
-from .settings import RasterSettings
+from .raster_baseline import rasterize_baseline
+from exploregs_plugin.rasterizer import rasterize
+from exploregs_plugin.rasterizer.reference import reference_rasterize
+from .raster_scenes import GaussianScene, random_scene
+from exploregs_plugin.rasterizer.settings import RasterSettings
 
 SCENES = {"S": (20_000, 256, 256), "M": (50_000, 512, 512)}
 SCENES_DIR = Path(__file__).resolve().parents[3] / "shared" / "scenes"
@@ -194,7 +194,7 @@ def main(argv: list[str] | None = None) -> None:
     for scene in scenes:
         rows = {}
         for method in reversed(a.methods):  # baseline first, so the fast row can show the ratio
-            cmd = [sys.executable, "-m", "exploregs_plugin.rasterizer.bench", "--child", scene, method,
+            cmd = [sys.executable, "-m", "exploregs_plugin.bench.rasterizer", "--child", scene, method,
                    "--repeats", str(a.repeats), "--threads", str(a.threads), "--tile-size", str(a.tile_size),
                    "--chunk-elements", str(a.chunk_elements), "--workers", str(a.workers)]  # fmt: skip
             res = subprocess.run(cmd, capture_output=True, text=True, check=False)

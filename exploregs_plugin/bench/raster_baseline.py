@@ -12,10 +12,10 @@ import math
 import torch
 from torch import Tensor
 
-from .projection import project_gaussians
-from .settings import RasterSettings
-from .sh import sh_colors
-from .tiling import bin_gaussians, gather_table, plan_chunks
+from exploregs_plugin.rasterizer.projection import project_gaussians
+from exploregs_plugin.rasterizer.settings import RasterSettings
+from exploregs_plugin.rasterizer.sh import sh_colors
+from exploregs_plugin.rasterizer.tiling import bin_gaussians, gather_table, plan_chunks
 
 
 def rasterize_baseline(

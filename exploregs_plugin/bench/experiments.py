@@ -1,0 +1,64 @@
+"""The paper's ablations as bench entries, written in eg-train's own arguments.
+
+Each experiment is a tuple of :class:`BenchEntry` (name, method, eg-train arguments); the bench
+runner turns an entry into a TrainerConfig with the same parser as ``eg-train``
+(:func:`exploregs_plugin.bench.spec.build_config`), so there is one override language.
+"""
+
+from __future__ import annotations
+
+from itertools import combinations
+
+from exploregs_plugin.bench.spec import BenchEntry
+
+DEPTH_WEIGHT = 0.1
+"""Weight of the depth L1 term in the depth-supervision entries."""
+MONOCULAR_DEPTH = ("--depth-supervision.noise-std", "0.05", "--depth-supervision.bias-amplitude", "0.1")
+"""A monocular-like depth map: 5% per-pixel noise and a 10% smooth bias (relative to depth)."""
+PATHS = ("mean2d", "cov", "sh")
+
+
+def _branch_ablation(description: str) -> tuple[BenchEntry, ...]:
+    """Every subset of switched-off position branches (8 entries, "all-branches" first)."""
+    out = []
+    for k in range(len(PATHS) + 1):
+        for off in combinations(PATHS, k):
+            name = "all-branches" if not off else "no-" + "-".join(off)
+            out.append(BenchEntry(name, "exploregs-default", ("--model.detach-paths", *off), description))
+    return tuple(out)
+
+
+def _depth_supervision(description: str) -> tuple[BenchEntry, ...]:
+    out = []
+    depth = ("--depth-loss-weight", repr(DEPTH_WEIGHT))
+    for label, method in (("default", "exploregs-default"), ("seed", "exploregs-seed"),
+                          ("seedsplit", "exploregs-seedsplit")):  # fmt: skip
+        out.append(BenchEntry(label, method, (), description))
+        out.append(BenchEntry(f"{label}+depth", method, depth, description))
+        out.append(BenchEntry(f"{label}+mono-depth", method, depth + MONOCULAR_DEPTH, description))
+    return tuple(out)
+
+
+def _split_ablation(description: str) -> tuple[BenchEntry, ...]:
+    out = [BenchEntry(f"split-n{n}", "exploregs-split", ("--strategy.n-split", str(n)), description)
+           for n in (0, 5, 10, 20, 40, 80)]
+    out += [BenchEntry(f"default-grad{g:g}", "exploregs-default", ("--strategy.grow-grad2d", repr(g)), description)
+            for g in (0.0001, 0.0002, 0.0004, 0.0008)]
+    return tuple(out)
+
+
+BRANCH_ABLATION = _branch_ablation("Default with every subset of the position-gradient branches switched off.")
+"""Default ADC with every subset of {mean2d, cov, sh} detached (the paper's branch ablation)."""
+DEPTH_SUPERVISION = _depth_supervision(
+    "Default, Seed, Seed+Split without depth, with true depth, with noisy biased depth.")
+"""Default / Seed / Seed+Split, each without depth, with ground-truth depth and with a
+monocular-like depth (the paper's depth table)."""
+SPLIT_ABLATION = _split_ablation("Random Splitting n_split sweep and Default grow_grad2d sweep (PSNR vs #Gaussians).")
+"""Random Splitting's n_split and Default's gradient threshold: PSNR against Gaussian count."""
+
+EXPERIMENTS: dict[str, tuple[BenchEntry, ...]] = {
+    "branch-ablation": BRANCH_ABLATION,
+    "depth-supervision": DEPTH_SUPERVISION,
+    "split-ablation": SPLIT_ABLATION,
+}
+"""Experiment name -> its entries."""
