@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import inspect
 import math
 from dataclasses import dataclass, field, replace
 from typing import Any
@@ -62,23 +61,16 @@ class Pipeline:
         self.optimizers = config.optim.setup(self.model.params, self.scene_extent)
         self.strategy = config.strategy.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
+        # Scene centre = mean training-camera centre (seeding measures distances from it).
+        centers = torch.stack([camera.camera_center for camera in dm.train_cameras])
         self.strategy_state = self.strategy.initialize_state(
-            scene_scale=self.scene_extent, **self._scene_center_kwarg(dm))
+            scene_scale=self.scene_extent, scene_center=centers.mean(dim=0))
         if config.random_background and not dm.has_alpha:
             raise ValueError("random_background needs a dataset whose images have an alpha channel")
 
-    def _scene_center_kwarg(self, dm) -> dict[str, Tensor]:
-        """Scene centre = mean training-camera centre (seeding measures distances from it).
-        Passed only to strategies that take it (gsplat-style ones take scene_scale alone)."""
-        if "scene_center" not in inspect.signature(self.strategy.initialize_state).parameters:
-            return {}
-        centers = torch.stack([camera.camera_center for camera in dm.train_cameras])
-        return {"scene_center": centers.mean(dim=0)}
-
     def exploration_summary(self) -> dict[str, int]:
         """Current totals a strategy reports about its exploration (e.g. seeds alive)."""
-        summary = getattr(self.strategy, "seed_summary", None)
-        return dict(summary(self.strategy_state)) if summary is not None else {}
+        return dict(self.strategy.exploration_summary(self.strategy_state))
 
     @property
     def params(self) -> nn.ParameterDict:
@@ -110,11 +102,9 @@ class Pipeline:
             depth_term = depth_l1(depth, gt_depth, self.config.depth_loss_space)
             loss = loss + self.config.depth_loss_weight * depth_term
             terms["depth"] = depth_term.detach()
-        regularization = getattr(self.strategy, "regularization_loss", None)
-        if regularization is not None:
-            reg = regularization(self.params)
-            loss = loss + reg
-            terms["reg"] = reg.detach()
+        reg = self.strategy.regularization_loss(self.params)
+        loss = loss + reg
+        terms["reg"] = reg.detach()
         if not math.isfinite(float(loss.detach())):
             raise NonFiniteError(f"step {step}: the loss is {float(loss.detach())} (terms: "
                                  + ", ".join(f"{k}={float(v):.4g}" for k, v in terms.items()) + ")")

@@ -57,7 +57,7 @@ def test_seeding_counts_box_and_disable():
     # Seeds of the first round lie in the box of the original centres.
     first = params["means"].detach()[50:57]
     assert torch.all(first >= lo - 1e-6) and torch.all(first <= hi + 1e-6)
-    assert s.seed_summary(state)["seeds_alive"] == 28
+    assert s.exploration_summary(state)["seeds_alive"] == 28
     assert int(state["stats"][SEED_FLAG].sum()) == 28
 
     off = SeedingStrategy(n_seed=0, seed_every=10, **WINDOW)
@@ -154,14 +154,14 @@ def _seeding_setup(n: int, **fields):
 
 def test_seeds_outside_every_view_are_counted():
     gen, params, optimizers, s, state = _seeding_setup(10, n_seed=3, prune_opa=0.0)
-    assert s.seed_summary(state) == {"seeds_alive": 0, "seeds_unseen": 0}
+    assert s.exploration_summary(state) == {"seeds_alive": 0, "seeds_unseen": 0}
     assert _run(s, params, optimizers, state, [10], gen)[0]["seeded"] == 3
-    assert s.seed_summary(state) == {"seeds_alive": 3, "seeds_unseen": 3}
+    assert s.exploration_summary(state) == {"seeds_alive": 3, "seeds_unseen": 3}
     # The next view sees only the first seed.
     vis = torch.zeros(13, dtype=torch.bool)
     vis[10] = True
     s.step_post_backward(params, optimizers, state, 11, synthetic_info(torch.zeros(13, 2), vis, W, H), generator=gen)
-    assert s.seed_summary(state) == {"seeds_alive": 3, "seeds_unseen": 2}
+    assert s.exploration_summary(state) == {"seeds_alive": 3, "seeds_unseen": 2}
 
 
 def test_seed_probation_schedule():
@@ -190,7 +190,7 @@ def test_seed_probation_prunes_faded_seeds_only():
     counts = _run(s, params, optimizers, state, [20], gen)[0]
     assert counts["seeds_pruned"] == 2 and counts["pruned"] == 2
     assert torch.equal(params["means"].detach()[[0, 1, 10, 11]], kept)  # faded originals stay
-    assert s.seed_summary(state)["seeds_alive"] == 2 + 4  # the two left and the next batch
+    assert s.exploration_summary(state)["seeds_alive"] == 2 + 4  # the two left and the next batch
 
     # Within the grace period after a reset nothing is judged; with seed_prune_opa = 0 never.
     with torch.no_grad():

@@ -11,6 +11,12 @@ Call shape (the same as gsplat's, so strategies can be reused across trainers)::
     loss.backward(); optimizer.step() for each; zero_grad()
     counts = strategy.step_post_backward(params, optimizers, state, step, info,
                                          lr=means_lr, generator=gen)    # dict[str, int]
+    # at each evaluation:
+    strategy.exploration_summary(state)                                  # dict[str, int]
+
+Every hook has a default here, so a subclass overrides only what it changes; the pipeline calls
+each one unconditionally. ``initialize_state`` takes the scene centre (the mean training-camera
+centre) as well as its scale.
 """
 
 from __future__ import annotations
@@ -185,6 +191,11 @@ class Strategy:
     def regularization_loss(self, params: Params) -> Tensor:
         """Extra loss term the trainer adds to the photometric loss. Default: 0."""
         return params["means"].new_zeros(())
+
+    def exploration_summary(self, state: dict[str, Any]) -> dict[str, int]:
+        """Current totals of what the strategy explored (not events), logged at each evaluation
+        and written to metrics.json, e.g. Seeding's ``seeds_alive``. Default: none."""
+        return {}
 
 
 def require_generator(generator: torch.Generator | None, who: str) -> torch.Generator:

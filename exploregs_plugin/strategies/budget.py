@@ -17,6 +17,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Literal
 
+from .base import Strategy
+
 PAPER_N_SEED = 20
 """Seeds per seeding step in the paper."""
 PAPER_N_SPLIT = 20
@@ -111,7 +113,7 @@ def resolve_budget(name: str, refine_start: int, refine_stop: int, refine_every:
 
 
 @dataclass
-class BudgetMixin:
+class BudgetMixin(Strategy):
     """The ``budget`` field shared by the exploration operators (declared once, composed)."""
 
     budget: BudgetName = "paper"
@@ -122,9 +124,7 @@ class BudgetMixin:
     def __post_init__(self) -> None:
         if self.budget not in BUDGET_PRESETS:
             raise ValueError(f"unknown exploration budget '{self.budget}'; known presets: {sorted(BUDGET_PRESETS)}")
-        parent = super()
-        if hasattr(parent, "__post_init__"):
-            parent.__post_init__()  # type: ignore[misc]
+        super().__post_init__()
 
     def resolved_budget(self, defaults: dict[str, int]) -> ExplorationBudget:
         """The budget for this strategy's densification window (own values, else ``defaults``)."""

@@ -17,7 +17,8 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from .base import StepContext, StrategyError
+from .base import StepContext, Strategy, StrategyError
+from .default import DefaultStrategy
 from .geometry import covariance
 from .ops import num_gaussians
 
@@ -64,7 +65,7 @@ def position_noise(
 
 
 @dataclass
-class NoiseMixin:
+class NoiseMixin(Strategy):
     """Fields and the update shared by every strategy that perturbs positions."""
 
     noise_lr: float = 5e5
@@ -104,10 +105,10 @@ class NoiseMixin:
 
 
 @dataclass
-class RayPerturbationMixin(NoiseMixin):
+class RayPerturbationMixin(NoiseMixin, DefaultStrategy):
     """Ray-constrained perturbation after every optimizer step; compose it in front of Default."""
 
     def explore(self, ctx: StepContext) -> dict[str, int]:
-        counts = super().explore(ctx)  # type: ignore[misc]
+        counts = super().explore(ctx)
         counts["perturbed"] = self.perturb_positions(ctx, "ray")
         return counts

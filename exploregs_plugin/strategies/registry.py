@@ -39,21 +39,18 @@ def builtin_strategies() -> dict[str, type[Strategy]]:
 
 
 def _is_strategy_class(obj: object) -> bool:
-    if not isinstance(obj, type):
-        return False
-    if issubclass(obj, Strategy):
-        return True
-    # Duck typing: a class with the gsplat-style call shape is accepted too.
-    return all(callable(getattr(obj, m, None)) for m in ("initialize_state", "step_post_backward"))
+    # The pipeline calls every hook of the contract unconditionally; the base class declares
+    # each one with a default, so only subclasses are accepted.
+    return isinstance(obj, type) and issubclass(obj, Strategy)
 
 
-def available_strategies() -> dict[str, type]:
+def available_strategies() -> dict[str, type[Strategy]]:
     """Built-in strategies merged with every ``exploregs.strategies`` entry point.
 
     Raises :class:`StrategyPluginError` naming the entry point and its distribution when one
     fails to import, is not a strategy class, or reuses a built-in name.
     """
-    strategies: dict[str, type] = dict(builtin_strategies())
+    strategies: dict[str, type[Strategy]] = dict(builtin_strategies())
     for ep in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
         dist = getattr(getattr(ep, "dist", None), "name", None) or "unknown distribution"
         where = f"entry point '{ep.name} = {ep.value}' (group {ENTRY_POINT_GROUP}, from {dist})"
@@ -66,7 +63,7 @@ def available_strategies() -> dict[str, type]:
         if not _is_strategy_class(obj):
             raise StrategyPluginError(
                 f"{where} resolved to {obj!r}, which is not a strategy class (subclass "
-                f"exploregs_plugin.strategies.Strategy or provide initialize_state/step_post_backward)"
+                f"exploregs_plugin.strategies.Strategy, whose hooks all have defaults)"
             )
         strategies[ep.name] = obj
     return strategies

@@ -121,7 +121,7 @@ def seed_rows(
 
 
 @dataclass
-class SeedingMixin(BudgetMixin):
+class SeedingMixin(BudgetMixin, DefaultStrategy):
     """Random Seeding operator; compose it in front of :class:`DefaultStrategy`."""
 
     n_seed: int | None = None
@@ -148,7 +148,7 @@ class SeedingMixin(BudgetMixin):
     from the reset value. None: half the reset interval."""
 
     def __post_init__(self) -> None:
-        super().__post_init__()  # type: ignore[misc]
+        super().__post_init__()
         for name in ("n_seed", "seed_every"):
             value = getattr(self, name)
             if value is not None and value < (0 if name == "n_seed" else 1):
@@ -163,25 +163,25 @@ class SeedingMixin(BudgetMixin):
             raise StrategyError(f"seed_grace must be >= 0, got {self.seed_grace}")
 
     def deferred_fields(self) -> tuple[str, ...]:
-        return super().deferred_fields() + ("n_seed", "seed_every")  # type: ignore[misc]
+        return super().deferred_fields() + ("n_seed", "seed_every")
 
     def schedule_defaults(self, schedule: Any) -> dict[str, int]:
-        defaults = super().schedule_defaults(schedule)  # type: ignore[misc]
+        defaults = super().schedule_defaults(schedule)
         budget = self.resolved_budget(defaults)
         return {**defaults, "n_seed": budget.n_seed, "seed_every": budget.seed_every}
 
     def seeding_active(self, step: int) -> bool:
-        return bool(self.n_seed) and step < self.refine_stop_iter  # type: ignore[attr-defined]
+        return bool(self.n_seed) and step < self.refine_stop_iter
 
     def size_prune_factor(self, step: int) -> float:
         if self.seeding_active(step):
             return self.seed_prune_scale3d
-        return super().size_prune_factor(step)  # type: ignore[misc]
+        return super().size_prune_factor(step)
 
     def seeds_judged_at(self, step: int) -> bool:
         """Whether a refinement at ``step`` applies seed probation: no opacity reset yet, or the
         last one (at a multiple of reset_every before this step) at least the grace period ago."""
-        reset_every = self.reset_every  # type: ignore[attr-defined]
+        reset_every = self.reset_every
         last_reset = (step - 1) // reset_every * reset_every  # this step's own reset comes after its prune
         if last_reset <= 0:
             return True
@@ -189,7 +189,7 @@ class SeedingMixin(BudgetMixin):
         return step - last_reset >= grace
 
     def extra_prune(self, params: Params, state: dict[str, Any], step: int) -> tuple[Tensor | None, dict[str, int]]:
-        mask, counts = super().extra_prune(params, state, step)  # type: ignore[misc]
+        mask, counts = super().extra_prune(params, state, step)
         counts = {**counts, "seeds_pruned": 0}
         flag = state["stats"].get(SEED_FLAG)
         if flag is None or self.seed_prune_opa <= 0.0 or not self.seeds_judged_at(step):
@@ -199,12 +199,12 @@ class SeedingMixin(BudgetMixin):
         return (faded if mask is None else mask | faded), counts
 
     def post_backward(self, ctx: StepContext) -> dict[str, int]:
-        counts = super().post_backward(ctx)  # type: ignore[misc]
+        counts = super().post_backward(ctx)
         counts.setdefault("seeds_pruned", 0)  # same keys on every call, not only at refinements
         return counts
 
     def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
-        counts = super().observe(params, state, info)  # type: ignore[misc]
+        counts = super().observe(params, state, info)
         stats = state["stats"]
         n = num_gaussians(params)
         if SEED_SEEN in stats and n > 0:
@@ -212,18 +212,18 @@ class SeedingMixin(BudgetMixin):
         return counts
 
     def explore(self, ctx: StepContext) -> dict[str, int]:
-        counts = super().explore(ctx)  # type: ignore[misc]
+        counts = super().explore(ctx)
         seeded = 0
         if (
             self.seeding_active(ctx.step)
-            and ctx.step > self.refine_start_iter  # type: ignore[attr-defined]
+            and ctx.step > self.refine_start_iter
             and ctx.step % self.seed_every == 0
         ):
             seeded = self.seed(ctx.params, ctx.optimizers, ctx.state, ctx.rng("seeding"))
         counts["seeded"] = seeded
         return counts
 
-    def seed_summary(self, state: dict[str, Any]) -> dict[str, int]:
+    def exploration_summary(self, state: dict[str, Any]) -> dict[str, int]:
         """Current totals (not events): ``seeds_alive``, seeds and their descendants still in
         the set, and ``seeds_unseen``, those that no training view has seen since they were
         added (no gradient ever reaches them, so only pruning or the end of the run removes them).
@@ -240,7 +240,7 @@ class SeedingMixin(BudgetMixin):
     def seed(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator) -> int:
         """Append up to n_seed seeds (fewer under cap_max; none when N = 0: no box)."""
         n_before = num_gaussians(params)
-        n = min(self.n_seed, self.room(n_before))  # type: ignore[attr-defined]
+        n = min(self.n_seed, self.room(n_before))
         if n <= 0 or n_before == 0:
             return 0
         rows = seed_rows(

@@ -41,7 +41,7 @@ def sample_split_indices(log_scales: Tensor, n: int, generator: torch.Generator)
 
 
 @dataclass
-class SplittingMixin(BudgetMixin):
+class SplittingMixin(BudgetMixin, DefaultStrategy):
     """Random Splitting operator; compose it in front of :class:`DefaultStrategy`."""
 
     n_split: int | None = None
@@ -50,26 +50,26 @@ class SplittingMixin(BudgetMixin):
     """Splitting interval in steps. None: from `budget` (paper: 1, 'per iteration')."""
 
     def __post_init__(self) -> None:
-        super().__post_init__()  # type: ignore[misc]
+        super().__post_init__()
         if self.n_split is not None and self.n_split < 0:
             raise StrategyError(f"n_split must be >= 0, got {self.n_split}")
         if self.split_every is not None and self.split_every < 1:
             raise StrategyError(f"split_every must be >= 1, got {self.split_every}")
 
     def deferred_fields(self) -> tuple[str, ...]:
-        return super().deferred_fields() + ("n_split", "split_every")  # type: ignore[misc]
+        return super().deferred_fields() + ("n_split", "split_every")
 
     def schedule_defaults(self, schedule: Any) -> dict[str, int]:
-        defaults = super().schedule_defaults(schedule)  # type: ignore[misc]
+        defaults = super().schedule_defaults(schedule)
         budget = self.resolved_budget(defaults)
         return {**defaults, "n_split": budget.n_split, "split_every": budget.split_every}
 
     def explore(self, ctx: StepContext) -> dict[str, int]:
-        counts = super().explore(ctx)  # type: ignore[misc]
+        counts = super().explore(ctx)
         counts["random_split"] = 0
         if (
             self.n_split
-            and self.refine_start_iter < ctx.step < self.refine_stop_iter  # type: ignore[attr-defined]
+            and self.refine_start_iter < ctx.step < self.refine_stop_iter
             and ctx.step % self.split_every == 0
         ):
             counts["random_split"] = self.random_split(ctx.params, ctx.optimizers, ctx.state, ctx.rng("random splitting"))
@@ -80,13 +80,13 @@ class SplittingMixin(BudgetMixin):
     ) -> int:
         """Split up to n_split Gaussians drawn by size (fewer if N or cap_max leave less room)."""
         n = num_gaussians(params)
-        budget = min(self.n_split, n, self.room(n))  # type: ignore[attr-defined]
+        budget = min(self.n_split, n, self.room(n))
         if budget <= 0:
             return 0
         idx = sample_split_indices(params["scales"], budget, generator)
         mask = torch.zeros(n, dtype=torch.bool, device=params["means"].device)
         mask[idx] = True
-        return ops.split(params, optimizers, state["stats"], mask, generator, self.split_scale_factor)  # type: ignore[attr-defined]
+        return ops.split(params, optimizers, state["stats"], mask, generator, self.split_scale_factor)
 
 
 @dataclass
