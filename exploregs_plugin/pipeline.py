@@ -30,7 +30,7 @@ class PipelineConfig:
     model: GaussianModelConfig = field(default_factory=GaussianModelConfig)
     optim: OptimizerConfig = field(default_factory=OptimizerConfig)
     strategy: Any = field(default_factory=DefaultStrategy)
-    """Densification / exploration strategy (its fields are set with --pipeline.strategy.NAME)."""
+    """Densification / exploration strategy (its fields are set with --strategy.NAME)."""
     ssim_lambda: float = 0.2
     """Loss = (1 - ssim_lambda) L1 + ssim_lambda (1 - SSIM)."""
     random_background: bool = False
@@ -57,7 +57,7 @@ class Pipeline:
         self.datamanager = replace(config.datamanager, seed=seed).setup()
         dm = self.datamanager
         self.scene_extent = float(dm.scene_extent)
-        self.model = config.model.setup(dm.points, dm.points_rgb, self.scene_extent, self.generator)
+        self.model = config.model.setup(dm.points, dm.points_rgb)
         self.optimizers = config.optim.setup(self.model.params, self.scene_extent)
         self.strategy = config.strategy.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)

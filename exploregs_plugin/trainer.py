@@ -8,23 +8,29 @@ import time
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, Sequence
 
 import torch
 import tyro
 
-from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
+from exploregs_plugin.callbacks import TrainingCallback
 from exploregs_plugin.configs import load_config, save_config
 from exploregs_plugin.evaluation import evaluate, evaluation_panel, write_metrics_json
 from exploregs_plugin.io.checkpoint import load_checkpoint, resolve_run, save_checkpoint
 from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig
 from exploregs_plugin.run_logger import RunLogger
 from exploregs_plugin.schedule import ScheduleConfig
+from exploregs_plugin.viewer.callback import ViewerCallback
 from exploregs_plugin.viewer.config import ViewerConfig
 
 CONFIG_NAME = "config.yml"
 METRICS_NAME = "metrics.json"
 EVAL_PANELS = 2  # test views shown in tensorboard at each evaluation (render | truth | error)
+# TrainerConfig fields that a callback from a layer above the trainer implements: a config that
+# sets one without such a callback is refused instead of silently ignored.
+CALLBACK_FIELDS = {
+    "grad_branches_every": "exploregs_plugin.analysis.tensorboard.BranchGradientLogger()",
+}
 
 
 @dataclass
@@ -64,7 +70,8 @@ class TrainerConfig:
     grad_branches_every: int = 0
     """Every this many steps, log the per-view mean norm of the position gradient through each
     branch (2D mean, 2D covariance, SH direction) and the total as grad_branches/* (0 = off; costs
-    one extra render and backward per sampled view; needs --tensorboard)."""
+    one extra render and backward per sampled view; needs --tensorboard; in Python, pass the
+    callback exploregs_plugin.analysis.tensorboard.BranchGradientLogger() to the Trainer)."""
     grad_branches_views: int = 4
     """Training views (evenly spaced) averaged at each --grad-branches-every step."""
     save_eval_images: bool = True
@@ -80,50 +87,72 @@ class TrainerConfig:
     viewer_config: ViewerConfig = field(default_factory=ViewerConfig)
     """Live viewer settings: port, render resolutions, CPU share, output (--viewer-config.*)."""
 
-    def resolved(self) -> "TrainerConfig":
-        """Apply the top-level --data / --data-factor shortcuts to the datamanager config."""
-        dm = self.pipeline.datamanager
+    def __post_init__(self) -> None:
+        # The top-level --data / --data-factor shortcuts are moved into the datamanager config
+        # here, when the config is built (by tyro, a constructor or dataclasses.replace), so that
+        # every consumer of the config sees one source of truth.
         updates: dict[str, Any] = {}
         if self.data is not None:
             updates["data"] = self.data
         if self.data_factor is not None:
             updates["data_factor"] = self.data_factor
-        if not updates:
-            return self
-        return replace(self, data=None, data_factor=None,
-                       pipeline=replace(self.pipeline, datamanager=replace(dm, **updates)))
+        if updates:
+            dm = replace(self.pipeline.datamanager, **updates)
+            self.pipeline = replace(self.pipeline, datamanager=dm)
+            self.data = self.data_factor = None
 
-    def setup(self) -> "Trainer":
+    def setup(self, callbacks: Sequence[TrainingCallback] = ()) -> "Trainer":
         if self.resume is not None:
-            return Trainer.from_run(self.resume, max_steps=None, quiet=self.quiet)
-        return Trainer(self.resolved())
+            return Trainer.from_run(self.resume, max_steps=None, quiet=self.quiet, callbacks=callbacks)
+        return Trainer(self, callbacks=callbacks)
 
 
 class Trainer:
-    def __init__(self, config: TrainerConfig, run_dir: Path | None = None, checkpoint: Path | None = None) -> None:
+    """Owns the loop: train steps, logging, evaluation, checkpoints and metrics; everything else
+    that acts between steps (viewer, diagnostics, probes) is a :class:`TrainingCallback`."""
+
+    def __init__(self, config: TrainerConfig, run_dir: Path | None = None, checkpoint: Path | None = None,
+                 callbacks: Sequence[TrainingCallback] = ()) -> None:
         self.config = config
+        self.callbacks: list[TrainingCallback] = list(callbacks)
+        if config.viewer:
+            self.callbacks.append(ViewerCallback(config.viewer_config))
+        self._check_callbacks()
         if config.flush_denormal:
             torch.set_flush_denormal(True)
         if config.num_threads:
             torch.set_num_threads(config.num_threads)
         self.schedule = config.schedule.resolve(config.max_steps)
         self.pipeline: Pipeline = config.pipeline.setup(self.schedule, config.seed)
-        self.branch_logger = BranchGradientLogger(config.grad_branches_every if config.tensorboard else 0,
-                                                  config.grad_branches_views)
         self.run_dir = Path(run_dir or config.run_dir or self._default_run_dir())
         self.start_step = 0
         self.train_seconds = 0.0
         self.history: list[dict[str, Any]] = []
         self.op_totals: dict[str, int] = {}  # run-long sum of every strategy operation's count
         self.last_checkpoint: Path | None = None
+        self.logger: RunLogger | None = None
+        self._stop: _StopOnSigint | None = None
         if checkpoint is not None:
             self._restore(checkpoint)
         else:
             self.run_dir.mkdir(parents=True, exist_ok=True)
             save_config(config, self.run_dir / CONFIG_NAME)
 
+    def _check_callbacks(self) -> None:
+        served = {name for callback in self.callbacks for name in callback.serves}
+        for name, callback in CALLBACK_FIELDS.items():
+            if getattr(self.config, name) and name not in served:
+                raise ValueError(f"TrainerConfig.{name} is set, but no callback serves it: pass "
+                                 f"callbacks=[{callback}] to the Trainer (eg-train does)")
+
+    @property
+    def stop_requested(self) -> bool:
+        """Whether Ctrl-C asked the loop to stop at the next step boundary."""
+        return self._stop is not None and self._stop.requested
+
     @classmethod
-    def from_run(cls, path: Path, max_steps: int | None = None, quiet: bool | None = None) -> "Trainer":
+    def from_run(cls, path: Path, max_steps: int | None = None, quiet: bool | None = None,
+                 callbacks: Sequence[TrainingCallback] = ()) -> "Trainer":
         """Resume a run folder (or a checkpoint inside one) from its saved config."""
         run_dir, ckpt = resolve_run(Path(path))
         config = load_config(run_dir / CONFIG_NAME)
@@ -131,7 +160,7 @@ class Trainer:
             config = replace(config, max_steps=max_steps)
         if quiet is not None:
             config = replace(config, quiet=quiet)
-        return cls(config, run_dir=run_dir, checkpoint=ckpt)
+        return cls(config, run_dir=run_dir, checkpoint=ckpt, callbacks=callbacks)
 
     def _default_run_dir(self) -> Path:
         stamp = datetime.now().strftime("%Y-%m-%d_%H%M%S")
@@ -141,27 +170,27 @@ class Trainer:
     def train(self) -> dict[str, Any]:
         """Run from ``start_step`` to ``max_steps``; returns the final metrics."""
         eval_steps = self._eval_steps()
-        viewer = self.config.viewer_config.setup(self.pipeline, step=self.start_step) if self.config.viewer else None
         try:
             with RunLogger(self.run_dir, self.schedule.max_steps, self.start_step, self.config.log_every,
                            self.config.tensorboard, self.config.quiet) as logger, _StopOnSigint() as stop:
-                self.logger = logger
+                self.logger, self._stop = logger, stop
+                for callback in self.callbacks:
+                    callback.on_train_start(self)
                 for step in range(self.start_step, self.schedule.max_steps):
-                    if viewer is not None:
-                        viewer.wait_if_paused(lambda: stop.requested)
+                    for callback in self.callbacks:
+                        callback.before_step(self, step)
                     if stop.requested:
                         self.save_checkpoint(step)
                         raise KeyboardInterrupt(f"interrupted before step {step}; checkpoint {self.last_checkpoint}")
                     start = time.perf_counter()
                     stats = self._train_step(step)
-                    elapsed = time.perf_counter() - start
+                    stats["step_seconds"] = elapsed = time.perf_counter() - start
                     self.train_seconds += elapsed
                     for op, n in stats["counts"].items():
                         self.op_totals[op] = self.op_totals.get(op, 0) + int(n)
-                    if viewer is not None:
-                        viewer.update(step + 1, stats, elapsed)
                     logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
-                    self.branch_logger(self.pipeline, step + 1, logger)
+                    for callback in self.callbacks:
+                        callback.after_step(self, step + 1, stats)
                     if step + 1 in eval_steps:
                         self.run_eval(step + 1)
                     if (step + 1) % self.config.checkpoint_every == 0 and step + 1 < self.schedule.max_steps:
@@ -169,11 +198,12 @@ class Trainer:
                 if self.schedule.max_steps not in eval_steps or not self.history:
                     self.run_eval(self.schedule.max_steps)
                 self.save_checkpoint(self.schedule.max_steps)
-                if viewer is not None:
-                    viewer.finish(self.schedule.max_steps, lambda: stop.requested)
+                for callback in self.callbacks:
+                    callback.on_train_end(self)
         finally:
-            if viewer is not None:
-                viewer.close()
+            self.logger, self._stop = None, None
+            for callback in self.callbacks:
+                callback.close()
         return self.write_metrics()
 
     def _train_step(self, step: int) -> dict[str, Any]:
@@ -205,7 +235,7 @@ class Trainer:
         self.history.append({"step": step, "train_seconds": self.train_seconds, "psnr": metrics["psnr"],
                              "ssim": metrics["ssim"], "num_gaussians": metrics["num_gaussians"],
                              **({"region_psnr": metrics["region_psnr"]} if "region_psnr" in metrics else {})})
-        if getattr(self, "logger", None) is not None:
+        if self.logger is not None:
             self.logger.log_eval(step, metrics, panels)
             for name, value in self.pipeline.exploration_summary().items():
                 self.logger.scalar(f"strategy/{name}", value, step)

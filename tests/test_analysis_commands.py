@@ -119,4 +119,5 @@ def test_sampling_helpers():
     with pytest.raises(ValueError):
         evenly_spaced(2, 0)
     config = TrainSpec(data="builtin:tiny", max_steps=7).trainer_config(Path("/tmp/x"))
-    assert config.max_steps == 7 and config.data == "builtin:tiny" and config.quiet
+    assert config.max_steps == 7 and config.pipeline.datamanager.data == "builtin:tiny" and config.quiet
+    assert config.data is None  # moved into the datamanager when the config was built

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -143,3 +144,23 @@ def test_depth_scaled_into_normalised_units(tiny_scene_dir: Path) -> None:
     raw = np.load(tiny_scene_dir / "depths" / "0000.npy")
     depth = dm.test_item(0)[2]["depth"][..., 0].numpy()
     np.testing.assert_allclose(depth, raw * dm.normalization[1], rtol=1e-6)
+
+
+def test_random_init_replaces_the_points_inside_the_camera_bounds(tiny_scene_dir: Path) -> None:
+    base = DataManagerConfig(data="builtin:tiny")
+    with_points = base.setup()
+    forced = replace(base, random_init=True, n_random_points=300, seed=4).setup()
+    assert forced.points.shape == (300, 3) and forced.points_rgb.shape == (300, 3)
+    assert not torch.equal(forced.points[:1], with_points.points[:1])
+    from exploregs_plugin.data.random_init import focus_point
+
+    images = forced.parsed.images
+    centers = np.stack([im.camera_center for im in images])
+    focus = focus_point(centers, np.stack([im.viewmat[2, :3] for im in images]))
+    corners = np.concatenate([centers, focus[None]])
+    pad = 0.1 * (corners.max(0) - corners.min(0)).max()
+    pts = forced.points.numpy()
+    assert (pts >= corners.min(0) - pad - 1e-5).all() and (pts <= corners.max(0) + pad + 1e-5).all()
+    assert (pts.max(0) - pts.min(0) > 0.5 * (corners.max(0) - corners.min(0))).all()  # fills the box
+    again = replace(base, random_init=True, n_random_points=300, seed=4).setup()
+    assert torch.equal(again.points, forced.points)  # seeded

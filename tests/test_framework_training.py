@@ -190,3 +190,55 @@ def test_cli_lists_methods_and_rejects_unknown():
     bad = subprocess.run(cmd + ["exploregs-nope"], capture_output=True, text=True, timeout=120)
     assert bad.returncode == 2
     assert "unknown method 'exploregs-nope'" in bad.stderr and "exploregs-seedsplit" in bad.stderr
+
+
+def test_data_shortcut_reaches_the_datamanager_however_the_config_is_built(tmp_path, tiny_scene_dir):
+    from dataclasses import replace
+
+    direct = Trainer(TrainerConfig(data="builtin:tiny", max_steps=1, run_dir=tmp_path / "a", quiet=True))
+    assert direct.pipeline.datamanager.scene_name == "tiny"
+    assert direct.config.data is None and direct.config.pipeline.datamanager.data == "builtin:tiny"
+    replaced = replace(TrainerConfig(), data="builtin:tiny", data_factor=2)
+    assert replaced.pipeline.datamanager.data == "builtin:tiny" and replaced.pipeline.datamanager.data_factor == 2
+    saved = load_config(direct.run_dir / "config.yml")
+    assert saved == direct.config  # the round trip keeps the moved values
+
+
+def test_callbacks_see_every_step_in_order_and_are_closed(tmp_path, tiny_scene_dir):
+    from exploregs_plugin.callbacks import TrainingCallback
+
+    calls: list[tuple] = []
+
+    class Recorder(TrainingCallback):
+        def on_train_start(self, trainer):
+            calls.append(("start", trainer.start_step))
+
+        def before_step(self, trainer, step):
+            calls.append(("before", step))
+
+        def after_step(self, trainer, step, stats):
+            assert stats["step_seconds"] >= 0 and "loss" in stats
+            calls.append(("after", step, len(trainer.history)))
+
+        def on_train_end(self, trainer):
+            calls.append(("end", len(trainer.history)))
+
+        def close(self):
+            calls.append(("close",))
+
+    trainer = Trainer(tiny_config(tmp_path / "run", max_steps=3, eval_count=3), callbacks=[Recorder()])
+    trainer.train()
+    # after_step runs before the evaluation of that step: the history then holds the earlier ones
+    assert calls == [("start", 0), ("before", 0), ("after", 1, 0), ("before", 1), ("after", 2, 1),
+                     ("before", 2), ("after", 3, 2), ("end", 3), ("close",)]
+
+
+def test_a_field_served_by_a_callback_is_refused_without_it(tmp_path, tiny_scene_dir):
+    from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
+
+    config = tiny_config(tmp_path / "run", max_steps=4, tensorboard=True, grad_branches_every=2, grad_branches_views=1)
+    with pytest.raises(ValueError, match="grad_branches_every is set, but no callback serves it.*BranchGradientLogger"):
+        Trainer(config)
+    logger = BranchGradientLogger()
+    Trainer(config, callbacks=[logger]).train()
+    assert (logger.every, logger.views) == (2, 1)  # taken from the trainer's config

@@ -19,7 +19,7 @@ from exploregs_plugin.strategies import (
     scaled_budget,
 )
 from exploregs_plugin.strategies.budget import SEED_FRACTION, SPLIT_FRACTION
-from exploregs_plugin.strategies.geometry import SH_C0
+from exploregs_plugin.rasterizer.sh import SH_C0
 from exploregs_plugin.strategies.seeding import SEED_FLAG, SeedingMixin, seed_rows
 from exploregs_plugin.strategies.splitting import SplittingMixin, sample_split_indices
 from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_info
@@ -262,9 +262,9 @@ def test_random_split_children_drawn_from_parent():
         params["means"].copy_(torch.tensor([[1.0, 2.0, 3.0]]))
     parent_mean = params["means"].detach().clone()
     parent = {k: v.detach().clone() for k, v in params.items()}
-    from exploregs_plugin.strategies.geometry import covariance
+    from exploregs_plugin.rasterizer.projection import covariances_3d
 
-    cov = covariance(parent["quats"], torch.exp(parent["scales"]))[0].double()
+    cov = covariances_3d(parent["quats"], torch.exp(parent["scales"]))[0].double()
     s = SplittingStrategy(n_split=1, split_every=1, prune_opa=0.0, grow_grad2d=1e9, **WINDOW)
     offsets = []
     for step in range(400):  # re-split a fresh copy of the same parent many times

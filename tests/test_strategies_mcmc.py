@@ -11,7 +11,7 @@ import torch
 
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.strategies import MCMCStrategy, RayPerturbationStrategy, StrategyError, ops
-from exploregs_plugin.strategies.geometry import covariance
+from exploregs_plugin.rasterizer.projection import covariances_3d
 from exploregs_plugin.strategies.perturbation import position_noise
 from exploregs_plugin.strategies.relocation import binomial_table, relocation_update
 from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers, synthetic_info
@@ -50,7 +50,7 @@ def test_noise_is_gated_by_opacity_and_shaped_by_covariance():
     z = torch.randn(6, 3, generator=torch.Generator().manual_seed(3), dtype=torch.float64)
     o = torch.sigmoid(params["opacities"].detach())
     gate = torch.sigmoid(-100.0 * (o - 0.005))
-    sigma = covariance(params["quats"].detach(), torch.exp(params["scales"].detach()))
+    sigma = covariances_3d(params["quats"].detach(), torch.exp(params["scales"].detach()))
     expected = torch.einsum("nij,nj->ni", sigma, z) * (gate * scale)[:, None]
     assert torch.allclose(eta, expected, rtol=1e-12, atol=0)
     assert eta[:2].norm(dim=-1).max() < 1e-30  # opaque: essentially frozen

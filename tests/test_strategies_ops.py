@@ -117,9 +117,9 @@ def test_split_children_from_parent_and_alignment():
     assert torch.equal(stats["grad2d"][children], snap["_stats"]["grad2d"][parents])
     # Children are parent mean + R diag(s) z: mapped back to the parent's frame, the offsets are
     # standard-normal draws of a sensible size (|z| < 6), not arbitrary jumps.
-    from exploregs_plugin.strategies.geometry import quat_to_rotmat
+    from exploregs_plugin.rasterizer.projection import quats_to_rotmats
 
-    rot = quat_to_rotmat(snap["quats"]["param"][parents])
+    rot = quats_to_rotmats(snap["quats"]["param"][parents])
     offset = params["means"].detach()[children] - snap["means"]["param"][parents]
     z = torch.einsum("nji,nj->ni", rot, offset) / torch.exp(snap["scales"]["param"][parents])
     assert z.abs().max() < 6.0 and z.abs().max() > 1e-3

@@ -149,7 +149,7 @@ def test_viewer_on_a_training_pipeline(tiny_scene_dir: Path) -> None:
     follows densification, cameras, thumbnails and initial points come from the datamanager."""
     from exploregs_plugin.trainer import TrainerConfig
 
-    config = TrainerConfig(data="builtin:tiny", max_steps=3).resolved()
+    config = TrainerConfig(data="builtin:tiny", max_steps=3)
     pipeline = config.pipeline.setup(config.schedule.resolve(config.max_steps), config.seed)
     dm = pipeline.datamanager
     viewer = ViewerConfig(port=0).setup(pipeline, step=0)

@@ -18,6 +18,7 @@ from exploregs_plugin.rasterizer import RasterSettings, trace_pixel
 from exploregs_plugin.rasterizer.composite import single_threaded_ops
 from exploregs_plugin.rasterizer.projection import project_gaussians
 from exploregs_plugin.rasterizer.sh import sh_colors
+from exploregs_plugin.rasterizer.trace import blend_pairs, dcolor_dalpha
 
 from .branches import ViewProblem, activated, ndc_gradient_norm
 
@@ -137,14 +138,8 @@ def composited_pairs(
             dx = xs.repeat(y1 - y0)[:, None] - mx[sel]  # [P, M]
             dy = ys.repeat_interleave(width)[:, None] - my[sel]
             power = -0.5 * (a[sel] * dx * dx + c[sel] * dy * dy) - b[sel] * dx * dy
-            raw = opa[sel] * torch.exp(power.clamp_max(0.0))
-            alpha = raw.clamp_max(settings.alpha_max)
-            keep = (dx.abs() <= sx[sel]) & (dy.abs() <= sy[sel]) & (power <= 0) & (alpha >= settings.alpha_min)
-            after = torch.cumprod(1.0 - alpha * keep, dim=1)
-            keep = keep & (after >= settings.transmittance_min)  # T only decreases: a suffix is cut
-            alpha = alpha * keep
-            after = torch.cumprod(1.0 - alpha, dim=1)
-            before = torch.cat([torch.ones_like(after[:, :1]), after[:, :-1]], dim=1)
+            in_box = (dx.abs() <= sx[sel]) & (dy.abs() <= sy[sel])
+            raw, alpha, keep, before, t_final = blend_pairs(power, opa[sel], in_box, settings)
             rank = torch.cumsum(keep.to(torch.int64), dim=1) - 1
             p_idx, g_idx = torch.nonzero(keep, as_tuple=True)
             parts["pixel"].append(p_idx + y0 * width)
@@ -154,13 +149,8 @@ def composited_pairs(
             parts["alphas"].append(alpha[p_idx, g_idx])
             if with_grad:
                 dl_dc = flat_grad[y0 * width : y1 * width]  # [P, 3]
-                col = rgb[sel]  # [M, 3]
-                # C = sum_i w_i c_i + T_final bg; the colour behind m (as trace_pixel has it) is
-                # sum_{i>m} w_i c_i + T_final bg, and dC/dalpha_m = T_{m-1} c_m - behind_m / (1 - alpha_m).
-                w_dot = (alpha * before) * (dl_dc @ col.T)  # [P, M]: w_i (g . c_i)
-                suffix = w_dot.sum(1, keepdim=True) - torch.cumsum(w_dot, dim=1)
-                behind = suffix + after[:, -1:] * (dl_dc @ bg)[:, None]
-                ds = before * (dl_dc @ col.T) - behind / (1.0 - alpha)  # g . dC/dalpha, [P, M]
+                # g . dC/dalpha [P, M]: the rule is linear in the colours, so it takes g . c_m
+                ds = dcolor_dalpha(alpha, before, t_final, (dl_dc @ rgb[sel].T)[..., None], (dl_dc @ bg)[:, None])[..., 0]
                 free = (raw < settings.alpha_max).to(dtype)  # the clamp passes no gradient
                 scale = ds * alpha * free
                 grad_x = scale * (a[sel] * dx + b[sel] * dy)

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
+from exploregs_plugin.callbacks import TrainingCallback
 from exploregs_plugin.pipeline import Pipeline
 from exploregs_plugin.trainer import Trainer, TrainerConfig
 
@@ -42,17 +42,22 @@ def train_and_probe(config: TrainerConfig, steps: list[int], probe: Probe) -> Tr
     """Train ``config`` and call ``probe(pipeline, step)`` after ``step`` steps for each listed step
     (0 = before training); finishes with an evaluation, metrics.json and a final checkpoint, so
     the folder is an ordinary run that ``--run`` accepts."""
-    trainer = Trainer(config.resolved())
-    wanted = set(steps)
-    if 0 in wanted:
-        probe(trainer.pipeline, 0)
-    for step in range(trainer.schedule.max_steps):
-        start = time.perf_counter()
-        trainer.pipeline.train_step(step)
-        trainer.train_seconds += time.perf_counter() - start  # probes are not training time
-        if step + 1 in wanted:
-            probe(trainer.pipeline, step + 1)
-    trainer.run_eval(trainer.schedule.max_steps)
-    trainer.write_metrics()
-    trainer.save_checkpoint(trainer.schedule.max_steps)
+    trainer = Trainer(config, callbacks=[ProbeCallback(probe, steps)])
+    trainer.train()
     return trainer
+
+
+class ProbeCallback(TrainingCallback):
+    """Calls ``probe(pipeline, step)`` when ``step`` steps are completed, for each listed step
+    (0 = before the first step). Probes read the state only (see :mod:`.sampling`)."""
+
+    def __init__(self, probe: Probe, steps: list[int]) -> None:
+        self.probe, self.steps = probe, set(steps)
+
+    def on_train_start(self, trainer: Any) -> None:
+        if trainer.start_step in self.steps:
+            self.probe(trainer.pipeline, trainer.start_step)
+
+    def after_step(self, trainer: Any, step: int, stats: dict[str, Any]) -> None:
+        if step in self.steps:
+            self.probe(trainer.pipeline, step)

@@ -160,7 +160,7 @@ def build_config(spec: BenchSpec, scene: BenchScene, entry: BenchEntry, seed: in
     config = parse_overrides(config, list(scene.options), f"scene {scene.name!r} options")
     config = parse_overrides(config, list(entry.overrides), f"entry {entry.name!r} overrides")
     # The bench owns where and under which seed a run happens, whatever the overrides say.
-    return replace(config, seed=seed, run_dir=Path(run_dir), resume=None, viewer=False).resolved()
+    return replace(config, seed=seed, run_dir=Path(run_dir), resume=None, viewer=False)
 
 
 VOLATILE_FIELDS = ("run_dir", "output_dir", "resume", "quiet", "num_threads", "viewer", "viewer_config")

@@ -45,7 +45,7 @@ class BenchArgs:
 
 def run_once(args: BenchArgs, share: float | None) -> dict[str, Any]:
     """Train ``args.steps`` steps; with ``share`` set, the render thread runs alongside."""
-    config = TrainerConfig(data=args.data, max_steps=args.steps, seed=args.seed).resolved()
+    config = TrainerConfig(data=args.data, max_steps=args.steps, seed=args.seed)
     torch.set_flush_denormal(config.flush_denormal)  # as the Trainer does
     pipeline = config.pipeline.setup(config.schedule.resolve(config.max_steps), config.seed)
     store = SnapshotStore()

@@ -15,14 +15,16 @@ from exploregs_plugin.bench.files import ERROR_NAME, JOB_NAME
 
 
 def train(run_dir: Path, resume: bool) -> dict:
+    from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
     from exploregs_plugin.configs import load_config
     from exploregs_plugin.trainer import Trainer
 
+    callbacks = [BranchGradientLogger()]
     if resume:
-        trainer = Trainer.from_run(run_dir, quiet=True)
+        trainer = Trainer.from_run(run_dir, quiet=True, callbacks=callbacks)
     else:
         config = load_config(run_dir / JOB_NAME)
-        trainer = Trainer(config, run_dir=run_dir)
+        trainer = Trainer(config, run_dir=run_dir, callbacks=callbacks)
     return trainer.train()
 
 

@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 import torch
+import tyro
 from PIL import Image
 from torch import Tensor
 
@@ -18,6 +19,7 @@ from .errors import DataError
 from .images import read_image_alpha
 from .parsed import REGION_LABELS, ImageRecord, ParsedScene, ParseOptions
 from .dataparser import parse_dataset
+from .random_init import random_points
 
 
 @dataclass
@@ -34,8 +36,9 @@ class DataManagerConfig:
     dataset has its own split and use_dataset_split is set."""
     use_dataset_split: bool = True
     """Use the dataset's own train/test lists (split.json, train_filenames, Blender files)."""
-    seed: int = 0
-    """Seed of the training camera order and of random initial points (eg-train sets it from --seed)."""
+    seed: tyro.conf.Suppress[int] = 0
+    """Seed of the training camera order and of random initial points. Not a flag: the pipeline
+    sets it from the run's --seed, so one seed drives every random choice of a run."""
     normalize: bool = True
     """Translate and uniformly scale the scene so camera centres have mean 0 and max radius 1."""
     undistort: bool = True
@@ -43,7 +46,10 @@ class DataManagerConfig:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """RGB in [0, 1] that transparent images are composited on; also the render background."""
     n_random_points: int = 10_000
-    """Random initial points when the dataset has no point cloud."""
+    """Random initial points when the dataset has no point cloud (or with random_init)."""
+    random_init: bool = False
+    """Ignore the dataset's points and start from n_random_points random points inside the
+    camera bounds, as for a dataset without points (3DGS-MCMC's random-initialisation option)."""
     cache_dir: str | None = None
     """Cache root for built-in scenes and derived images (default: $EXPLOREGS_CACHE or ~/.cache/exploregs)."""
 
@@ -110,8 +116,11 @@ class DataManager:
         self._test = [self._load(self.parsed.images[i], background) for i in test_ids]
         self.train_cameras: list[Camera] = [it.camera for it in self._train]
         self.test_cameras: list[Camera] = [it.camera for it in self._test]
-        self.points: Tensor | None = _tensor(self.parsed.points)
-        self.points_rgb: Tensor | None = _tensor(self.parsed.points_rgb)
+        points, points_rgb = self.parsed.points, self.parsed.points_rgb
+        if config.random_init:
+            points, points_rgb = random_points(self.parsed.images, config.n_random_points, config.seed)
+        self.points: Tensor | None = _tensor(points)
+        self.points_rgb: Tensor | None = _tensor(points_rgb)
         self.scene_extent: float = float(self.parsed.scene_extent)
         norm = self.parsed.normalization
         self.normalization: tuple[Tensor, float] = (

@@ -13,15 +13,10 @@ from torch import Tensor, nn
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
+from exploregs_plugin.rasterizer.sh import SH_C0, rgb_to_sh0  # noqa: F401 (SH_C0: the colour convention)
 
-SH_C0 = 0.28209479177387814  # Y_0^0: colour = SH_C0 * sh0 + 0.5
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
 PositionPath = Literal["mean2d", "cov", "sh"]
-
-
-def rgb_to_sh0(rgb: Tensor) -> Tensor:
-    """Inverse of colour = SH_C0 * sh0 + 0.5. rgb: [N, 3] in [0, 1] -> [N, 1, 3]."""
-    return ((rgb - 0.5) / SH_C0).unsqueeze(1)
 
 
 def knn_mean_distance(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
@@ -53,13 +48,6 @@ class GaussianModelConfig:
     """Opacity of every initial Gaussian."""
     init_scale: float = 1.0
     """Initial scale = this x mean distance to the 3 nearest neighbouring points."""
-    random_init_count: int = 10_000
-    """Number of Gaussians when the dataset has no sparse points (random initialisation)."""
-    random_init_extent: float = 3.0
-    """Random initialisation fills a cube of half-side this x the scene extent around the origin
-    (3DGS-MCMC's random initialisation uses 3)."""
-    force_random_init: bool = False
-    """Ignore the dataset's points and initialise randomly (3DGS-MCMC's random-init option)."""
     detach_paths: tuple[PositionPath, ...] = ()
     """Position-gradient paths to switch off: any of mean2d (projected 2D mean), cov (2D
     covariance via the Jacobian), sh (SH view direction). The forward pass is unchanged, and
@@ -71,33 +59,23 @@ class GaussianModelConfig:
         self,
         points: Tensor | None,
         points_rgb: Tensor | None,
-        scene_extent: float,
-        generator: torch.Generator,
     ) -> "GaussianModel":
+        """points: [P, 3] initial means; points_rgb: [P, 3] colours in [0, 1] (None: grey)."""
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be in 0..3, got {self.sh_degree}")
         if not 0.0 < self.init_opacity < 1.0:
             raise ValueError(f"init_opacity must be in (0, 1), got {self.init_opacity}")
-        if points is None or points.shape[0] == 0 or self.force_random_init:
-            means, rgb = random_points(self.random_init_count, self.random_init_extent * scene_extent, generator)
-        else:
-            means = points.float()
-            rgb = points_rgb.float() if points_rgb is not None else torch.full_like(means, 0.5)
-        params = init_params(means, rgb, self.sh_degree, self.init_opacity, self.init_scale, generator)
+        if points is None or points.shape[0] == 0:
+            # the datamanager gives random points where a dataset has none (--datamanager.random-init)
+            raise ValueError("the Gaussian model needs initial points, and the dataset gave none")
+        means = points.float()
+        rgb = points_rgb.float() if points_rgb is not None else torch.full_like(means, 0.5)
+        params = init_params(means, rgb, self.sh_degree, self.init_opacity, self.init_scale)
         return GaussianModel(self, params)
 
 
-def random_points(count: int, half_side: float, generator: torch.Generator) -> tuple[Tensor, Tensor]:
-    """``count`` uniform points in [-half_side, half_side]^3 with uniform random colours."""
-    if count <= 0:
-        raise ValueError(f"random initialisation needs a positive count, got {count}")
-    means = (torch.rand(count, 3, generator=generator) * 2.0 - 1.0) * half_side
-    rgb = torch.rand(count, 3, generator=generator)
-    return means, rgb
-
-
 def init_params(
-    means: Tensor, rgb: Tensor, sh_degree: int, opacity: float, scale_mult: float, generator: torch.Generator
+    means: Tensor, rgb: Tensor, sh_degree: int, opacity: float, scale_mult: float
 ) -> nn.ParameterDict:
     """3DGS initialisation: isotropic scale from the 3-NN mean distance (so the rotation is
     irrelevant and starts as the identity), opacity ``opacity``, SH DC from the point colour.

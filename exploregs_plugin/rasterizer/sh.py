@@ -19,6 +19,12 @@ SH_C3 = (
 )
 
 
+def rgb_to_sh0(rgb: Tensor) -> Tensor:
+    """SH DC coefficients whose colour is ``rgb`` (inverse of colour = SH_C0 * sh0 + 0.5, the
+    3DGS convention). rgb: [N, 3] -> [N, 1, 3]."""
+    return ((rgb - 0.5) / SH_C0).unsqueeze(1)
+
+
 def sh_basis(dirs: Tensor, degree: int) -> Tensor:
     """SH basis values for unit directions.
 

@@ -1,4 +1,8 @@
-"""Per-pixel trace: which Gaussians a pixel composites, in order, with their weights."""
+"""Per-pixel trace: which Gaussians a pixel composites, in order, with their weights.
+
+:func:`blend_pairs` and :func:`dcolor_dalpha` state the compositor's per-pixel rules on an
+explicit [pixels, Gaussians] table (fine for diagnostics, far too large for rendering, which
+``composite.py`` does in cache-sized chunks with the same rules)."""
 
 from __future__ import annotations
 
@@ -9,6 +13,39 @@ from .projection import project_gaussians
 from .rasterize import _validate
 from .settings import RasterSettings
 from .sh import sh_colors
+
+
+def blend_pairs(power: Tensor, opacities: Tensor, in_box: Tensor, settings: RasterSettings):
+    """Front-to-back blending of pixel-Gaussian pairs, one pixel a row, Gaussians in depth order.
+
+    power: [P, M] exponent -0.5 d^T conic d; opacities: [M] or [P, M]; in_box: [P, M] bool (the
+    pixel centre inside the support box). The rules of the compositor: alpha = min(alpha_max,
+    o exp(power)), pairs with alpha < alpha_min (or outside the box) are skipped, and a pixel
+    stops before the first Gaussian that would bring its transmittance below
+    transmittance_min. Returns (raw [P, M] = o exp(power) before the clamp, alpha [P, M] (0 for
+    pairs not composited), keep [P, M] bool, T_before [P, M], T_final [P, 1]).
+    """
+    raw = opacities * torch.exp(power.clamp_max(0.0))
+    alpha = raw.clamp_max(settings.alpha_max)
+    keep = in_box & (power <= 0) & (alpha >= settings.alpha_min)
+    after = torch.cumprod(1.0 - alpha * keep, dim=1)
+    keep = keep & (after >= settings.transmittance_min)  # T only decreases: a suffix is cut
+    alpha = alpha * keep
+    after = torch.cumprod(1.0 - alpha, dim=1)
+    before = torch.cat([torch.ones_like(after[:, :1]), after[:, :-1]], dim=1)
+    return raw, alpha, keep, before, after[:, -1:]
+
+
+def dcolor_dalpha(alpha: Tensor, before: Tensor, t_final: Tensor, colors: Tensor, background: Tensor) -> Tensor:
+    """dC/dalpha_m = T_{m-1} c_m - behind_m / (1 - alpha_m), where behind_m = sum_{i>m} w_i c_i
+    + T_final bg is the colour composited behind m (w_i = alpha_i T_{i-1}).
+
+    alpha, before: [P, M]; t_final: [P, 1]; colors: [P, M, C] (colour, or any linear function
+    of it such as dL/dC . c); background: [P, C]. Returns [P, M, C].
+    """
+    w = (alpha * before)[..., None] * colors
+    behind = w.sum(1, keepdim=True) - torch.cumsum(w, dim=1) + (t_final * background)[:, None, :]
+    return before[..., None] * colors - behind / (1.0 - alpha)[..., None]
 
 
 @torch.no_grad()
@@ -61,24 +98,17 @@ def trace_pixel(
     dy = y + 0.5 - proj.means2d[ids, 1]
     a, b, c = proj.conics[ids].unbind(-1)
     power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
-    alpha = (proj.opacities[ids] * torch.exp(power)).clamp_max(settings.alpha_max)
     in_box = (dx.abs() <= proj.support[ids, 0]) & (dy.abs() <= proj.support[ids, 1])
-    keep = in_box & (power <= 0) & (alpha >= settings.alpha_min)
-    ids, alpha = ids[keep], alpha[keep]
-    after = torch.cumprod(1.0 - alpha, 0)
-    n = int((after >= settings.transmittance_min).sum())  # stopping is a suffix: T only decreases
-    ids, alpha, after = ids[:n], alpha[:n], after[:n]
-    before = torch.cat([after.new_ones(1), after[:-1]])
+    _, alpha, keep, before, t_final = blend_pairs(power[None], proj.opacities[ids][None], in_box[None], settings)
+    kept = keep[0]
+    ids, alpha, before, t_final = ids[kept], alpha[0, kept], before[0, kept], t_final[0, 0]
     if degree < 0:
         rgb = colors[ids].to(dtype)
     else:
         rgb = sh_colors(sh_coeffs[ids], means[ids], centre, degree)
     bg = torch.zeros(3, dtype=dtype) if background is None else background.to(dtype)
-    t_final = after[-1] if n > 0 else torch.ones((), dtype=dtype)
     w = (alpha * before)[:, None] * rgb
-    # colour behind m: sum_{i>m} w_i c_i + T_final bg, as seen through T after m
-    behind = torch.flip(torch.cumsum(torch.flip(w, [0]), 0), [0]) - w + t_final * bg
-    dc_dalpha = before[:, None] * rgb - behind / (1.0 - alpha)[:, None]
+    dc_dalpha = dcolor_dalpha(alpha[None], before[None], t_final.reshape(1, 1), rgb[None], bg[None])[0]
     return {
         "ids": ids,
         "depths": proj.depths[ids],

@@ -99,7 +99,6 @@ def cameras_from(source: str | Path) -> CameraSource:
         path = Path(text)
         run_dir = path if path.is_dir() else resolve_run(path)[0]
         config = load_config(run_dir / CONFIG_NAME)
-        config = config.resolved() if hasattr(config, "resolved") else config
         dm_config = config.pipeline.datamanager
         settings = config.pipeline.model.raster
     else:

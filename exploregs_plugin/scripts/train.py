@@ -10,6 +10,7 @@ import sys
 
 import tyro
 
+from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
 from exploregs_plugin.scripts import run_cli
 from exploregs_plugin.method_configs import MethodRegistryError, all_methods
 from exploregs_plugin.pipeline import NonFiniteError
@@ -40,9 +41,9 @@ def main(argv: list[str]) -> dict:
     if argv[:1] == ["--resume"]:
         if len(argv) != 2:
             raise _fail("usage: eg-train --resume RUN_DIR", 2)
-        trainer = Trainer.from_run(argv[1])
+        trainer = Trainer.from_run(argv[1], callbacks=[BranchGradientLogger()])
     else:
-        trainer = parse_config(argv).setup()
+        trainer = parse_config(argv).setup(callbacks=[BranchGradientLogger()])
     print(f"run folder: {trainer.run_dir}", file=sys.stderr)
     try:
         metrics = trainer.train()

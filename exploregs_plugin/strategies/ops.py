@@ -24,7 +24,7 @@ from collections.abc import Callable, Iterable, Mapping, MutableMapping
 import torch
 from torch import Tensor
 
-from .geometry import quat_to_rotmat
+from ..rasterizer.projection import quats_to_rotmats
 from .relocation import relocation_update
 
 Params = MutableMapping[str, torch.nn.Parameter]
@@ -138,7 +138,7 @@ def split(
     rest = torch.where(~mask)[0]
     means, log_scales = params["means"], params["scales"]
     scales = torch.exp(log_scales[sel].detach())
-    rot = quat_to_rotmat(params["quats"][sel].detach())  # [S, 3, 3]
+    rot = quats_to_rotmats(params["quats"][sel].detach())  # [S, 3, 3]
     z = torch.randn(2, len(sel), 3, generator=generator, dtype=means.dtype).to(means.device)
     offsets = torch.einsum("nij,nj,bnj->bni", rot, scales, z)  # [2, S, 3]
     log_factor = math.log(scale_factor)

@@ -19,7 +19,7 @@ from torch import Tensor
 
 from .base import StepContext, Strategy, StrategyError
 from .default import DefaultStrategy
-from .geometry import covariance
+from ..rasterizer.projection import covariances_3d
 from .ops import num_gaussians
 
 NoiseMode = Literal["isotropic", "ray"]
@@ -50,7 +50,7 @@ def position_noise(
     dtype = means.dtype
     z = torch.randn(n, 3, generator=generator, dtype=dtype).to(means.device)
     gate = torch.sigmoid(-gate_k * (torch.sigmoid(opacity_logits.detach().to(dtype)) - gate_t))
-    sigma = covariance(quats.detach().to(dtype), torch.exp(log_scales.detach().to(dtype)))
+    sigma = covariances_3d(quats.detach().to(dtype), torch.exp(log_scales.detach().to(dtype)))
     eta = torch.einsum("nij,nj->ni", sigma, z * (gate * scale).unsqueeze(-1))
     if mode == "isotropic":
         return eta

@@ -32,7 +32,8 @@ from . import ops
 from .base import StepContext, StrategyError
 from .budget import BudgetMixin
 from .default import DefaultStrategy, visible_mask
-from .geometry import random_unit_quats, rgb_to_sh0
+from ..rasterizer.sh import rgb_to_sh0
+from .geometry import random_unit_quats
 from .ops import Optimizers, Params, num_gaussians
 
 _EPS = 1e-12

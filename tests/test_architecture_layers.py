@@ -1,0 +1,89 @@
+"""The import graph keeps the layers of DESIGN.md: no module imports from a layer above it.
+
+From the top: commands (scripts) -> bench, analysis -> run folders (runs) -> trainer/pipeline
+-> model, data, strategies, viewer -> rasterizer, io (formats only) -> cameras, schedule.
+Every import counts, including those inside functions and under TYPE_CHECKING.
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+import exploregs_plugin
+
+PACKAGE = Path(exploregs_plugin.__file__).parent
+LAYERS: list[tuple[str, ...]] = [
+    ("scripts",),
+    ("bench", "analysis"),
+    ("runs",),
+    ("trainer", "pipeline", "method_configs", "evaluation", "run_logger"),
+    ("model", "data", "strategies", "viewer"),
+    ("rasterizer", "io", "configs"),
+    ("cameras", "schedule", "callbacks", ""),  # "" = the package's own __init__
+]
+LAYER_OF = {name: depth for depth, names in enumerate(LAYERS) for name in names}
+
+
+def _module_name(path: Path) -> str:
+    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+    if parts[-1] == "__init__":
+        parts.pop()
+    return ".".join(parts)
+
+
+def _imports(path: Path) -> set[str]:
+    """Every exploregs_plugin module ``path`` imports (absolute names)."""
+    module = _module_name(path)
+    package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
+    found: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.ImportFrom):
+            if node.level:
+                base = package[: len(package) - (node.level - 1)]
+                name = ".".join(base + ([node.module] if node.module else []))
+            else:
+                name = node.module or ""
+            found.add(name)
+        elif isinstance(node, ast.Import):
+            found.update(alias.name for alias in node.names)
+    return {name for name in found if name.split(".")[0] == "exploregs_plugin"}
+
+
+def _unit(module: str) -> str:
+    """The top-level unit of the package a module belongs to (``strategies``, ``trainer``, "")."""
+    parts = module.split(".")
+    return parts[1] if len(parts) > 1 else ""
+
+
+def _graph() -> dict[str, set[str]]:
+    return {_module_name(p): _imports(p) for p in sorted(PACKAGE.rglob("*.py"))}
+
+
+def test_every_unit_of_the_package_has_a_layer():
+    units = {_unit(m) for m in _graph()}
+    assert units - set(LAYER_OF) == set(), "put every new top-level module or package into LAYERS"
+    assert set(LAYER_OF) - units == set(), "LAYERS names a unit that no longer exists"
+
+
+def test_no_module_imports_from_a_layer_above_it():
+    upward = []
+    for module, imports in _graph().items():
+        for target in imports:
+            if LAYER_OF[_unit(target)] < LAYER_OF[_unit(module)]:
+                upward.append(f"{module} -> {target}")
+    assert upward == []
+
+
+def test_the_checker_resolves_relative_and_function_level_imports():
+    # seedsplit imports its siblings relatively; the bench worker imports the trainer inside a function
+    assert "exploregs_plugin.strategies.default" in _imports(PACKAGE / "strategies" / "seedsplit.py")
+    assert "exploregs_plugin.trainer" in _imports(PACKAGE / "bench" / "worker.py")
+    assert "exploregs_plugin.pipeline" in _imports(PACKAGE / "analysis" / "tensorboard.py")  # TYPE_CHECKING
+
+
+def test_io_knows_formats_only():
+    # io may use the camera record and its own modules, nothing that renders or trains
+    for module, imports in _graph().items():
+        if _unit(module) == "io":
+            assert {_unit(t) for t in imports} <= {"io", "cameras"}, (module, imports)
