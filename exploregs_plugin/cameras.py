@@ -7,6 +7,7 @@ Conventions (DESIGN.md): OpenCV axes (x right, y down, z forward), world-to-came
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -32,8 +33,10 @@ class Camera:
         rot = self.viewmat[:3, :3]
         return -(rot.transpose(0, 1) @ self.viewmat[:3, 3])
 
-    def to(self, dtype: torch.dtype) -> "Camera":
-        return Camera(self.viewmat.to(dtype), self.K.to(dtype), self.width, self.height, self.name)
+    def to(self, *args: Any, **kwargs: Any) -> "Camera":
+        """The camera with viewmat and K moved like ``Tensor.to`` (a dtype, a device, or both)."""
+        return Camera(self.viewmat.to(*args, **kwargs), self.K.to(*args, **kwargs), self.width, self.height,
+                      self.name)
 
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by ``factor`` (e.g. 0.5 halves each side)."""
@@ -43,5 +46,5 @@ class Camera:
         K = self.K.clone()
         K[0, :] *= sx
         K[1, :] *= sy
-        K[2, :] = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype)
+        K[2, :] = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype, device=K.device)
         return Camera(self.viewmat, K, width, height, self.name)

@@ -20,7 +20,7 @@ LPIPS_ABSENT = "absent: LPIPS needs pretrained network weights, which are not av
 
 
 def _to_uint8(img: torch.Tensor) -> np.ndarray:
-    return (img.detach().clamp(0, 1).numpy() * 255.0 + 0.5).astype(np.uint8)
+    return (img.detach().clamp(0, 1).cpu().numpy() * 255.0 + 0.5).astype(np.uint8)
 
 
 def error_map(render: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -46,8 +46,10 @@ def evaluate(
     squared error over all pixels of that region in all test images, since a region can cover
     only a few pixels of one view. With ``save_dir``, writes render | ground truth | error map
     PNGs there. ``on_image(index, name, render, target)`` sees each test render as it is made
-    (the trainer keeps a few for tensorboard without rendering them again).
+    (the trainer keeps a few for tensorboard without rendering them again; on the host).
+    Renders and scores on the model's device; the targets come from the host.
     """
+    device = model.params["means"].device
     per_image: list[dict[str, Any]] = []
     region_sq: dict[str, float] = {}
     region_n: dict[str, int] = {}
@@ -57,9 +59,12 @@ def evaluate(
     n_test = len(datamanager.test_cameras)
     for i in range(n_test):
         camera, target, extras = datamanager.test_item(i)
+        target = target.to(device)
         start = time.perf_counter()
         with torch.no_grad():
             image, _, _, _ = model.render(camera, model.config.sh_degree, datamanager.background)
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)  # kernels run asynchronously: time the work, not the launch
         render_seconds += time.perf_counter() - start
         image = image.clamp(0.0, 1.0)
         entry: dict[str, Any] = {
@@ -72,12 +77,13 @@ def evaluate(
             entry["region_psnr"] = {}
             sq = ((image.double() - target.double()) ** 2).mean(dim=-1)
             for region, mask in masks.items():
+                mask = mask.to(device)
                 entry["region_psnr"][region] = psnr(image, target, mask)
                 region_sq[region] = region_sq.get(region, 0.0) + float(sq[mask].sum())
                 region_n[region] = region_n.get(region, 0) + int(mask.sum())
         per_image.append(entry)
         if on_image is not None:
-            on_image(i, camera.name, image, target)
+            on_image(i, camera.name, image.cpu(), target.cpu())
         if save_dir is not None:
             panel = evaluation_panel(image, target)
             Image.fromarray(_to_uint8(panel)).save(Path(save_dir) / f"{i:04d}_{Path(camera.name).stem}.png")

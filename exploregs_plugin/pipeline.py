@@ -10,10 +10,12 @@ import torch
 from torch import Tensor, nn
 
 from exploregs_plugin.data import DataManagerConfig
+from exploregs_plugin.device import make_generator, restore_generator, to_device
 from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.model.losses import DepthSpace, depth_l1, photometric_loss, psnr
 from exploregs_plugin.model.optim import OptimizerConfig, set_lr
+from exploregs_plugin.rasterizer import BackendError, backend_problem
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
 
@@ -42,29 +44,39 @@ class PipelineConfig:
     depth_supervision: DepthSupervisionConfig = field(default_factory=DepthSupervisionConfig)
     """Degrade the depth maps before the depth loss (noise, smooth bias) to play a monocular estimate."""
 
-    def setup(self, schedule: Schedule, seed: int) -> "Pipeline":
-        return Pipeline(self, schedule, seed)
+    def setup(self, schedule: Schedule, seed: int, device: torch.device | str = "cpu") -> "Pipeline":
+        return Pipeline(self, schedule, seed, torch.device(device))
 
 
 class Pipeline:
-    """Thin state holder; the maths lives in model, losses, rasterizer and strategies."""
+    """Thin state holder; the maths lives in model, losses, rasterizer and strategies.
 
-    def __init__(self, config: PipelineConfig, schedule: Schedule, seed: int) -> None:
+    Parameters, Adam state, strategy state and the run's generator live on ``device``; the
+    datamanager keeps its images on the host, and each step moves its one view there."""
+
+    def __init__(self, config: PipelineConfig, schedule: Schedule, seed: int,
+                 device: torch.device = torch.device("cpu")) -> None:
         self.config = config
         self.schedule = schedule
-        self.generator = torch.Generator().manual_seed(seed)
+        self.device = device
+        problem = backend_problem(config.model.raster, device)
+        if problem is not None:
+            raise BackendError(problem)
+        self.generator = make_generator(device, seed)
+        self.generator_restored = True  # False after loading a generator state of another device type
         # One run seed drives everything, the camera order and random initial points included.
         self.datamanager = replace(config.datamanager, seed=seed).setup()
         dm = self.datamanager
         self.scene_extent = float(dm.scene_extent)
-        self.model = config.model.setup(dm.points, dm.points_rgb)
+        self.background = dm.background.to(device)
+        self.model = config.model.setup(*to_device((dm.points, dm.points_rgb), device))
         self.optimizers = config.optim.setup(self.model.params, self.scene_extent)
         self.strategy = config.strategy.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
         # Scene centre = mean training-camera centre (seeding measures distances from it).
         centers = torch.stack([camera.camera_center for camera in dm.train_cameras])
-        self.strategy_state = self.strategy.initialize_state(
-            scene_scale=self.scene_extent, scene_center=centers.mean(dim=0))
+        self.strategy_state = to_device(self.strategy.initialize_state(
+            scene_scale=self.scene_extent, scene_center=centers.mean(dim=0)), device)
         if config.random_background and not dm.has_alpha:
             raise ValueError("random_background needs a dataset whose images have an alpha channel")
 
@@ -85,12 +97,13 @@ class Pipeline:
     def train_step(self, step: int) -> dict[str, Any]:
         """Render one training view, step the optimizers, then let the strategy change the set."""
         index, camera, target, extras = self.datamanager.next_train()
-        background = self.datamanager.background
+        target = target.to(self.device, non_blocking=True)
+        background = self.background
         if self.config.random_background:
             # The target was composited on the dataset background b0 with alpha a:
             # t = c a + b0 (1 - a), so on a new background b it is t + (b - b0)(1 - a).
-            background = torch.rand(3, generator=self.generator)
-            target = target + (background - self.datamanager.background) * (1.0 - extras["alpha"])
+            background = torch.rand(3, generator=self.generator, device=self.device)
+            target = target + (background - self.background) * (1.0 - extras["alpha"].to(self.device))
         image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
 
@@ -98,7 +111,7 @@ class Pipeline:
         if self.config.depth_loss_weight > 0.0:
             if "depth" not in extras:
                 raise ValueError("depth_loss_weight > 0 but the dataset has no depth maps")
-            gt_depth = self.config.depth_supervision.apply(extras["depth"], index)
+            gt_depth = self.config.depth_supervision.apply(extras["depth"], index).to(self.device)
             depth_term = depth_l1(depth, gt_depth, self.config.depth_loss_space)
             loss = loss + self.config.depth_loss_weight * depth_term
             terms["depth"] = depth_term.detach()
@@ -152,16 +165,19 @@ class Pipeline:
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
-        """Restore a checkpoint: the Gaussian count may differ from the fresh initialisation."""
+        """Restore a checkpoint, saved on any device, onto this pipeline's device. The Gaussian
+        count may differ from the fresh initialisation."""
         missing = set(self.params.keys()) - set(state["params"])
         if missing:
             raise ValueError(f"checkpoint lacks parameters {sorted(missing)}")
         for name, value in state["params"].items():
-            self.params[name] = nn.Parameter(value.clone())
+            self.params[name] = nn.Parameter(value.to(self.device, copy=True))
         self.optimizers = self.config.optim.setup(self.params, self.scene_extent)
         for name, opt in self.optimizers.items():
-            opt.load_state_dict(state["optimizers"][name])
-        self.strategy_state = state["strategy_state"]
-        self.generator.set_state(state["generator"])
+            opt.load_state_dict(state["optimizers"][name])  # Adam's moments follow their parameter's device
+        self.strategy_state = to_device(state["strategy_state"], self.device)
+        # a generator state from another device type cannot be loaded: the stream is then
+        # reseeded from it (deterministic, not bit-identical to an uninterrupted run)
+        self.generator_restored = restore_generator(self.generator, state["generator"])
         self.datamanager.load_state_dict(state["datamanager"])
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import signal
+import sys
 import threading
 import time
 from dataclasses import dataclass, field, replace
@@ -15,6 +16,7 @@ import tyro
 
 from exploregs_plugin.callbacks import TrainingCallback
 from exploregs_plugin.configs import load_config, save_config
+from exploregs_plugin.device import resolve_device
 from exploregs_plugin.evaluation import evaluate, evaluation_panel, write_metrics_json
 from exploregs_plugin.io.checkpoint import load_checkpoint, resolve_run, save_checkpoint
 from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig
@@ -47,7 +49,11 @@ class TrainerConfig:
     max_steps: int = 1500
     """Number of training steps (the schedule scales with it; see docs/training.md)."""
     seed: int = 0
-    """Seed of every random choice (camera order, initialisation, strategies): same seed, same result."""
+    """Seed of every random choice (camera order, initialisation, strategies): same seed, same
+    result on one machine and device."""
+    device: str = "auto"
+    """Where parameters, optimizer and strategy state live and rendering runs: auto (CUDA when
+    available, else CPU), cpu, cuda or cuda:N."""
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
     pipeline: Annotated[PipelineConfig, tyro.conf.arg(name="")] = field(default_factory=PipelineConfig)
     """Data, model, optimizer, strategy and loss (set as --datamanager.*, --model.*, --strategy.*, ...)."""
@@ -122,8 +128,9 @@ class Trainer:
             torch.set_flush_denormal(True)
         if config.num_threads:
             torch.set_num_threads(config.num_threads)
+        self.device = resolve_device(config.device)
         self.schedule = config.schedule.resolve(config.max_steps)
-        self.pipeline: Pipeline = config.pipeline.setup(self.schedule, config.seed)
+        self.pipeline: Pipeline = config.pipeline.setup(self.schedule, config.seed, self.device)
         self.run_dir = Path(run_dir or config.run_dir or self._default_run_dir())
         self.start_step = 0
         self.train_seconds = 0.0
@@ -152,10 +159,13 @@ class Trainer:
 
     @classmethod
     def from_run(cls, path: Path, max_steps: int | None = None, quiet: bool | None = None,
-                 callbacks: Sequence[TrainingCallback] = ()) -> "Trainer":
-        """Resume a run folder (or a checkpoint inside one) from its saved config."""
+                 callbacks: Sequence[TrainingCallback] = (), device: str | None = None) -> "Trainer":
+        """Resume a run folder (or a checkpoint inside one) from its saved config; ``device``
+        overrides the run's (a GPU run resumes on a CPU-only machine with device="cpu")."""
         run_dir, ckpt = resolve_run(Path(path))
         config = load_config(run_dir / CONFIG_NAME)
+        if device is not None:
+            config = replace(config, device=device)
         if max_steps is not None:
             config = replace(config, max_steps=max_steps)
         if quiet is not None:
@@ -274,6 +284,9 @@ class Trainer:
     def _restore(self, path: Path) -> None:
         payload = load_checkpoint(path)
         self.pipeline.load_state_dict(payload)
+        if not self.pipeline.generator_restored:
+            print(f"note: {path} was saved on another device type; its random stream continues reseeded "
+                  f"(deterministic, not bit-identical to an uninterrupted run)", file=sys.stderr)
         self.start_step = int(payload["step"])
         self.train_seconds = float(payload.get("train_seconds", 0.0))
         self.history = list(payload.get("history", []))

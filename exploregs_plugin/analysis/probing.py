@@ -25,13 +25,15 @@ class TrainSpec:
     """Training steps."""
     seed: int = 0
     """Run seed."""
+    device: str = "auto"
+    """Where to train, or to load --run: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
 
     def trainer_config(self, run_dir: Path) -> TrainerConfig:
         from exploregs_plugin.method_configs import get_method
 
         base = get_method(self.method).config
         return replace(base, data=self.data, data_factor=self.data_factor, max_steps=self.max_steps,
-                       seed=self.seed, run_dir=run_dir, quiet=True, tensorboard=False, eval_count=1,
+                       seed=self.seed, device=self.device, run_dir=run_dir, quiet=True, tensorboard=False, eval_count=1,
                        save_eval_images=False, checkpoint_every=max(self.max_steps, 1))  # fmt: skip
 
 

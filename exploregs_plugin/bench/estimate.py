@@ -45,6 +45,8 @@ def estimate_seconds(spec: BenchSpec, runs: list[tuple[BenchScene, BenchEntry, i
                      ) -> tuple[float | None, str]:
     """(seconds for ``runs`` (default: the whole bench) with one job, how it was estimated),
     or (None, why not)."""
+    if spec.device != "cpu":
+        return None, f"the measured rates are CPU rates, and this bench runs on {spec.device}"
     total, assumed, extrapolated, unknown = 0.0, set(), set(), set()
     for scene, entry, _ in spec.runs() if runs is None else runs:
         ref = _reference(scene.data.split(":", 1)[1]) if scene.data.startswith("builtin:") else None

@@ -87,6 +87,8 @@ class BenchSpec:
     """Preset name, or ``custom``."""
     notes: tuple[str, ...] = field(default_factory=tuple)
     """Lines printed before running (e.g. scenes skipped because their data are absent)."""
+    device: str = "cpu"
+    """Device of every run (recorded in its config, so a run is reused only on the same device)."""
 
     def __post_init__(self) -> None:
         if not self.entries:
@@ -155,7 +157,7 @@ def build_config(spec: BenchSpec, scene: BenchScene, entry: BenchEntry, seed: in
         base = get_method(entry.method).config
     except MethodRegistryError as err:
         raise BenchSpecError(f"entry {entry.name!r}: {err}") from err
-    config = replace(base, data=scene.data, max_steps=spec.steps, seed=seed, eval_count=spec.eval_count,
+    config = replace(base, data=scene.data, max_steps=spec.steps, seed=seed, device=spec.device, eval_count=spec.eval_count,
                      quiet=True, tensorboard=False, save_eval_images=False)
     config = parse_overrides(config, list(scene.options), f"scene {scene.name!r} options")
     config = parse_overrides(config, list(entry.overrides), f"entry {entry.name!r} overrides")

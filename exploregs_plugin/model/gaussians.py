@@ -26,9 +26,9 @@ def knn_mean_distance(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
     """
     n = points.shape[0]
     if n <= 1:
-        return torch.ones(n, dtype=points.dtype)
+        return torch.ones(n, dtype=points.dtype, device=points.device)
     k_eff = min(k, n - 1)
-    out = torch.empty(n, dtype=points.dtype)
+    out = torch.empty(n, dtype=points.dtype, device=points.device)
     for start in range(0, n, chunk):
         block = points[start : start + chunk]
         d = torch.cdist(block, points)  # [b, P]
@@ -91,7 +91,7 @@ def init_params(
     floor = float(positive.median()) * 1e-3 if positive.numel() else 1e-3
     dist = dist.clamp_min(max(floor, 1e-7))
     log_scales = torch.log(dist * scale_mult).unsqueeze(1).repeat(1, 3)
-    quats = torch.zeros(n, 4)
+    quats = torch.zeros(n, 4, device=means.device)
     quats[:, 0] = 1.0
     logit = math.log(opacity / (1.0 - opacity))
     n_rest = (sh_degree + 1) ** 2 - 1
@@ -100,9 +100,9 @@ def init_params(
             "means": nn.Parameter(means.clone().float()),
             "scales": nn.Parameter(log_scales.float()),
             "quats": nn.Parameter(quats),
-            "opacities": nn.Parameter(torch.full((n,), logit)),
+            "opacities": nn.Parameter(torch.full((n,), logit, device=means.device)),
             "sh0": nn.Parameter(rgb_to_sh0(rgb.clamp(0.0, 1.0).float())),
-            "shN": nn.Parameter(torch.zeros(n, n_rest, 3)),
+            "shN": nn.Parameter(torch.zeros(n, n_rest, 3, device=means.device)),
         }
     )
 

@@ -17,8 +17,8 @@ SSIM_C2 = 0.03**2
 MSE_FLOOR = 1e-10  # PSNR of a perfect match is 100 dB instead of inf
 
 
-def _gaussian_kernel_1d(size: int, sigma: float, dtype: torch.dtype) -> Tensor:
-    coords = torch.arange(size, dtype=dtype) - (size - 1) / 2.0
+def _gaussian_kernel_1d(size: int, sigma: float, dtype: torch.dtype, device: torch.device) -> Tensor:
+    coords = torch.arange(size, dtype=dtype, device=device) - (size - 1) / 2.0
     g = torch.exp(-(coords**2) / (2.0 * sigma**2))
     return g / g.sum()
 
@@ -36,7 +36,7 @@ def ssim_map(img: Tensor, ref: Tensor) -> Tensor:
     x = img.permute(2, 0, 1)
     y = ref.permute(2, 0, 1)
     maps = torch.cat([x, y, x * x, y * y, x * y], dim=0).unsqueeze(0)  # [1, 5C, H, W]
-    g = _gaussian_kernel_1d(SSIM_WINDOW, SSIM_SIGMA, img.dtype)
+    g = _gaussian_kernel_1d(SSIM_WINDOW, SSIM_SIGMA, img.dtype, img.device)
     n = maps.shape[1]
     pad = SSIM_WINDOW // 2
     blurred = F.conv2d(maps, g.view(1, 1, 1, -1).expand(n, 1, 1, -1), padding=(0, pad), groups=n)

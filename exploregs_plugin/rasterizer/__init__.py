@@ -1,4 +1,5 @@
-"""Pure-torch CPU Gaussian rasterizer (3DGS image model) with separable position paths.
+"""Gaussian rasterizer (3DGS image model): the pure-torch reference, with separable position
+paths, on any device; gsplat's CUDA kernels as a second backend (``RasterSettings.backend``).
 
 ``rasterize(means, quats, scales, opacities, sh_coeffs, viewmat, K, width, height, ...)``
 returns ``image [H, W, 3], alpha [H, W, 1], depth [H, W, 1], info`` where info holds
@@ -9,8 +10,9 @@ returns ``image [H, W, 3], alpha [H, W, 1], depth [H, W, 1], info`` where info h
 and dC/dalpha.
 """
 
+from .gsplat_backend import BackendError, backend_problem
 from .rasterize import rasterize
 from .settings import RasterSettings
 from .trace import trace_pixel
 
-__all__ = ["rasterize", "trace_pixel", "RasterSettings"]
+__all__ = ["rasterize", "trace_pixel", "RasterSettings", "BackendError", "backend_problem"]

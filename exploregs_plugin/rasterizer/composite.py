@@ -107,14 +107,14 @@ def _run_split(fn, n_items: int, workers: int) -> list:
         return [first] + [f.result() for f in futs]
 
 
-def _pixel_offsets(tile_size: int, dtype: torch.dtype) -> Tensor:
+def _pixel_offsets(tile_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """Pixel-centre coordinates relative to the tile centre: [tile_size] (e.g. -7.5 .. 7.5)."""
-    return torch.arange(tile_size, dtype=dtype) + 0.5 - 0.5 * tile_size
+    return torch.arange(tile_size, dtype=dtype, device=device) + 0.5 - 0.5 * tile_size
 
 
-def _moment_features(tile_size: int, dtype: torch.dtype) -> Tensor:
+def _moment_features(tile_size: int, dtype: torch.dtype, device: torch.device) -> Tensor:
     """[6, P] rows 1, x, y, x^2, x y, y^2 over the tile's pixels (row-major, y outer)."""
-    p = _pixel_offsets(tile_size, dtype)
+    p = _pixel_offsets(tile_size, dtype, device)
     y, x = torch.meshgrid(p, p, indexing="ij")
     x, y = x.reshape(-1), y.reshape(-1)
     return torch.stack([torch.ones_like(x), x, y, x * x, x * y, y * y])
@@ -222,7 +222,7 @@ def _thresholds(s: RasterSettings) -> tuple[float, float, float]:
 
 
 def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used, cache):
-    pix = _pixel_offsets(bins.tile_size, geom.dtype)
+    pix = _pixel_offsets(bins.tile_size, geom.dtype, geom.device)
     for i in ids:
         tiles, k = chunks[i]
         c = _Chunk.gather(geom, feat_t, bins, tiles, k)
@@ -236,8 +236,8 @@ def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used, cache):
 def _backward_chunks(geom, cache, ids, tile_size, s, grad_out) -> Tensor:
     nf = grad_out.shape[-1] - 1
     dtype = grad_out.dtype
-    pix = _pixel_offsets(tile_size, dtype)
-    fm = _moment_features(tile_size, dtype)  # [6, P]
+    pix = _pixel_offsets(tile_size, dtype, geom.device)
+    fm = _moment_features(tile_size, dtype, geom.device)  # [6, P]
     rows: list[Tensor] = []  # per pair: moments, relative mean, dL/dfeatures
     gids: list[Tensor] = []
     for i in ids:
@@ -253,7 +253,7 @@ def _backward_chunks(geom, cache, ids, tile_size, s, grad_out) -> Tensor:
         rows.append(row.transpose(1, 2).reshape(-1, 8 + nf))
         gids.append(c.gidx.reshape(-1))
     if not rows:
-        return torch.zeros(geom.shape[0], 6 + nf, dtype=dtype)
+        return torch.zeros(geom.shape[0], 6 + nf, dtype=dtype, device=geom.device)
     return _pair_gradients(geom, torch.cat(gids), torch.cat(rows))
 
 
@@ -284,7 +284,7 @@ def _pair_gradients(geom: Tensor, gidx: Tensor, rows: Tensor) -> Tensor:
         ],
         dim=1,
     )
-    gbuf = torch.zeros(geom.shape[0], pair.shape[1], dtype=geom.dtype)
+    gbuf = torch.zeros(geom.shape[0], pair.shape[1], dtype=geom.dtype, device=geom.device)
     return gbuf.index_add_(0, gidx, pair)
 
 
@@ -296,8 +296,18 @@ def available_cpus() -> int:
         return max(1, os.cpu_count() or 1)
 
 
-def _workers(s: RasterSettings) -> int:
+def _workers(s: RasterSettings, device: torch.device) -> int:
+    """Compositing threads: on the CPU, one per core (each owning single-threaded torch ops); on a
+    GPU one, since each chunk is already a few large kernels and threads would only interleave
+    their launches."""
+    if device.type != "cpu":
+        return 1
     return s.workers if s.workers > 0 else available_cpus()
+
+
+def _chunk_elements(s: RasterSettings, device: torch.device) -> int:
+    """Pixel x pair evaluations per chunk: cache-sized on the CPU, large batches on a GPU."""
+    return s.chunk_elements if device.type == "cpu" else s.gpu_chunk_elements
 
 
 class _Composite(torch.autograd.Function):
@@ -307,15 +317,15 @@ class _Composite(torch.autograd.Function):
         nf = feats.shape[1]
         geom, feat_t = _tables(means2d, conics, opacities, support, feats)
         npix = bins.tile_size**2
-        out = torch.zeros(bins.n_tiles, npix, nf + 1, dtype=dtype)
-        chunks = plan_chunks(bins, settings.chunk_elements)
+        out = torch.zeros(bins.n_tiles, npix, nf + 1, dtype=dtype, device=means2d.device)
+        chunks = plan_chunks(bins, _chunk_elements(settings, means2d.device))
         used = [0] * len(chunks)
         # gathered pairs are kept for the backward (O(pairs), not O(pixels x pairs))
         needs_grad = any(ctx.needs_input_grad[:4])
         cache: list[_Chunk | None] | None = [None] * len(chunks) if needs_grad else None
         _run_split(
             lambda _, ids: _forward_chunks(geom, feat_t, bins, chunks, ids, settings, out, used, cache),
-            len(chunks), _workers(settings),
+            len(chunks), _workers(settings, means2d.device),
         )  # fmt: skip
         ctx.save_for_backward(geom)
         ctx.cache, ctx.tile_size, ctx.settings = cache, bins.tile_size, settings
@@ -327,7 +337,7 @@ class _Composite(torch.autograd.Function):
         grad_out = grad_out.contiguous()
         parts = _run_split(
             lambda _, ids: _backward_chunks(geom, ctx.cache, ids, ctx.tile_size, ctx.settings, grad_out),
-            len(ctx.cache), _workers(ctx.settings),
+            len(ctx.cache), _workers(ctx.settings, geom.device),
         )  # fmt: skip
         gbuf = parts[0]
         for p in parts[1:]:
@@ -348,7 +358,7 @@ def _tables(
     l21 = h * conics[:, 1:2] / l11
     l22sq = (h * conics[:, 2:3] - l21 * l21).clamp_min(0.0)
     geom = torch.cat([means2d, conics, o, torch.log2(o), support, l11, l21, l22sq], -1)
-    pad = torch.zeros(1, geom.shape[1], dtype=geom.dtype)
+    pad = torch.zeros(1, geom.shape[1], dtype=geom.dtype, device=geom.device)
     pad[0, _LOG2O] = -math.inf
     pad[0, _RX] = pad[0, _RY] = -1.0  # |dx| <= -1 never holds
     pad[0, _A] = pad[0, _C] = pad[0, _L11] = 1.0

@@ -135,7 +135,7 @@ def project_gaussians(
         # The support box holds pixel centres i + 0.5 with |i + 0.5 - mean| <= radius.
         lo = torch.ceil(means2d - r - 0.5)
         hi = torch.floor(means2d + r - 0.5)
-        size = torch.tensor([width, height], dtype=lo.dtype)
+        size = torch.tensor([width, height], dtype=lo.dtype, device=lo.device)
         on_screen = ((hi >= 0) & (lo <= size - 1)).all(-1)
         visible = depth_ok & finite & on_screen & (opacities > 0)
         radii = torch.where(visible[:, None], r.clamp_max(2**30), torch.zeros_like(r)).to(torch.int32)

@@ -10,6 +10,7 @@ import torch
 from torch import Tensor
 
 from .composite import composite, enter_single_threaded, exit_single_threaded, single_threaded_ops
+from .gsplat_backend import BackendError, rasterize_gsplat
 from .projection import project_gaussians
 from .settings import RasterSettings
 from .sh import sh_colors
@@ -131,6 +132,12 @@ def rasterize(
         means, quats, scales, opacities, sh_coeffs, colors, viewmat, K, width, height,
         sh_degree, means_cov, means_sh, background,
     )  # fmt: skip
+    if settings.backend != "torch":
+        if (means_cov is not None and means_cov is not means) or (means_sh is not None and means_sh is not means):
+            raise BackendError("separate tensors for the covariance and SH paths of the means (the branch "
+                               "ablation's --model.detach-paths) need --model.raster.backend torch")
+        return rasterize_gsplat(means, quats, scales, opacities, sh_coeffs, colors, degree, viewmat, K, int(width),
+                                int(height), background, near_plane, far_plane, settings)
     with single_threaded_ops():
         return _rasterize(
             means, quats, scales, opacities, sh_coeffs, viewmat, K, int(width), int(height), degree, colors,
@@ -143,7 +150,7 @@ def _rasterize(
     near_plane, far_plane, means_cov, means_sh, settings,
 ):  # fmt: skip
     dtype = means.dtype
-    viewmat, K = viewmat.to(dtype), K.to(dtype)
+    viewmat, K = viewmat.to(means), K.to(means)  # the dtype and device of the means
     proj = project_gaussians(
         means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane, settings, means_cov
     )
@@ -170,9 +177,10 @@ def _rasterize(
     acc = img[..., 4:5]
     image = img[..., :3]
     if background is not None:
-        image = image + (1.0 - acc) * background.to(dtype)
+        image = image + (1.0 - acc) * background.to(means)
     depth = img[..., 3:4] / acc.clamp_min(ALPHA_DEPTH_MIN)
-    if settings.single_threaded_backward and torch.is_grad_enabled() and image.requires_grad:
+    cpu = means.device.type == "cpu"
+    if cpu and settings.single_threaded_backward and torch.is_grad_enabled() and image.requires_grad:
         image, acc, depth = _SingleThreadedBackward.apply(image, acc, depth)
     info: dict[str, Any] = {
         "means2d": proj.means2d,

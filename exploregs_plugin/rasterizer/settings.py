@@ -3,11 +3,17 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Literal
 
 
 @dataclass(frozen=True)
 class RasterSettings:
     """Constants of the 3D Gaussian Splatting image model (defaults = the original renderer)."""
+
+    backend: Literal["torch", "gsplat"] = "torch"
+    """Renderer: 'torch' (the pure-torch reference, any device) or 'gsplat' (gsplat's CUDA
+    kernels; needs --device cuda and the gpu extra). The 2D-mean gradient, radii and visibility
+    that the strategies read come from either."""
 
     eps2d: float = 0.3
     """Low-pass filter in pixels^2 added to the diagonal of every 2D covariance."""
@@ -26,7 +32,10 @@ class RasterSettings:
     antialiased: bool = False
     """Scale opacity by sqrt(det(cov2d) / det(cov2d + eps2d I)) (the anti-aliased 3DGS variant)."""
     chunk_elements: int = 1 << 18
-    """Target pixel x pair count of one compositing chunk (keeps temporaries cache-sized)."""
+    """Target pixel x pair count of one compositing chunk on the CPU (keeps temporaries cache-sized)."""
+    gpu_chunk_elements: int = 1 << 25
+    """The same on a GPU, where few large kernels beat many small ones (a chunk's temporaries
+    take about 20 bytes per element: 1 << 25 is about 0.7 GB)."""
     single_threaded_backward: bool = True
     """Run the backward pass of a render (projection included) with single-threaded torch ops;
     the compositor still uses ``workers`` threads. Faster on small shared machines."""
@@ -42,7 +51,7 @@ class RasterSettings:
             )
         if not 0.0 <= self.transmittance_min < 1.0:
             raise ValueError(f"RasterSettings.transmittance_min must be in [0, 1), got {self.transmittance_min}")
-        if self.tile_size < 1 or self.chunk_elements < 1 or self.workers < 0:
+        if self.tile_size < 1 or self.chunk_elements < 1 or self.gpu_chunk_elements < 1 or self.workers < 0:
             raise ValueError(
                 f"RasterSettings: tile_size, chunk_elements must be >= 1 and workers >= 0, got "
                 f"{self.tile_size}, {self.chunk_elements}, {self.workers}"

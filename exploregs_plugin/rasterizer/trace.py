@@ -87,7 +87,7 @@ def trace_pixel(
     if not (0 <= x < width and 0 <= y < height):
         raise ValueError(f"trace_pixel: pixel ({x}, {y}) is outside the {width}x{height} image")
     dtype = means.dtype
-    viewmat, K = viewmat.to(dtype), K.to(dtype)
+    viewmat, K = viewmat.to(means), K.to(means)
     proj = project_gaussians(
         means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane, settings
     )
@@ -106,7 +106,7 @@ def trace_pixel(
         rgb = colors[ids].to(dtype)
     else:
         rgb = sh_colors(sh_coeffs[ids], means[ids], centre, degree)
-    bg = torch.zeros(3, dtype=dtype) if background is None else background.to(dtype)
+    bg = torch.zeros(3, dtype=dtype, device=means.device) if background is None else background.to(means)
     w = (alpha * before)[:, None] * rgb
     dc_dalpha = dcolor_dalpha(alpha[None], before[None], t_final.reshape(1, 1), rgb[None], bg[None])[0]
     return {

@@ -6,6 +6,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from exploregs_plugin.configs import load_config
+from exploregs_plugin.device import resolve_device
 from exploregs_plugin.io.checkpoint import load_checkpoint, resolve_run
 from exploregs_plugin.pipeline import Pipeline
 from exploregs_plugin.trainer import CONFIG_NAME, TrainerConfig
@@ -20,14 +21,15 @@ class LoadedRun:
     pipeline: Pipeline
 
 
-def load_run(path: Path) -> LoadedRun:
-    """``path``: a run folder (latest checkpoint) or one checkpoint file inside it."""
+def load_run(path: Path, device: str = "auto") -> LoadedRun:
+    """``path``: a run folder (latest checkpoint) or one checkpoint file inside it; the run's
+    tensors are put on ``device`` (auto, cpu, cuda, cuda:N), whatever device trained it."""
     run_dir, ckpt = resolve_run(Path(path))
     config_path = run_dir / CONFIG_NAME
     config = load_config(config_path)
     if not isinstance(config, TrainerConfig):
         raise ValueError(f"{config_path} holds a {type(config).__name__}, not a TrainerConfig")
     payload = load_checkpoint(ckpt)
-    pipeline = config.pipeline.setup(config.schedule.resolve(config.max_steps), config.seed)
+    pipeline = config.pipeline.setup(config.schedule.resolve(config.max_steps), config.seed, resolve_device(device))
     pipeline.load_state_dict(payload)
     return LoadedRun(run_dir, ckpt, int(payload["step"]), config, pipeline)

@@ -14,6 +14,7 @@ from typing import Any, Literal
 from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
+from exploregs_plugin.device import resolve_device
 from exploregs_plugin.io.ply import read_ply
 from exploregs_plugin.trainer import CONFIG_NAME
 
@@ -62,16 +63,17 @@ def dataset_normalization(datamanager: Any) -> Any:
     return datamanager.normalization
 
 
-def model_from_params(params: dict[str, Tensor], sh_degree: int, settings: Any = None) -> Any:
-    """A ``GaussianModel`` holding imported parameters (e.g. a PLY's), so everything that takes
-    a model (evaluation, the viewer) works on it. params: raw, as in :class:`RenderableScene`."""
+def model_from_params(params: dict[str, Tensor], sh_degree: int, settings: Any = None, device: str = "cpu") -> Any:
+    """A ``GaussianModel`` holding imported parameters (e.g. a PLY's) on ``device``, so everything
+    that takes a model (evaluation, the viewer) works on it. params: raw, as in :class:`RenderableScene`."""
     from torch import nn
 
     from exploregs_plugin.model.gaussians import GaussianModel, GaussianModelConfig
     from exploregs_plugin.rasterizer import RasterSettings
 
     config = GaussianModelConfig(sh_degree=sh_degree, raster=settings or RasterSettings())
-    return GaussianModel(config, nn.ParameterDict({k: nn.Parameter(v.detach().clone()) for k, v in params.items()}))
+    where = resolve_device(device)
+    return GaussianModel(config, nn.ParameterDict({k: nn.Parameter(v.detach().to(where, copy=True)) for k, v in params.items()}))
 
 
 def is_ply(path: Path) -> bool:
@@ -110,8 +112,9 @@ def cameras_from(source: str | Path) -> CameraSource:
                         dataset_normalization(dm), settings)
 
 
-def load_scene(path: Path, cameras: str | Path | None = None, ply_frame: PlyFrame = "original") -> RenderableScene:
-    """Gaussians and cameras from a run folder / checkpoint, or from a PLY with ``cameras``.
+def load_scene(path: Path, cameras: str | Path | None = None, ply_frame: PlyFrame = "original",
+               device: str = "auto") -> RenderableScene:
+    """Gaussians (on ``device``) and cameras from a run folder / checkpoint, or from a PLY with ``cameras``.
 
     ply_frame: whether the PLY holds the dataset's original coordinates (``original``, mapped
     into the cameras' normalised frame) or already the normalised ones (``normalized``).
@@ -125,12 +128,14 @@ def load_scene(path: Path, cameras: str | Path | None = None, ply_frame: PlyFram
         if ply_frame not in ("original", "normalized"):
             raise ValueError(f"ply_frame must be original or normalized, got {ply_frame!r}")
         scene = read_ply(path, source.normalization if ply_frame == "original" else None)
-        return RenderableScene(scene.params, scene.sh_degree, source, str(path), dropped=scene.dropped)
+        where = resolve_device(device)
+        params = {name: value.to(where) for name, value in scene.params.items()}
+        return RenderableScene(params, scene.sh_degree, source, str(path), dropped=scene.dropped)
     if cameras is not None:
         raise ValueError(f"--cameras-from is for PLY input; {path} is a run, which has its own cameras")
     from exploregs_plugin.runs.load import load_run
 
-    run = load_run(path)
+    run = load_run(path, device)
     model, dm = run.pipeline.model, run.pipeline.datamanager
     source = CameraSource(dm.scene_name, list(dm.train_cameras), list(dm.test_cameras), dm.background,
                           dataset_normalization(dm), model.config.raster)

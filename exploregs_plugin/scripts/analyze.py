@@ -81,6 +81,8 @@ class Blending:
     """Largest depth rank shown in the scene-wide profile."""
     out: Path = Path("outputs/analysis/blending")
     """Output folder: blending_pixel.*, blending_ranks.*, blending_visibility.* (png, csv, json)."""
+    device: str = "auto"
+    """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
 
 
 def _run_label(pipeline: Pipeline, method: str, step: int) -> str:
@@ -90,7 +92,7 @@ def _run_label(pipeline: Pipeline, method: str, step: int) -> str:
 def _loaded_or_trained(run: Path | None, spec: TrainSpec, out: Path) -> tuple[Pipeline, int, str, Path]:
     """(pipeline, step, method, run folder) of --run, or of a run trained into OUT/run."""
     if run is not None:
-        loaded = load_run(run)
+        loaded = load_run(run, spec.device)
         return loaded.pipeline, loaded.step, loaded.config.method_name, loaded.run_dir
     trainer = train_and_probe(spec.trainer_config(out / "run"), [], lambda p, s: None)
     return trainer.pipeline, trainer.schedule.max_steps, spec.method, trainer.run_dir
@@ -111,7 +113,7 @@ def grad_branches(args: GradBranches) -> dict[str, Any]:
         if not checkpoints:
             raise ValueError(f"{run_dir} has no checkpoints to analyse")
         for ckpt in checkpoints:
-            loaded = load_run(ckpt)
+            loaded = load_run(ckpt, args.train.device)
             probe(loaded.pipeline, loaded.step)
             method, scene, run_folder = loaded.config.method_name, loaded.pipeline.datamanager.scene_name, run_dir
     else:
@@ -138,7 +140,7 @@ def grad_directions(args: GradDirections) -> dict[str, Any]:
         grads = branch_gradients(view)
         for branch, per_ref in branch_cosines(grads, means, view.camera).items():
             for ref, values in per_ref.items():
-                pooled[branch][ref].append(values.double().numpy())
+                pooled[branch][ref].append(values.double().cpu().numpy())
     cosines = {b: {r: np.concatenate(v) if v else np.zeros(0) for r, v in refs.items()} for b, refs in pooled.items()}
     edges = np.linspace(0.0, 1.0, args.bins + 1)
     rows, summary = [], {}
@@ -180,7 +182,7 @@ def _densify_threshold(pipeline: Pipeline) -> float:
 def blending(args: Blending) -> dict[str, Any]:
     if args.run is None:
         raise ValueError("blending needs a run: eg-analyze blending --run RUN_DIR")
-    loaded = load_run(args.run)
+    loaded = load_run(args.run, args.device)
     pipeline, step = loaded.pipeline, loaded.step
     dm = pipeline.datamanager
     count = len(dm.train_cameras if args.split == "train" else dm.test_cameras)

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import shlex
 import sys
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Literal, Optional
 
@@ -21,6 +21,7 @@ import tyro
 
 from exploregs_plugin.bench.presets import PRESETS
 from exploregs_plugin.bench.spec import BenchSpec
+from exploregs_plugin.device import resolve_device
 from exploregs_plugin.scripts import run_cli
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # every key of bench.presets.PRESETS
@@ -59,6 +60,9 @@ class BenchCommand:
     """Per-scene eg-train arguments, 'SCENE:ARGS', e.g. 'beer:--data-factor 8' (repeatable)."""
     data_factor: Optional[int] = None
     """Add --data-factor N to every scene."""
+    device: str = "auto"
+    """Device of every run: auto (CUDA when available, else CPU), cpu, cuda or cuda:N. Resolved
+    here and recorded in each run's config, so runs made on one device are not reused for another."""
     jobs: int = 1
     """Runs in parallel, each with cores // jobs torch threads (timings then share the CPU)."""
     retries: int = 1
@@ -102,6 +106,7 @@ def main(argv: list[str]) -> dict | None:
     cmd = tyro.cli(BenchCommand, args=argv, description=__doc__.split("\n")[0])
     spec = compose(cmd.preset, cmd.spec, cmd.methods, cmd.scenes, cmd.seeds, cmd.steps, cmd.eval_count,
                    cmd.baseline, cmd.override, cmd.scene_option, cmd.data_factor)
+    spec = replace(spec, device=str(resolve_device(cmd.device)))
     for line in describe(spec, cmd.out):
         print(line, file=sys.stderr)
     if cmd.dry_run:

@@ -38,6 +38,8 @@ class EvalArgs:
     ply_frame: Literal["original", "normalized"] = "original"
     """For a PLY: it holds the dataset's original coordinates (as eg-export writes by default) or
     the normalised training frame."""
+    device: str = "auto"
+    """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
 
 
 def main(args: EvalArgs) -> dict:
@@ -46,11 +48,11 @@ def main(args: EvalArgs) -> dict:
             raise ValueError(f"{args.path}: a PLY holds no cameras or images; pass --data DATASET to score it")
         dm = DataManagerConfig(data=args.data, data_factor=args.data_factor).setup()
         scene = read_ply(args.path, dataset_normalization(dm) if args.ply_frame == "original" else None)
-        model = model_from_params(scene.params, scene.sh_degree)
+        model = model_from_params(scene.params, scene.sh_degree, device=args.device)
         out = args.out or args.path.with_name(args.path.stem + "-eval")
         extra = {"ply": str(args.path), "data": args.data, "dropped_nonfinite": scene.dropped}
     else:
-        run = load_run(args.path)
+        run = load_run(args.path, args.device)
         model, dm = run.pipeline.model, run.pipeline.datamanager
         out = args.out or run.run_dir / f"eval-step-{run.step:07d}"
         extra = {"method": run.config.method_name, "step": run.step, "checkpoint": str(run.checkpoint)}

@@ -28,10 +28,12 @@ class ExportArgs:
     """Coordinates to write: the dataset's original frame, or the normalised training frame."""
     ascii: bool = False
     """Write an ASCII PLY instead of binary little-endian (larger; for inspection)."""
+    device: str = "auto"
+    """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
 
 
 def main(args: ExportArgs) -> PlyExport:
-    run = load_run(args.path)
+    run = load_run(args.path, args.device)
     out = args.out or run.run_dir / "exports" / f"scene-step-{run.step:07d}.ply"
     normalization = dataset_normalization(run.pipeline.datamanager) if args.frame == "original" else None
     translation, scale = normalization_terms(normalization)

@@ -60,6 +60,8 @@ class RenderArgs:
     """Depth mode: depth shown as the last colour of the map (default: 99th percentile), dataset units."""
     cmap: str = "turbo"
     """Depth mode: matplotlib colour map."""
+    device: str = "auto"
+    """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
 
 
 def _default_out(args: RenderArgs, scene: RenderableScene) -> Path:
@@ -82,7 +84,7 @@ def main(args: RenderArgs) -> RenderedSequence:
         raise ValueError(f"--resolution-scale must be > 0, got {args.resolution_scale}")
     if args.background is not None and not all(0.0 <= c <= 1.0 for c in args.background):
         raise ValueError(f"--background must be three values in [0, 1], got {args.background}")
-    scene = load_scene(args.path, args.cameras_from, args.ply_frame)
+    scene = load_scene(args.path, args.cameras_from, args.ply_frame, args.device)
     source = scene.cameras
     if scene.dropped:
         print(f"{scene.label}: left out {scene.dropped} Gaussians with non-finite values")

@@ -1,7 +1,7 @@
 """eg-train: train a method on a dataset.
 
     eg-train exploregs-seedsplit --data PATH        # train
-    eg-train --resume RUN_DIR                       # continue an interrupted run
+    eg-train --resume RUN_DIR [--device DEVICE]     # continue an interrupted run
 """
 
 from __future__ import annotations
@@ -39,9 +39,10 @@ def parse_config(argv: list[str]) -> TrainerConfig:
 
 def main(argv: list[str]) -> dict:
     if argv[:1] == ["--resume"]:
-        if len(argv) != 2:
-            raise _fail("usage: eg-train --resume RUN_DIR", 2)
-        trainer = Trainer.from_run(argv[1], callbacks=[BranchGradientLogger()])
+        if len(argv) not in (2, 4) or (len(argv) == 4 and argv[2] != "--device"):
+            raise _fail("usage: eg-train --resume RUN_DIR [--device auto|cpu|cuda|cuda:N]", 2)
+        device = argv[3] if len(argv) == 4 else None
+        trainer = Trainer.from_run(argv[1], callbacks=[BranchGradientLogger()], device=device)
     else:
         trainer = parse_config(argv).setup(callbacks=[BranchGradientLogger()])
     print(f"run folder: {trainer.run_dir}", file=sys.stderr)

@@ -14,6 +14,7 @@ from pathlib import Path
 
 import tyro
 
+from exploregs_plugin.device import resolve_device
 from exploregs_plugin.io.checkpoint import CheckpointError
 from exploregs_plugin.runs.scene import PlyFrame, is_ply, load_scene
 from exploregs_plugin.viewer import Viewer, ViewerConfig, ViewerScene
@@ -29,6 +30,8 @@ class ViewArgs:
     ply_frame: PlyFrame = "original"
     """PLY with --cameras-from: the file holds the dataset's original coordinates (what eg-export
     writes) or already the normalised training frame."""
+    device: str = "auto"
+    """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
     viewer: ViewerConfig = field(default_factory=ViewerConfig)
     """The viewer's settings (port, resolutions, output, ...)."""
 
@@ -46,8 +49,9 @@ def load_viewer_scene(args: ViewArgs) -> ViewerScene:
             ply = read_ply(path)
             if ply.dropped:
                 print(f"{path}: left out {ply.dropped} Gaussians with non-finite values", file=sys.stderr)
-            return ViewerScene.from_params(ply.params, name=path.stem)
-        loaded = load_scene(path, args.cameras_from, args.ply_frame)
+            where = resolve_device(args.device)
+            return ViewerScene.from_params({k: v.to(where) for k, v in ply.params.items()}, name=path.stem)
+        loaded = load_scene(path, args.cameras_from, args.ply_frame, args.device)
         scene = ViewerScene.from_params(loaded.params, loaded.cameras.train_cameras, loaded.cameras.background,
                                         name=f"{path.stem} ({loaded.cameras.name})")
         scene.raster_settings = loaded.cameras.settings
@@ -56,7 +60,7 @@ def load_viewer_scene(args: ViewArgs) -> ViewerScene:
         raise ValueError(f"--cameras-from is for PLY input; {path} is a run, which has its own cameras")
     from exploregs_plugin.runs import load_run
 
-    run = load_run(path)
+    run = load_run(path, args.device)
     return ViewerScene.from_pipeline(run.pipeline, step=run.step)
 
 

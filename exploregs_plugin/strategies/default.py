@@ -57,8 +57,8 @@ def accumulate_grad_stats(
         )
     # NDC spans [-1, 1] over W (H) pixels: d/d(ndc) = d/d(pixel) * W/2 (H/2). The n_cameras
     # factor undoes the loss's mean over a batch of views, as gsplat does.
-    scale = torch.tensor([width / 2.0, height / 2.0], dtype=torch.float32) * float(n_cameras)
-    norms = (pixel_grads.detach().to(torch.float32) * scale.to(pixel_grads.device)).norm(dim=-1)
+    scale = torch.tensor([width / 2.0, height / 2.0], dtype=torch.float32, device=pixel_grads.device) * float(n_cameras)
+    norms = (pixel_grads.detach().to(torch.float32) * scale).norm(dim=-1)
     finite = torch.isfinite(norms)
     take = visible & finite
     _, ids = torch.where(take)

@@ -14,7 +14,7 @@ _EPS = 1e-12
 
 def random_unit_quats(n: int, generator: torch.Generator, dtype=torch.float32) -> Tensor:
     """Quaternions uniform on the unit 3-sphere (normalised 4D Gaussian samples): [n, 4]."""
-    q = torch.randn(n, 4, generator=generator, dtype=dtype)
+    q = torch.randn(n, 4, generator=generator, dtype=dtype, device=generator.device)
     norm = q.norm(dim=-1, keepdim=True)
     # A 4D standard normal sample has norm 0 with probability 0; keep the guard anyway.
     fallback = torch.zeros_like(q)

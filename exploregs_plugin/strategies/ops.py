@@ -139,7 +139,7 @@ def split(
     means, log_scales = params["means"], params["scales"]
     scales = torch.exp(log_scales[sel].detach())
     rot = quats_to_rotmats(params["quats"][sel].detach())  # [S, 3, 3]
-    z = torch.randn(2, len(sel), 3, generator=generator, dtype=means.dtype).to(means.device)
+    z = torch.randn(2, len(sel), 3, generator=generator, dtype=means.dtype, device=generator.device).to(means.device)
     offsets = torch.einsum("nij,nj,bnj->bni", rot, scales, z)  # [2, S, 3]
     log_factor = math.log(scale_factor)
 

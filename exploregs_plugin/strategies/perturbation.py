@@ -48,7 +48,7 @@ def position_noise(
     """
     n = means.shape[0]
     dtype = means.dtype
-    z = torch.randn(n, 3, generator=generator, dtype=dtype).to(means.device)
+    z = torch.randn(n, 3, generator=generator, dtype=dtype, device=generator.device).to(means.device)
     gate = torch.sigmoid(-gate_k * (torch.sigmoid(opacity_logits.detach().to(dtype)) - gate_t))
     sigma = covariances_3d(quats.detach().to(dtype), torch.exp(log_scales.detach().to(dtype)))
     eta = torch.einsum("nij,nj->ni", sigma, z * (gate * scale).unsqueeze(-1))

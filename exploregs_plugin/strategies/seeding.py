@@ -56,7 +56,7 @@ def seed_box(means: Tensor, mode: str = "aabb", quantile: float = 0.01) -> tuple
     if mode == "aabb":
         return finite.min(dim=0).values, finite.max(dim=0).values
     if mode == "robust":
-        q = torch.tensor([quantile, 1.0 - quantile], dtype=finite.dtype)
+        q = torch.tensor([quantile, 1.0 - quantile], dtype=finite.dtype, device=finite.device)
         lo_hi = torch.quantile(finite, q, dim=0)
         return lo_hi[0], lo_hi[1]
     raise StrategyError(f"seed box mode must be 'aabb' or 'robust', got '{mode}'")
@@ -89,7 +89,7 @@ def seed_rows(
     lo, hi = bounds
     dtype = means.dtype
     center = scene_center.to(dtype=dtype, device=means.device)
-    u = torch.rand(n_seed, 3, generator=generator, dtype=dtype)
+    u = torch.rand(n_seed, 3, generator=generator, dtype=dtype, device=generator.device).to(means.device)
     positions = lo + u * (hi - lo)
 
     # Scale per unit distance from the centre, averaged over existing Gaussians whose distance
@@ -102,7 +102,7 @@ def seed_rows(
         s_new = r_new * (s_old[usable] / r_old[usable]).mean()
     else:
         finite_s = s_old[torch.isfinite(s_old)]
-        fallback = finite_s.mean() if finite_s.numel() else torch.tensor(1.0, dtype=dtype)
+        fallback = finite_s.mean() if finite_s.numel() else torch.tensor(1.0, dtype=dtype, device=means.device)
         s_new = fallback.expand(n_seed)
     s_new = s_new.clamp_min(min_scale)
 
@@ -110,14 +110,14 @@ def seed_rows(
     ratio = r_new / r_max if float(r_max) > _EPS else torch.zeros_like(r_new)
     opacity = (opacity_base + opacity_gain * ratio).clamp(1e-6, 1.0 - 1e-6)
 
-    rgb = torch.rand(n_seed, 3, generator=generator, dtype=dtype)
+    rgb = torch.rand(n_seed, 3, generator=generator, dtype=dtype, device=generator.device).to(means.device)
     return {
         "means": positions,
         "scales": torch.log(s_new).unsqueeze(-1).expand(n_seed, 3).clone(),
         "quats": random_unit_quats(n_seed, generator, dtype),
         "opacities": torch.logit(opacity),
         "sh0": rgb_to_sh0(rgb),
-        "shN": torch.zeros(n_seed, sh_rest, 3, dtype=dtype),
+        "shN": torch.zeros(n_seed, sh_rest, 3, dtype=dtype, device=means.device),
     }
 
 

@@ -1,0 +1,103 @@
+"""gsplat's CUDA kernels behind the rasterizer's call shape (``RasterSettings.backend = "gsplat"``).
+
+The same image model as the torch reference: pixel centres at +0.5, the 0.3 px low-pass
+(``eps2d``), the alpha cap 0.99 and floor 1/255, the transmittance stop 1e-4, the antialiased
+variant, SH colours max(SH + 0.5, 0), the background and the expected depth sum w z / A. Two
+differences are gsplat's own: the support is a 3-sigma square of the larger eigenvalue (ours is
+a 3-sigma box per axis), and Gaussians are culled by that radius. The returned ``info`` keeps
+the contract the strategies read: ``means2d`` (whose gradient is the densification statistic;
+[1, N, 2], the tensor gsplat differentiates), ``radii`` [N, 2], ``visible`` [N], ``depths``,
+``conics``, ``camera_center``, ``width``, ``height``, ``n_cameras`` and ``n_pairs``.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+from dataclasses import fields
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .settings import RasterSettings
+
+INSTALL_HINT = 'pip install -e ".[gpu]"'
+# Constants gsplat's kernels hard-code: settings that differ cannot be honoured.
+_FIXED = {"sigma_radius": 3.0, "guard_band": 0.3, "alpha_max": 0.99, "alpha_min": 1.0 / 255.0,
+          "transmittance_min": 1e-4}
+
+
+class BackendError(ValueError):
+    """A renderer backend that cannot run with these settings or on this machine."""
+
+
+def backend_problem(settings: RasterSettings, device: torch.device) -> str | None:
+    """Why ``settings.backend`` cannot render on ``device`` (one line), or None when it can."""
+    if settings.backend == "torch":
+        return None
+    if settings.backend != "gsplat":
+        return f"unknown rasterizer backend {settings.backend!r}; choose torch or gsplat"
+    if importlib.util.find_spec("gsplat") is None:
+        return f"--model.raster.backend gsplat needs the gsplat package: {INSTALL_HINT}"
+    if device.type != "cuda":
+        return (f"--model.raster.backend gsplat renders with CUDA kernels, and this run's device is {device}: "
+                f"use --device cuda on a machine with a GPU, or --model.raster.backend torch")
+    defaults = {f.name: f.default for f in fields(RasterSettings)}
+    for name, value in _FIXED.items():
+        if getattr(settings, name) != value:
+            return (f"--model.raster.{name.replace('_', '-')} {getattr(settings, name)}: gsplat's kernels fix it "
+                    f"at {value} (the default {defaults[name]}); use --model.raster.backend torch")
+    return None
+
+
+def rasterize_gsplat(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    sh_coeffs: Tensor | None,
+    colors: Tensor | None,
+    degree: int,
+    viewmat: Tensor,
+    K: Tensor,
+    width: int,
+    height: int,
+    background: Tensor | None,
+    near_plane: float,
+    far_plane: float,
+    settings: RasterSettings,
+) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
+    """:func:`exploregs_plugin.rasterizer.rasterize` through ``gsplat.rasterization`` (one camera).
+
+    Arguments as there (already validated); ``degree`` is the active SH degree, -1 with ``colors``.
+    """
+    problem = backend_problem(settings, means.device)
+    if problem is not None:
+        raise BackendError(problem)
+    from gsplat import rasterization
+
+    viewmat, K = viewmat.to(means), K.to(means)
+    feats = colors if degree < 0 else sh_coeffs
+    renders, alphas, meta = rasterization(
+        means, quats, scales, opacities, feats, viewmat[None], K[None], width, height,
+        near_plane=near_plane, far_plane=far_plane, eps2d=settings.eps2d,
+        sh_degree=None if degree < 0 else degree, packed=False, tile_size=settings.tile_size,
+        render_mode="RGB+ED", rasterize_mode="antialiased" if settings.antialiased else "classic",
+    )  # fmt: skip
+    image, depth, acc = renders[0, ..., :3], renders[0, ..., 3:4], alphas[0]
+    if background is not None:
+        image = image + (1.0 - acc) * background.to(means)
+    radii = meta["radii"][0]  # [N, 2] int32
+    info: dict[str, Any] = {
+        "means2d": meta["means2d"],  # [1, N, 2]: gsplat differentiates this tensor, not a view of it
+        "radii": radii,
+        "visible": (radii > 0).all(dim=-1),
+        "depths": meta["depths"][0],
+        "conics": meta["conics"][0],
+        "camera_center": -(viewmat[:3, :3].T @ viewmat[:3, 3]),
+        "width": width,
+        "height": height,
+        "n_cameras": 1,
+        "n_pairs": int(meta["flatten_ids"].numel()) if "flatten_ids" in meta else -1,
+    }
+    return image, acc, depth, info
