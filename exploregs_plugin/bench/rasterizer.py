@@ -1,6 +1,7 @@
 """Speed / memory / error benchmark of the rasterizer against a plain autograd compositor.
 
     python -m exploregs_plugin.bench.rasterizer            # S, M and (if present) the beer scene
+    python -m exploregs_plugin.bench.rasterizer --methods fast torch-cuda gsplat --scenes S M L   # GPU
 
 Every (scene, method) runs in a fresh subprocess, so its peak resident memory is its own.
 Times are medians of ``--repeats`` runs after warm-up: wall clock and process CPU time (the
@@ -19,17 +20,23 @@ import statistics
 import subprocess
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import torch
 
-from .raster_baseline import rasterize_baseline
+from exploregs_plugin.device import resolve_device
 from exploregs_plugin.rasterizer import rasterize
 from exploregs_plugin.rasterizer.reference import reference_rasterize
-from .raster_scenes import GaussianScene, random_scene
 from exploregs_plugin.rasterizer.settings import RasterSettings
 
-SCENES = {"S": (20_000, 256, 256), "M": (50_000, 512, 512)}
+from .raster_baseline import rasterize_baseline
+from .raster_scenes import GaussianScene, random_scene
+
+SCENES = {"S": (20_000, 256, 256), "M": (50_000, 512, 512), "L": (500_000, 1024, 1024)}
+METHODS = {"fast": "cpu", "baseline": "cpu", "torch-cuda": "cuda", "gsplat": "cuda"}
+"""Method -> device: the torch rasterizer (fast), the plain autograd compositor (baseline), the
+torch rasterizer on CUDA, and gsplat's CUDA kernels (the gsplat backend)."""
 SCENES_DIR = Path(__file__).resolve().parents[3] / "shared" / "scenes"
 WINDOW = 32
 
@@ -81,17 +88,24 @@ def _windows(w: int, h: int) -> list[tuple[int, int, int, int]]:
 
 
 def _render(method: str, params, scene: GaussianScene, settings: RasterSettings):
-    args = (*params, scene.viewmat, scene.K, scene.width, scene.height)
-    if method == "fast":
-        return rasterize(*args, settings=settings)[0]
-    return rasterize_baseline(*args, settings=settings)[0]
+    args = (*params, scene.viewmat.to(params[0]), scene.K.to(params[0]), scene.width, scene.height)
+    if method == "baseline":
+        return rasterize_baseline(*args, settings=settings)[0]
+    if method == "gsplat":
+        settings = replace(settings, backend="gsplat")
+    return rasterize(*args, settings=settings)[0]
 
 
-def _median_times(fn, repeats: int) -> tuple[float, float]:
+def _median_times(fn, repeats: int, device: torch.device) -> tuple[float, float]:
+    """Median wall and process-CPU seconds; on a GPU the kernels are waited for."""
     walls, cpus = [], []
     for _ in range(repeats):
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
         t, c = time.perf_counter(), time.process_time()
         fn()
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
         walls.append(time.perf_counter() - t)
         cpus.append(time.process_time() - c)
     return statistics.median(walls), statistics.median(cpus)
@@ -99,10 +113,11 @@ def _median_times(fn, repeats: int) -> tuple[float, float]:
 
 def run_child(scene_name: str, method: str, repeats: int, settings: RasterSettings) -> dict:
     load0 = os.getloadavg()[0]
+    device = resolve_device(METHODS[method])
     scene = make_scene(scene_name)
-    params = [t.clone().requires_grad_() for t in (scene.means, scene.quats, scene.scales, scene.opacities,
-                                                   scene.sh_coeffs)]  # fmt: skip
-    wts = torch.rand(scene.height, scene.width, 3, generator=torch.Generator().manual_seed(1))
+    params = [t.to(device, copy=True).requires_grad_() for t in (scene.means, scene.quats, scene.scales,
+                                                                 scene.opacities, scene.sh_coeffs)]  # fmt: skip
+    wts = torch.rand(scene.height, scene.width, 3, generator=torch.Generator().manual_seed(1)).to(device)
 
     def forward():
         return _render(method, params, scene, settings)
@@ -112,24 +127,34 @@ def run_child(scene_name: str, method: str, repeats: int, settings: RasterSettin
             p.grad = None
         (forward() * wts).sum().backward()
 
-    first = time.perf_counter()
-    forward_backward()
-    first = time.perf_counter() - first
+    first = _median_times(forward_backward, 1, device)[0]  # includes gsplat's kernel compilation
     forward_backward()  # warm-up
-    fwd = _median_times(forward, repeats)
-    fb = _median_times(forward_backward, repeats)
-    peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    if device.type == "cuda":
+        torch.cuda.reset_peak_memory_stats(device)
+    fwd = _median_times(forward, repeats, device)
+    fb = _median_times(forward_backward, repeats, device)
+    if device.type == "cuda":
+        peak_mib = torch.cuda.max_memory_allocated(device) / 2**20
+    else:
+        peak_mib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     load1 = os.getloadavg()[0]
-    _, _, _, info = rasterize(
-        *(p.detach() for p in params), scene.viewmat, scene.K, scene.width, scene.height, settings=settings
-    )
+    with torch.no_grad():
+        info = _info(method, params, scene, settings)
     img_err, grad_err = _errors(method, params, scene, settings, wts)
     return {
         "scene": scene_name, "method": method, "n": scene.means.shape[0], "size": f"{scene.width}x{scene.height}",
         "first_s": first, "fwd_s": fwd[0], "fwd_cpu_s": fwd[1], "fb_s": fb[0], "fb_cpu_s": fb[1],
         "peak_mib": peak_mib, "pairs": info["n_pairs"], "img_max": img_err[0], "img_mean": img_err[1],
         "grad_rel": grad_err, "load": (load0 + load1) / 2, "threads": torch.get_num_threads(),
+        "device": str(device) if device.type == "cpu" else torch.cuda.get_device_name(device),
     }  # fmt: skip
+
+
+def _info(method: str, params, scene: GaussianScene, settings: RasterSettings) -> dict:
+    if method == "gsplat":
+        settings = replace(settings, backend="gsplat")
+    args = (*params, scene.viewmat.to(params[0]), scene.K.to(params[0]), scene.width, scene.height)
+    return rasterize(*args, settings=settings)[3]
 
 
 def _errors(method, params, scene, settings, wts) -> tuple[tuple[float, float], float]:
@@ -139,8 +164,9 @@ def _errors(method, params, scene, settings, wts) -> tuple[tuple[float, float], 
     img = _render(method, p32, scene, settings)
     loss = sum((img[y : y + h, x : x + w] * wts[y : y + h, x : x + w]).sum() for x, y, w, h in wins)
     loss.backward()
+    img, wts = img.detach().cpu(), wts.cpu()
     s64 = scene.to(torch.float64)
-    p64 = [p.detach().double().clone().requires_grad_() for p in params]
+    p64 = [p.detach().cpu().double().clone().requires_grad_() for p in params]
     diffs = []
     loss64 = 0.0
     for x, y, w, h in wins:
@@ -150,7 +176,7 @@ def _errors(method, params, scene, settings, wts) -> tuple[tuple[float, float], 
     loss64.backward()
     d = torch.cat(diffs)
     rel = max(
-        ((a.grad.double() - b.grad).abs().max() / b.grad.abs().max().clamp_min(1e-30)).item()
+        ((a.grad.cpu().double() - b.grad).abs().max() / b.grad.abs().max().clamp_min(1e-30)).item()
         for a, b in zip(p32, p64)
         if b.grad is not None and b.grad.abs().max() > 0
     )
@@ -158,9 +184,11 @@ def _errors(method, params, scene, settings, wts) -> tuple[tuple[float, float], 
 
 
 def _row(r: dict, base: dict | None) -> str:
-    ratio = f"{base['fb_s'] / r['fb_s']:.1f}x" if base and r["method"] == "fast" else ""
+    """``base``: the row this one's speed-up is measured against (fast: baseline; GPU: fast)."""
+    ratio = f"{base['fb_s'] / r['fb_s']:.1f}x" if base and base is not r else ""
     return (
-        f"| {r['scene']} | {r['n']:,} | {r['size']} | {r['method']} | {r['fwd_s']:.3f} ({r['fwd_cpu_s']:.3f}) | "
+        f"| {r['scene']} | {r['n']:,} | {r['size']} | {r['method']} ({r['device']}) | "
+        f"{r['fwd_s']:.3f} ({r['fwd_cpu_s']:.3f}) | "
         f"{r['fb_s']:.3f} ({r['fb_cpu_s']:.3f}) | {ratio} | {r['peak_mib']:.0f} | {r['pairs']:,} | "
         f"{r['pairs'] / r['fb_s'] / 1e6:.2f} | {r['img_max']:.1e} / {r['img_mean']:.1e} | {r['grad_rel']:.1e} | "
         f"{r['load']:.1f} |"
@@ -169,8 +197,10 @@ def _row(r: dict, base: dict | None) -> str:
 
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", nargs="+", default=["S", "M", "beer"], help="S, M, beer (beer skipped if absent)")
-    ap.add_argument("--methods", nargs="+", default=["fast", "baseline"], help="fast and/or baseline")
+    ap.add_argument("--scenes", nargs="+", default=["S", "M", "beer"],
+                    help="S, M, L (500k Gaussians at 1024x1024), beer (skipped if absent)")
+    ap.add_argument("--methods", nargs="+", default=["fast", "baseline"], choices=list(METHODS),
+                    help="fast (torch, CPU), baseline (plain compositor, CPU), torch-cuda, gsplat (CUDA)")
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median)")
     ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0 = torch default)")
     ap.add_argument("--tile-size", type=int, default=16, help="RasterSettings.tile_size")
@@ -188,12 +218,13 @@ def main(argv: list[str] | None = None) -> None:
     print(f"# torch {torch.__version__}, {os.cpu_count()} CPUs, threads={a.threads or 'default'}, "
           f"workers={a.workers or 'default'}, tile {a.tile_size}, chunk {a.chunk_elements}, "
           f"repeats {a.repeats}")  # fmt: skip
-    print("| scene | N | W x H | method | fwd s (cpu) | fwd+bwd s (cpu) | speed-up | peak RSS MiB | pairs | "
+    print("| scene | N | W x H | method (device) | fwd s (cpu) | fwd+bwd s (cpu) | speed-up | peak MiB (RSS; GPU: "
+          "allocated) | pairs | "
           "Mpairs/s | image err max / mean | grad rel err | load |")  # fmt: skip
     print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for scene in scenes:
         rows = {}
-        for method in reversed(a.methods):  # baseline first, so the fast row can show the ratio
+        for method in reversed(a.methods):  # baselines first, so the later rows can show their ratio
             cmd = [sys.executable, "-m", "exploregs_plugin.bench.rasterizer", "--child", scene, method,
                    "--repeats", str(a.repeats), "--threads", str(a.threads), "--tile-size", str(a.tile_size),
                    "--chunk-elements", str(a.chunk_elements), "--workers", str(a.workers)]  # fmt: skip
@@ -202,7 +233,8 @@ def main(argv: list[str] | None = None) -> None:
                 raise RuntimeError(f"bench child {scene}/{method} failed:\n{res.stderr}")
             rows[method] = json.loads(res.stdout.strip().splitlines()[-1])
         for method in a.methods:
-            print(_row(rows[method], rows.get("baseline")), flush=True)
+            base = {"fast": rows.get("baseline"), "baseline": None}.get(method, rows.get("fast"))
+            print(_row(rows[method], base), flush=True)
 
 
 if __name__ == "__main__":

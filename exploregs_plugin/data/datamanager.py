@@ -127,7 +127,7 @@ class DataManager:
             torch.tensor(norm.translation, dtype=torch.float32), float(norm.scale))
         self.background: Tensor = torch.tensor(config.background, dtype=torch.float32)
         self._generator = torch.Generator().manual_seed(config.seed)
-        self._order: Tensor = torch.randperm(len(self._train), generator=self._generator)
+        self._order: Tensor = torch.randperm(len(self._train), generator=self._generator, device="cpu")
         self._position = 0
         self._epoch = 0
 
@@ -178,7 +178,7 @@ class DataManager:
     def next_train(self) -> tuple[int, Camera, Tensor, dict[str, Any]]:
         """The next training image in a seeded random order; a fresh permutation each epoch."""
         if self._position >= len(self._order):
-            self._order = torch.randperm(len(self._train), generator=self._generator)
+            self._order = torch.randperm(len(self._train), generator=self._generator, device="cpu")
             self._position = 0
             self._epoch += 1
         index = int(self._order[self._position])

@@ -1,10 +1,14 @@
 """gsplat's CUDA kernels behind the rasterizer's call shape (``RasterSettings.backend = "gsplat"``).
 
-The same image model as the torch reference: pixel centres at +0.5, the 0.3 px low-pass
-(``eps2d``), the alpha cap 0.99 and floor 1/255, the transmittance stop 1e-4, the antialiased
-variant, SH colours max(SH + 0.5, 0), the background and the expected depth sum w z / A. Two
-differences are gsplat's own: the support is a 3-sigma square of the larger eigenvalue (ours is
-a 3-sigma box per axis), and Gaussians are culled by that radius. The returned ``info`` keeps
+The conventions we can set are ours: pixel centres at +0.5, the 0.3 px low-pass (``eps2d``),
+the guard band 0.3, the alpha floor 1/255, the transmittance stop 1e-4, the antialiased
+variant, SH colours max(SH + 0.5, 0), the background and the expected depth sum w z / A.
+gsplat 1.5.3's kernels fix three things differently (read from its CUDA sources): alpha is
+capped at 0.999 (ours: 0.99); the support box is opacity-aware, per axis
+min(3.33, sqrt(2 ln(255 o))) standard deviations (ours: 3), and Gaussians with o < 1/255 are
+culled; and a pixel blends every Gaussian whose box meets its tile (ours: whose box holds the
+pixel centre). Images therefore agree closely but not to float rounding, mostly at support
+edges and where alpha saturates. The returned ``info`` keeps
 the contract the strategies read: ``means2d`` (whose gradient is the densification statistic;
 [1, N, 2], the tensor gsplat differentiates), ``radii`` [N, 2], ``visible`` [N], ``depths``,
 ``conics``, ``camera_center``, ``width``, ``height``, ``n_cameras`` and ``n_pairs``.
@@ -22,9 +26,8 @@ from torch import Tensor
 from .settings import RasterSettings
 
 INSTALL_HINT = 'pip install -e ".[gpu]"'
-# Constants gsplat's kernels hard-code: settings that differ cannot be honoured.
-_FIXED = {"sigma_radius": 3.0, "guard_band": 0.3, "alpha_max": 0.99, "alpha_min": 1.0 / 255.0,
-          "transmittance_min": 1e-4}
+# Settings gsplat's kernels hard-code: a run that changes them from our defaults cannot be honoured.
+_KERNEL_FIXED = ("sigma_radius", "guard_band", "alpha_max", "alpha_min", "transmittance_min")
 
 
 class BackendError(ValueError):
@@ -43,10 +46,10 @@ def backend_problem(settings: RasterSettings, device: torch.device) -> str | Non
         return (f"--model.raster.backend gsplat renders with CUDA kernels, and this run's device is {device}: "
                 f"use --device cuda on a machine with a GPU, or --model.raster.backend torch")
     defaults = {f.name: f.default for f in fields(RasterSettings)}
-    for name, value in _FIXED.items():
-        if getattr(settings, name) != value:
-            return (f"--model.raster.{name.replace('_', '-')} {getattr(settings, name)}: gsplat's kernels fix it "
-                    f"at {value} (the default {defaults[name]}); use --model.raster.backend torch")
+    for name in _KERNEL_FIXED:
+        if getattr(settings, name) != defaults[name]:
+            return (f"--model.raster.{name.replace('_', '-')} {getattr(settings, name)}: gsplat's kernels fix this "
+                    f"constant; keep the default {defaults[name]} or use --model.raster.backend torch")
     return None
 
 
