@@ -1,0 +1,102 @@
+"""Cost of one training step against the bare renderer step on the same Gaussians and camera.
+
+    python -m exploregs_plugin.bench.train_step --data builtin:default --method exploregs-seedsplit
+    python -m exploregs_plugin.bench.train_step --data ../shared/scenes/beer --device cuda --backend gsplat
+
+Trains ``--warmup`` steps (so the set has grown), then times ``--steps`` more of each, in turn:
+
+- ``train step``: the pipeline's whole step (data, render, loss, backward, Adam, strategy);
+- ``bare step``: the renderer's forward + backward of the same loss + Adam on a copy of the same
+  Gaussians, one fixed camera, no strategy and no data loading: what the renderer alone costs.
+
+The ratio train / bare is the engine's overhead (the gsplat backend's target is at most 1.3).
+Times are medians; on a GPU every step is waited for (torch.cuda.synchronize).
+"""
+
+from __future__ import annotations
+
+import argparse
+import statistics
+import time
+from dataclasses import replace
+
+import torch
+
+from exploregs_plugin.device import resolve_device
+from exploregs_plugin.method_configs import get_method
+from exploregs_plugin.model.gaussians import render_params
+from exploregs_plugin.model.losses import photometric_loss
+from exploregs_plugin.model.optim import set_lr
+
+
+def _timed(fn, device: torch.device) -> float:
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    start = time.perf_counter()
+    fn()
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+    return time.perf_counter() - start
+
+
+def measure(data: str, method: str, device: str, backend: str, warmup: int, steps: int, data_factor: int | None,
+            max_steps: int) -> dict:
+    """Median seconds of a training step and of the bare renderer step, and what they ran on."""
+    base = get_method(method).config
+    config = replace(base, data=data, data_factor=data_factor, max_steps=max_steps, device=device)
+    config.pipeline.model.raster = replace(config.pipeline.model.raster, backend=backend)
+    where = resolve_device(device)
+    pipeline = config.pipeline.setup(config.schedule.resolve(max_steps), config.seed, where)
+    for step in range(warmup):
+        pipeline.train_step(step)
+    train = [_timed(lambda s=step: pipeline.train_step(s), where) for step in range(warmup, warmup + steps)]
+
+    params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.detach().clone()) for k, v in pipeline.params.items()})
+    optimizers = config.pipeline.optim.setup(params, pipeline.scene_extent)
+    set_lr(optimizers["means"], pipeline.means_lr_at(warmup))
+    camera, target, _ = pipeline.datamanager.train_item(0)
+    target = target.to(where)
+    degree = pipeline.sh_degree_at(warmup)
+
+    def bare() -> None:
+        image, _, _, _ = render_params(params, camera, degree, pipeline.background, settings=pipeline.model.config.raster)
+        loss, _ = photometric_loss(image, target, config.pipeline.ssim_lambda)
+        loss.backward()
+        for optimizer in optimizers.values():
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+
+    bare()  # warm-up
+    bare_times = [_timed(bare, where) for _ in range(steps)]
+    t_train, t_bare = statistics.median(train), statistics.median(bare_times)
+    peak = torch.cuda.max_memory_allocated(where) / 2**30 if where.type == "cuda" else None
+    return {"device": str(where) if where.type == "cpu" else torch.cuda.get_device_name(where), "backend": backend,
+            "method": method, "gaussians": pipeline.model.num_gaussians, "train_s": t_train, "bare_s": t_bare,
+            "ratio": t_train / t_bare, "peak_gib": peak, "size": f"{camera.width}x{camera.height}"}
+
+
+def main(argv: list[str] | None = None) -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--data", default="builtin:default")
+    ap.add_argument("--data-factor", type=int, default=None)
+    ap.add_argument("--methods", nargs="+", default=["exploregs-default", "exploregs-seedsplit"])
+    ap.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
+    ap.add_argument("--backends", nargs="+", default=["torch"], choices=["torch", "gsplat"])
+    ap.add_argument("--warmup", type=int, default=300, help="steps trained before timing (the set grows)")
+    ap.add_argument("--steps", type=int, default=20, help="timed steps of each kind (median)")
+    ap.add_argument("--max-steps", type=int, default=1500, help="run length the schedule is resolved for")
+    a = ap.parse_args(argv)
+    print(f"# torch {torch.__version__}; {a.data} (data factor {a.data_factor or 'default'}); "
+          f"{a.warmup} warm-up steps, median of {a.steps}")
+    print("| method | backend | device | image | Gaussians | train step s | bare step s | train / bare | peak GPU GiB |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for backend in a.backends:
+        for method in a.methods:
+            r = measure(a.data, method, a.device, backend, a.warmup, a.steps, a.data_factor, a.max_steps)
+            peak = f"{r['peak_gib']:.2f}" if r["peak_gib"] is not None else ""
+            print(f"| {r['method']} | {r['backend']} | {r['device']} | {r['size']} | {r['gaussians']:,} | "
+                  f"{r['train_s']:.4f} | {r['bare_s']:.4f} | {r['ratio']:.2f} | {peak} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()
