@@ -11,7 +11,9 @@ from pathlib import Path
 import pytest
 from PIL import Image
 
-from exploregs_plugin.bench import BenchEntry, BenchScene, BenchSpec, RunOptions, run_bench, run_dir_for
+from exploregs_plugin.bench.report import run_bench
+from exploregs_plugin.bench.runner import RunOptions, run_dir_for
+from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec
 from exploregs_plugin.bench.presets import named_entries
 
 STEPS = 20

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from exploregs_plugin.bench import BenchEntry, BenchScene, BenchSpec, BenchSpecError, compose, preset
+from exploregs_plugin.bench.presets import preset
+from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec, BenchSpecError
+from exploregs_plugin.bench.specfile import compose
 from exploregs_plugin.bench.presets import LOWTHRESH_GROW_GRAD2D, entry_from_arg, named_entries, real
 from exploregs_plugin.bench.runner import RunRecord
 from exploregs_plugin.bench.spec import build_config, comparable, config_fingerprint, configs_match, scene_from_arg

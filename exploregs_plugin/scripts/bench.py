@@ -101,7 +101,9 @@ def describe(spec: BenchSpec, results: Path) -> list[str]:
 
 
 def main(argv: list[str]) -> dict | None:
-    from exploregs_plugin.bench import RunOptions, compose, execute, report
+    from exploregs_plugin.bench.report import report
+    from exploregs_plugin.bench.runner import RunOptions, execute
+    from exploregs_plugin.bench.specfile import compose
 
     cmd = tyro.cli(BenchCommand, args=argv, description=__doc__.split("\n")[0])
     spec = compose(cmd.preset, cmd.spec, cmd.methods, cmd.scenes, cmd.seeds, cmd.steps, cmd.eval_count,

@@ -21,17 +21,15 @@ class ViewerCallback(TrainingCallback):
     def on_train_start(self, trainer: Any) -> None:
         self.viewer = self.config.setup(trainer.pipeline, step=trainer.start_step)
 
+    # the hooks below run only after on_train_start built the viewer; close() may come without it
     def before_step(self, trainer: Any, step: int) -> None:
-        if self.viewer is not None:
-            self.viewer.wait_if_paused(lambda: trainer.stop_requested)
+        self.viewer.wait_if_paused(lambda: trainer.stop_requested)
 
     def after_step(self, trainer: Any, step: int, stats: dict[str, Any]) -> None:
-        if self.viewer is not None:
-            self.viewer.update(step, stats, stats.get("step_seconds"))
+        self.viewer.update(step, stats, stats.get("step_seconds"))
 
     def on_train_end(self, trainer: Any) -> None:
-        if self.viewer is not None:
-            self.viewer.finish(trainer.schedule.max_steps, lambda: trainer.stop_requested)
+        self.viewer.finish(trainer.schedule.max_steps, lambda: trainer.stop_requested)
 
     def close(self) -> None:
         if self.viewer is not None:
