@@ -10,6 +10,7 @@ from __future__ import annotations
 import dataclasses
 import enum
 import importlib
+import re
 from pathlib import Path, PurePath
 from typing import Any
 
@@ -84,6 +85,20 @@ def config_from_dict(value: Any) -> Any:
         raise ValueError(f"config for {spec} has unknown fields: {sorted(unknown)}")
     kwargs = {k: config_from_dict(v) for k, v in value.items() if k in names}
     return cls(**kwargs)
+
+
+def tyro_error_text(captured: str) -> str:
+    """tyro's boxed error message as one line: the frame, the usage hint and tyro's internal
+    wrapper name (``__tyro-dummy-inner__``) dropped."""
+    lines = []
+    for line in (ln.strip("│╭╰╮╯─- \t") for ln in captured.splitlines()):
+        if line.startswith("For full helptext"):  # the hint (which may wrap) ends the message
+            break
+        if line and not line.startswith("usage:"):
+            lines.append(line)
+    text = " ".join(dict.fromkeys(lines)).replace("__tyro-dummy-inner__.", "")
+    # "Value error Error parsing pipeline.strategy: X" -> "--strategy: X" (the flag group's name)
+    return re.sub(r"^Value error Error parsing (?:pipeline\.)?([\w.]+): ", lambda m: f"--{m.group(1).replace('_', '-')}: ", text)
 
 
 def save_config(config: Any, path: Path) -> None:

@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 import signal
+from contextlib import contextmanager
 import sys
 import threading
 import time
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
-from typing import Annotated, Any, Sequence
+from typing import Annotated, Any, Iterator, Sequence
 
 import torch
 import tyro
@@ -66,7 +67,10 @@ class TrainerConfig:
     eval_count: int = 5
     """Evaluate on the test views this many times, evenly spread (the last at the end)."""
     checkpoint_every: int = 500
-    """Write a checkpoint every this many steps (and on Ctrl-C, and at the end)."""
+    """Write a checkpoint every this many steps (and on Ctrl-C or SIGTERM, and at the end)."""
+    checkpoint_minutes: float = 5.0
+    """Also write one when this many minutes of training have passed since the last (0 = off),
+    so a kill -9 or a power cut loses at most that much."""
     keep_checkpoints: int = 3
     """Keep only the newest this many checkpoints."""
     log_every: int = 10
@@ -85,7 +89,8 @@ class TrainerConfig:
     flush_denormal: bool = True
     """Flush denormal floats to zero (tiny alphas and gradients otherwise slow the CPU)."""
     num_threads: int | None = None
-    """Torch CPU threads (unset: torch's default)."""
+    """Every CPU thread of the run: torch's intra-op threads and the compositor's workers (unset:
+    torch's default, the machine's cores). Parallel runs on one machine should split the cores."""
     quiet: bool = False
     """No progress bar or console lines."""
     viewer: bool = False
@@ -137,13 +142,15 @@ class Trainer:
         self.history: list[dict[str, Any]] = []
         self.op_totals: dict[str, int] = {}  # run-long sum of every strategy operation's count
         self.last_checkpoint: Path | None = None
+        self._checkpointed_at = 0.0  # train_seconds at the last checkpoint
         self.logger: RunLogger | None = None
-        self._stop: _StopOnSigint | None = None
+        self._stop: _StopOnSignals | None = None
         if checkpoint is not None:
             self._restore(checkpoint)
         else:
-            self.run_dir.mkdir(parents=True, exist_ok=True)
-            save_config(config, self.run_dir / CONFIG_NAME)
+            with _run_folder_errors(self.run_dir):
+                self.run_dir.mkdir(parents=True, exist_ok=True)
+                save_config(config, self.run_dir / CONFIG_NAME)
 
     def _check_callbacks(self) -> None:
         served = {name for callback in self.callbacks for name in callback.serves}
@@ -179,10 +186,14 @@ class Trainer:
     # ----------------------------------------------------------------------------- loop
     def train(self) -> dict[str, Any]:
         """Run from ``start_step`` to ``max_steps``; returns the final metrics."""
+        with _run_folder_errors(self.run_dir):
+            return self._train()
+
+    def _train(self) -> dict[str, Any]:
         eval_steps = self._eval_steps()
         try:
             with RunLogger(self.run_dir, self.schedule.max_steps, self.start_step, self.config.log_every,
-                           self.config.tensorboard, self.config.quiet) as logger, _StopOnSigint() as stop:
+                           self.config.tensorboard, self.config.quiet) as logger, _StopOnSignals() as stop:
                 self.logger, self._stop = logger, stop
                 for callback in self.callbacks:
                     callback.on_train_start(self)
@@ -191,7 +202,7 @@ class Trainer:
                         callback.before_step(self, step)
                     if stop.requested:
                         self.save_checkpoint(step)
-                        raise KeyboardInterrupt(f"interrupted before step {step}; checkpoint {self.last_checkpoint}")
+                        raise Stopped(stop.signum, step, self.last_checkpoint)
                     start = time.perf_counter()
                     stats = self._train_step(step)
                     stats["step_seconds"] = elapsed = time.perf_counter() - start
@@ -203,7 +214,7 @@ class Trainer:
                         callback.after_step(self, step + 1, stats)
                     if step + 1 in eval_steps:
                         self.run_eval(step + 1)
-                    if (step + 1) % self.config.checkpoint_every == 0 and step + 1 < self.schedule.max_steps:
+                    if step + 1 < self.schedule.max_steps and self._checkpoint_due(step + 1):
                         self.save_checkpoint(step + 1)
                 if self.schedule.max_steps not in eval_steps or not self.history:
                     self.run_eval(self.schedule.max_steps)
@@ -222,6 +233,13 @@ class Trainer:
         except NonFiniteError as err:
             where = self.last_checkpoint or "none was written yet"
             raise NonFiniteError(f"{err}. Training stopped; the last good checkpoint is {where}") from err
+
+    def _checkpoint_due(self, steps_done: int) -> bool:
+        """Every checkpoint_every steps, or when checkpoint_minutes of training have passed."""
+        if steps_done % self.config.checkpoint_every == 0:
+            return True
+        minutes = self.config.checkpoint_minutes
+        return minutes > 0 and self.train_seconds - self._checkpointed_at >= 60.0 * minutes
 
     def _eval_steps(self) -> set[int]:
         total, count = self.schedule.max_steps, max(1, self.config.eval_count)
@@ -279,6 +297,7 @@ class Trainer:
             **self.pipeline.state_dict(),
         }
         self.last_checkpoint = save_checkpoint(self.run_dir, step, payload, self.config.keep_checkpoints)
+        self._checkpointed_at = self.train_seconds
         return self.last_checkpoint
 
     def _restore(self, path: Path) -> None:
@@ -296,25 +315,76 @@ class Trainer:
             self.last_metrics = evaluate(self.pipeline.model, self.pipeline.datamanager)
 
 
-class _StopOnSigint:
-    """First Ctrl-C asks the loop to stop at the next step boundary (so the checkpoint holds a
-    consistent state, never half an optimizer step); a second one interrupts at once."""
+class RunFolderError(ValueError):
+    """The run folder cannot be written (read-only, full, missing permissions)."""
+
+
+@contextmanager
+def _run_folder_errors(run_dir: Path) -> Iterator[None]:
+    """An OSError about a file in ``run_dir`` (the error itself, or one it was raised from)
+    becomes one RunFolderError naming the folder; other errors pass unchanged."""
+    try:
+        yield
+    except OSError as err:
+        cause: BaseException | None = err
+        while cause is not None:
+            name = getattr(cause, "filename", None)
+            if isinstance(cause, OSError) and name is not None and _inside(Path(name), run_dir):
+                reason = cause.strerror or str(cause)
+                raise RunFolderError(f"cannot write the run folder {run_dir}: {reason} ({name})") from err
+            cause = cause.__cause__ or cause.__context__
+        raise
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    try:
+        path.resolve().relative_to(folder.resolve())
+        return True
+    except ValueError:
+        return path.resolve() in folder.resolve().parents  # a parent that could not be created
+
+
+class Stopped(KeyboardInterrupt):
+    """Training stopped on a signal (Ctrl-C's SIGINT, or SIGTERM from a scheduler, a container or
+    ``kill``) at a step boundary, after writing a checkpoint. ``exit_code`` is 128 + signal."""
+
+    def __init__(self, signum: int, step: int | None = None, checkpoint: Path | None = None) -> None:
+        self.signum, self.step, self.checkpoint = signum, step, checkpoint
+        name = signal.Signals(signum).name
+        where = f"before step {step}; checkpoint {checkpoint}" if step is not None else "before training started"
+        super().__init__(f"stopped by {name} {where}")
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+class _StopOnSignals:
+    """The first SIGINT or SIGTERM asks the loop to stop at the next step boundary (so the
+    checkpoint holds a consistent state, never half an optimizer step); a second one stops at
+    once. Installed from the main thread only (Python delivers signals there)."""
 
     def __init__(self) -> None:
-        self.requested = False
-        self._previous: Any = None
+        self.signum: int | None = None
+        self._previous: dict[int, Any] = {}
+
+    @property
+    def requested(self) -> bool:
+        return self.signum is not None
 
     def _handler(self, signum: int, frame: Any) -> None:
-        if self.requested:
-            raise KeyboardInterrupt
-        self.requested = True
+        if self.signum is not None:
+            raise Stopped(signum)
+        self.signum = signum
 
-    def __enter__(self) -> "_StopOnSigint":
+    def __enter__(self) -> "_StopOnSignals":
         if threading.current_thread() is threading.main_thread():
-            self._previous = signal.signal(signal.SIGINT, self._handler)
+            self._previous = {s: signal.signal(s, self._handler) for s in STOP_SIGNALS}
         return self
 
     def __exit__(self, *exc: Any) -> None:
-        if self._previous is not None:
-            signal.signal(signal.SIGINT, self._previous)
-
+        for s, previous in self._previous.items():
+            signal.signal(s, signal.SIG_DFL if previous is None else previous)

@@ -37,9 +37,15 @@ def test_make_unknown_preset(tmp_path: Path, capsys: pytest.CaptureFixture) -> N
 
 def test_list_prints_every_preset(capsys: pytest.CaptureFixture) -> None:
     assert main(["list"]) == 0
-    printed = capsys.readouterr().out
-    for name in PRESETS:
-        assert name in printed
+    lines = capsys.readouterr().out.strip().splitlines()
+    header = lines[0].split()
+    assert header[:4] == ["name", "layout", "width", "height"] and len(lines) == len(PRESETS) + 1
+    rows = {line.split()[0]: dict(zip(header, line.split())) for line in lines[1:]}
+    for name, preset in PRESETS.items():
+        assert rows[name]["width"] == str(preset.width) and rows[name]["layout"] == preset.layout
+    assert main(["list", "--json"]) == 0
+    settings = json.loads(capsys.readouterr().out)
+    assert settings["default"]["n_views"] == PRESETS["default"].n_views and set(settings) == set(PRESETS)
 
 
 def test_stats_describes_a_generated_scene(tiny_scene_dir: Path, tmp_path: Path,

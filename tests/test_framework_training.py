@@ -242,3 +242,102 @@ def test_a_field_served_by_a_callback_is_refused_without_it(tmp_path, tiny_scene
     logger = BranchGradientLogger()
     Trainer(config, callbacks=[logger]).train()
     assert (logger.every, logger.views) == (2, 1)  # taken from the trainer's config
+
+
+def test_sigterm_checkpoints_and_exits_143_with_one_line(tmp_path, tiny_scene_dir, exploregs_cache):
+    import time
+
+    run_dir = tmp_path / "run"
+    env = {**os.environ, "EXPLOREGS_CACHE": str(exploregs_cache), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "exploregs_plugin.scripts.train", "exploregs-default", "--data", "builtin:tiny",
+         "--max-steps", "5000", "--run-dir", str(run_dir), "--no-tensorboard", "--eval-count", "1",
+         "--checkpoint-every", "100000"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+    head = []
+    try:
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:  # without a terminal the loop prints "step N/5000" lines
+            line = proc.stderr.readline()
+            head.append(line)
+            if line.startswith("step ") or not line:
+                break
+        proc.send_signal(signal.SIGTERM)
+        _, rest = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    err = "".join(head) + rest
+    assert proc.returncode == 143, err
+    lines = [ln for ln in err.strip().splitlines() if ln.strip()]
+    assert "Aborted at" not in err and "Traceback" not in err
+    assert lines[-1].startswith("eg-train: error: stopped by SIGTERM before step ")
+    assert f"resume with: eg-train --resume {run_dir}" in lines[-1]
+    ckpt = latest_checkpoint(run_dir)
+    step = int(load_checkpoint(ckpt)["step"])
+    assert 0 < step < 5000 and f"before step {step};" in lines[-1]
+
+
+def test_wall_clock_checkpoints_come_between_step_checkpoints(tmp_path, tiny_scene_dir):
+    trainer = tiny_config(tmp_path / "run", max_steps=12, checkpoint_every=1000, checkpoint_minutes=1e-6,
+                          keep_checkpoints=100).setup()
+    trainer.train()
+    steps = [int(p.stem.split("-")[1]) for p in list_checkpoints(tmp_path / "run")]
+    assert steps == list(range(1, 13))  # a step takes longer than 60 microseconds: one after every step
+    off = tiny_config(tmp_path / "off", max_steps=12, checkpoint_every=1000, checkpoint_minutes=0.0).setup()
+    off.train()
+    assert [p.stem for p in list_checkpoints(tmp_path / "off")] == ["step-0000012"]
+
+
+def test_resume_names_the_step_or_says_how_to_start_over(tmp_path, tiny_scene_dir, capsys):
+    from exploregs_plugin.scripts import run_cli
+    from exploregs_plugin.scripts.train import main
+
+    tiny_config(tmp_path / "run", max_steps=10, checkpoint_every=5).setup().train()
+    (tmp_path / "run" / "checkpoints" / "step-0000010.pt").unlink()
+    with pytest.raises(SystemExit):
+        run_cli("eg-train", main, ["--resume", str(tmp_path / "run"), "--device", "bogus"])
+    assert "--device 'bogus' is not a device" in capsys.readouterr().err
+    metrics = run_cli("eg-train", main, ["--resume", str(tmp_path / "run")])
+    assert metrics["steps"] == 10
+    assert f"resuming {tmp_path / 'run'} from step 5" in capsys.readouterr().err
+    empty = tmp_path / "empty"
+    Trainer(tiny_config(empty, max_steps=3))  # config written, no checkpoint yet
+    with pytest.raises(SystemExit) as exit_:
+        run_cli("eg-train", main, ["--resume", str(empty)])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err
+    assert "nothing to resume; start it again" in err and str(empty / "config.yml") in err
+
+
+def test_an_unwritable_run_folder_is_one_line(tmp_path, tiny_scene_dir, monkeypatch, capsys):
+    import errno
+
+    from exploregs_plugin import configs
+    from exploregs_plugin.scripts import run_cli
+    from exploregs_plugin.scripts.train import main
+
+    def read_only(path, text):
+        raise OSError(errno.EROFS, "Read-only file system", str(path))
+
+    monkeypatch.setattr("exploregs_plugin.configs.atomic_write_text", read_only)
+    with pytest.raises(SystemExit) as exit_:
+        run_cli("eg-train", main, ["exploregs-default", "--data", "builtin:tiny", "--run-dir", str(tmp_path / "ro")])
+    assert exit_.value.code == 2 and configs.atomic_write_text is read_only
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1] == (f"eg-train: error: cannot write the run folder {tmp_path / 'ro'}: Read-only file system "
+                       f"({tmp_path / 'ro' / 'config.yml'})")
+
+
+def test_a_bad_value_is_one_line_with_the_valid_range(capsys):
+    from exploregs_plugin.scripts import run_cli
+    from exploregs_plugin.scripts.train import main
+
+    with pytest.raises(SystemExit) as exit_:
+        run_cli("eg-train", main, ["exploregs-seed", "--strategy.n-seed", "-5"])
+    assert exit_.value.code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["eg-train: error: --strategy: SeedingStrategy.n_seed must be >= 0 (0 disables seeding), got -5"]
+    with pytest.raises(SystemExit) as exit_:
+        run_cli("eg-train", main, ["--help"])
+    assert exit_.value.code == 0
+    assert "eg-train --resume RUN_DIR" in capsys.readouterr().out

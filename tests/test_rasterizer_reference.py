@@ -246,3 +246,20 @@ def test_windowed_reference_is_a_crop_and_threads_are_restored():
     img, *_ = rasterize(m, *s.args()[1:])
     img.sum().backward()
     assert torch.get_num_threads() == threads and m.grad.abs().sum() > 0
+
+
+def test_the_compositor_uses_the_callers_thread_count():
+    from exploregs_plugin.rasterizer.composite import _workers, single_threaded_ops
+
+    before = torch.get_num_threads()
+    try:
+        for n in (1, 3):
+            torch.set_num_threads(n)
+            with single_threaded_ops():  # rasterize runs the compositor inside this block
+                assert torch.get_num_threads() == 1
+                assert _workers(RasterSettings(), torch.device("cpu")) == n
+                assert _workers(RasterSettings(workers=2), torch.device("cpu")) == 2
+            assert torch.get_num_threads() == n
+        assert _workers(RasterSettings(), torch.device("meta")) == 1  # a GPU-like device: one thread
+    finally:
+        torch.set_num_threads(before)

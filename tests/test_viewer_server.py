@@ -133,7 +133,7 @@ def test_eg_view_serves_a_ply(tmp_path: Path) -> None:
 
     path = tmp_path / "one.ply"
     export_ply(path, one_gaussian(rgb=(0.2, 0.3, 0.9), n_rest=3))
-    viewer = main(ViewArgs(path=path, viewer=ViewerConfig(port=0)))
+    viewer = main(ViewArgs(path=path, viewer_config=ViewerConfig(port=0)))
     try:
         snap = viewer.store.latest()
         assert snap.num_gaussians == 1 and snap.params["shN"].shape == (1, 3, 3)
@@ -141,7 +141,7 @@ def test_eg_view_serves_a_ply(tmp_path: Path) -> None:
     finally:
         viewer.close()
     with pytest.raises(FileNotFoundError, match="no such"):
-        main(ViewArgs(path=tmp_path / "missing.ply", viewer=ViewerConfig(port=0)))
+        main(ViewArgs(path=tmp_path / "missing.ply", viewer_config=ViewerConfig(port=0)))
 
 
 def test_viewer_on_a_training_pipeline(tiny_scene_dir: Path) -> None:

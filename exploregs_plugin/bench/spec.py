@@ -16,6 +16,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
+from exploregs_plugin.configs import tyro_error_text
 from exploregs_plugin.trainer import TrainerConfig
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
@@ -141,10 +142,7 @@ def parse_overrides(config: TrainerConfig, args: list[str], where: str) -> Train
         with _STREAM_LOCK, contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
             return tyro.cli(type(config), args=args, default=config)
     except SystemExit as exit_:
-        # tyro prints a boxed message; keep its words, drop the frame and the usage hint
-        lines = [ln.strip("│╭╰╮╯─- \t") for ln in err.getvalue().splitlines()]
-        lines = [ln for ln in lines if ln and not ln.startswith(("For full helptext", "usage:"))]
-        detail = " ".join(dict.fromkeys(lines)) or f"exit code {exit_.code}"
+        detail = tyro_error_text(err.getvalue()) or f"exit code {exit_.code}"
         raise BenchSpecError(f"{where}: invalid eg-train arguments {shlex.join(args)!r}: {detail}") from None
 
 

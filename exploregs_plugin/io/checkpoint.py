@@ -95,7 +95,9 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
 def latest_checkpoint(run_dir: Path) -> Path:
     found = list_checkpoints(run_dir)
     if not found:
-        raise CheckpointError(f"no checkpoints in {Path(run_dir) / CHECKPOINT_DIR}")
+        raise CheckpointError(
+            f"no checkpoints in {Path(run_dir) / CHECKPOINT_DIR}: the run stopped before its first one, so there "
+            f"is nothing to resume; start it again (its settings are in {Path(run_dir) / 'config.yml'})")
     return found[-1]
 
 

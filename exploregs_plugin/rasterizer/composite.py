@@ -25,7 +25,6 @@ with log2(e) folded into the conic, and feature tables are kept as [B, F, K].
 from __future__ import annotations
 
 import math
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -288,12 +287,12 @@ def _pair_gradients(geom: Tensor, gidx: Tensor, rows: Tensor) -> Tensor:
     return gbuf.index_add_(0, gidx, pair)
 
 
-def available_cpus() -> int:
-    """CPUs this process may run on."""
-    try:
-        return max(1, len(os.sched_getaffinity(0)))
-    except AttributeError:  # not on Linux
-        return max(1, os.cpu_count() or 1)
+def thread_budget() -> int:
+    """The caller's torch intra-op thread count (as it was before :func:`single_threaded_ops`
+    lowered it): the one setting (``torch.set_num_threads``, eg-train's ``--num-threads``) that
+    bounds every thread a run uses, the compositor's workers included."""
+    with _THREADS_LOCK:
+        return _THREADS_STATE["saved"] if _THREADS_STATE["depth"] > 0 else torch.get_num_threads()
 
 
 def _workers(s: RasterSettings, device: torch.device) -> int:
@@ -302,7 +301,7 @@ def _workers(s: RasterSettings, device: torch.device) -> int:
     their launches."""
     if device.type != "cpu":
         return 1
-    return s.workers if s.workers > 0 else available_cpus()
+    return s.workers if s.workers > 0 else thread_budget()
 
 
 def _chunk_elements(s: RasterSettings, device: torch.device) -> int:

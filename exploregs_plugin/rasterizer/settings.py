@@ -40,8 +40,9 @@ class RasterSettings:
     """Run the backward pass of a render (projection included) with single-threaded torch ops;
     the compositor still uses ``workers`` threads. Faster on small shared machines."""
     workers: int = 0
-    """Compositing threads, each running single-threaded torch ops on its own chunks
-    (0 = the CPUs this process may use). Results agree across settings up to float rounding."""
+    """Compositing threads, each running single-threaded torch ops on its own chunks (0 = the
+    caller's torch thread count, which eg-train's --num-threads sets). Results agree across
+    settings up to float rounding."""
 
     def __post_init__(self) -> None:
         if not 0.0 < self.alpha_min < self.alpha_max < 1.0:

@@ -49,7 +49,10 @@ class Make:
 
 @dataclass
 class List:
-    """Print the presets and their settings."""
+    """Print the presets and their settings as a table."""
+
+    json: bool = False
+    """Print one JSON object (preset name -> settings) instead of the table."""
 
 
 @dataclass
@@ -91,11 +94,22 @@ def scene_stats(folder: Path) -> dict[str, float | int]:
     return stats
 
 
+def preset_table(settings: dict[str, dict]) -> str:
+    """One row per preset, one column per setting, aligned for a terminal."""
+    columns = ["name", *next(iter(settings.values()))]
+    rows = [[name, *(f"{v:g}" if isinstance(v, float) else str(v) for v in values.values())]
+            for name, values in settings.items()]
+    widths = [max(len(str(c)), *(len(r[i]) for r in rows)) for i, c in enumerate(columns)]
+    lines = ["  ".join(c.ljust(w) for c, w in zip(columns, widths)).rstrip()]
+    lines += ["  ".join(v.ljust(w) for v, w in zip(r, widths)).rstrip() for r in rows]
+    return "\n".join(lines)
+
+
 def main(argv: list[str]) -> int:
     command = tyro.cli(Command, args=argv, description="Built-in ExploreGS scenes with ground truth.")
     if isinstance(command, List):
-        for name, preset in PRESETS.items():
-            print(f"{name:16s} {json.dumps(asdict(preset))}")
+        settings = {name: asdict(preset) for name, preset in PRESETS.items()}
+        print(json.dumps(settings, indent=1) if command.json else preset_table(settings))
         return 0
     if isinstance(command, Stats):
         try:

@@ -3,7 +3,7 @@
     eg-view outputs/SCENE/METHOD/STAMP                 # latest checkpoint of a run
     eg-view outputs/.../checkpoints/step-0003000.pt    # one checkpoint
     eg-view scene.ply [--cameras-from RUN_OR_DATASET]  # a PLY (ours or another tool's)
-    eg-view RUN --viewer.port 8081 --viewer.rest-resolution 1024
+    eg-view RUN --viewer-config.port 8081 --viewer-config.rest-resolution 1024
 """
 
 from __future__ import annotations
@@ -32,8 +32,8 @@ class ViewArgs:
     writes) or already the normalised training frame."""
     device: str = "auto"
     """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
-    viewer: ViewerConfig = field(default_factory=ViewerConfig)
-    """The viewer's settings (port, resolutions, output, ...)."""
+    viewer_config: ViewerConfig = field(default_factory=ViewerConfig)
+    """The viewer's settings (port, resolutions, output, ...): --viewer-config.*, as for eg-train."""
 
 
 def load_viewer_scene(args: ViewArgs) -> ViewerScene:
@@ -66,7 +66,7 @@ def load_viewer_scene(args: ViewArgs) -> ViewerScene:
 
 def main(args: ViewArgs) -> Viewer:
     """Start the viewer (it serves from background threads) and return it."""
-    return args.viewer.setup(load_viewer_scene(args), training=False)
+    return args.viewer_config.setup(load_viewer_scene(args), training=False)
 
 
 def entrypoint() -> None:

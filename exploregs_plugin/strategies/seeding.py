@@ -150,10 +150,10 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
 
     def __post_init__(self) -> None:
         super().__post_init__()
-        for name in ("n_seed", "seed_every"):
+        for name, low, note in (("n_seed", 0, " (0 disables seeding)"), ("seed_every", 1, "")):
             value = getattr(self, name)
-            if value is not None and value < (0 if name == "n_seed" else 1):
-                raise StrategyError(f"{type(self).__name__}.{name} is out of range: {value}")
+            if value is not None and value < low:
+                raise StrategyError(f"{type(self).__name__}.{name} must be >= {low}{note}, got {value}")
         if not 0.0 <= self.seed_box_quantile < 0.5:
             raise StrategyError(f"seed_box_quantile must be in [0, 0.5), got {self.seed_box_quantile}")
         if not 0.0 < self.seed_opacity_base + self.seed_opacity_gain < 1.0 or self.seed_opacity_base <= 0:
