@@ -193,3 +193,32 @@ def test_empty_point_cloud_falls_back_to_random_init(scene_copy: Path) -> None:
 def test_dataset_folder_missing(tmp_path: Path) -> None:
     with pytest.raises(DataError, match="dataset folder does not exist"):
         read_colmap(tmp_path / "nothing", ParseOptions())
+
+
+def test_truncated_cameras_txt_names_the_image_and_camera(scene_copy: Path) -> None:
+    path = scene_copy / "sparse" / "0" / "cameras.txt"
+    lines = path.read_text().splitlines()
+    data = [ln for ln in lines if ln and not ln.startswith("#")]
+    assert len(data) == 10
+    kept = [ln for ln in lines if ln.startswith("#")] + data[:4]  # cut after 4 of 10 cameras
+    path.write_text("\n".join(kept) + "\n")
+    with pytest.raises(DataError, match=r"images\.txt: line \d+: image '0004\.png' uses camera 5, which is not "
+                                        r"defined \(cameras\.txt defines 4 camera\(s\); is it truncated\?\)"):
+        read_colmap(scene_copy, ParseOptions())
+
+
+def test_images_on_disk_missing_from_the_model_are_counted(scene_copy: Path) -> None:
+    path = scene_copy / "sparse" / "0" / "images.txt"
+    lines = path.read_text().splitlines()
+    header = [ln for ln in lines if ln.startswith("#")]
+    body = [ln for ln in lines if not ln.startswith("#")]
+    path.write_text("\n".join(header + body[:6]) + "\n")  # 3 images: pose line + points line each
+    frames = scene_copy / "sparse" / "0" / "frames.txt"
+    frame_lines = frames.read_text().splitlines()
+    frames.write_text("\n".join([ln for ln in frame_lines if ln.startswith("#")]
+                                + [ln for ln in frame_lines if not ln.startswith("#")][:3]) + "\n")
+    (scene_copy / "split.json").unlink()  # the built-in split names all ten
+    with pytest.warns(UserWarning, match=r"images: 7 of 10 images are not in the COLMAP model and are not used "
+                                         r"\(e\.g\. 0003\.png, 0004\.png, 0005\.png\)"):
+        scene = read_colmap(scene_copy, ParseOptions())
+    assert [im.name for im in scene.images] == ["0000.png", "0001.png", "0002.png"]

@@ -16,6 +16,7 @@ import pycolmap
 
 from .camera_prep import check_camera, check_pose, prepare_image, source_image
 from .errors import DataError
+from .images import IMAGE_SUFFIXES
 from .parsed import ImageRecord, ParsedScene, ParseOptions
 from .random_init import random_points
 
@@ -55,13 +56,76 @@ def _check_text_camera_models(sparse: Path) -> None:
             raise DataError(path, f"line {line_no}: unknown camera model {model!r}")
 
 
+def _data_lines(path: Path):
+    """(line number, fields) of the non-comment, non-empty lines of a COLMAP text file."""
+    for line_no, line in enumerate(path.read_text().splitlines(), 1):
+        fields = line.split()
+        if fields and not fields[0].startswith("#"):
+            yield line_no, fields
+
+
+def _check_text_references(sparse: Path) -> None:
+    """Every camera an image (or a rig) names must be defined in cameras.txt. pycolmap's own
+    message for a truncated cameras.txt is an internal check about rigs; this names the file,
+    the line and the entry instead."""
+    cameras_path = sparse / "cameras.txt"
+    camera_ids = set()
+    for line_no, fields in _data_lines(cameras_path):
+        try:
+            camera_ids.add(int(fields[0]))
+        except ValueError:
+            raise DataError(cameras_path, f"line {line_no}: camera id {fields[0]!r} is not an integer") from None
+    defined = f"{cameras_path.name} defines {len(camera_ids)} camera(s)"
+    images_path = sparse / "images.txt"
+    # images.txt alternates a pose line (IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME) with a
+    # line of 2D points, which may be empty
+    lines = images_path.read_text().splitlines()
+    index = 0
+    for line_no, line in enumerate(lines, 1):
+        if line.lstrip().startswith("#"):
+            continue
+        if index % 2 == 0:
+            fields = line.split()
+            if not fields:
+                continue
+            if len(fields) < 10:
+                raise DataError(images_path, f"line {line_no}: expected IMAGE_ID QW QX QY QZ TX TY TZ CAMERA_ID NAME, "
+                                             f"got {len(fields)} fields")
+            if not fields[8].lstrip("-").isdigit() or int(fields[8]) not in camera_ids:
+                raise DataError(images_path, f"line {line_no}: image {fields[9]!r} uses camera {fields[8]}, which "
+                                             f"is not defined ({defined}; is it truncated?)")
+        index += 1
+    rigs_path = sparse / "rigs.txt"
+    if rigs_path.is_file():
+        for line_no, fields in _data_lines(rigs_path):
+            # RIG_ID NUM_SENSORS REF_SENSOR_TYPE REF_SENSOR_ID [SENSOR_TYPE SENSOR_ID POSE...]
+            for kind, sensor in zip(fields[2:], fields[3:]):
+                if kind == "CAMERA" and sensor.isdigit() and int(sensor) not in camera_ids:
+                    raise DataError(rigs_path, f"line {line_no}: rig {fields[0]} uses camera {sensor}, which is not "
+                                               f"defined ({defined}; is it truncated?)")
+
+
 def read_reconstruction(sparse: Path) -> pycolmap.Reconstruction:
     if _model_format(sparse) == "txt":
         _check_text_camera_models(sparse)
+        _check_text_references(sparse)
     try:
         return pycolmap.Reconstruction(str(sparse))
     except Exception as err:  # pycolmap raises RuntimeError/ValueError subclasses
         raise DataError(sparse, f"cannot read the COLMAP model ({err})") from err
+
+
+def _warn_unused_images(folder: Path, used: set[str]) -> None:
+    """Warn, with the count, when image files in ``folder`` are not in the model (they are not
+    trained on: a truncated images.txt would otherwise pass unnoticed)."""
+    if not folder.is_dir():
+        return
+    on_disk = sorted(p.relative_to(folder).as_posix() for p in folder.rglob("*")
+                     if p.is_file() and p.suffix in IMAGE_SUFFIXES)
+    unused = [name for name in on_disk if name not in used]
+    if unused:
+        warnings.warn(f"{folder}: {len(unused)} of {len(on_disk)} images are not in the COLMAP model and are not "
+                      f"used (e.g. {', '.join(unused[:3])})", stacklevel=3)
 
 
 def read_split(root: Path, names: list[str]) -> dict[str, list[str]] | None:
@@ -113,6 +177,7 @@ def read_colmap(root: Path, options: ParseOptions) -> ParsedScene:
         expect = (camera.width, camera.height) if options.data_factor == 1 else None
         record = prepare_image(root, im.name, path, camera, viewmat, options, expect_size=expect)
         records.append(attach_extras(root, record))
+    _warn_unused_images(root / "images", {im.name for im in images})
     points, rgb = _points(rec)
     if points is None:
         warnings.warn(f"{sparse}: the COLMAP model has no 3D points; using random initialisation",
