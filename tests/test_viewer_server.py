@@ -63,6 +63,7 @@ def test_scene_content_and_stats(viewer) -> None:
     # The initial view stands at camera 0, so its frustum is hidden.
     assert [h.visible for h in viewer._frustums] == [False, True, True]
     assert viewer._points.points.shape == (100, 3)
+    assert viewer._points.visible is False  # the points would cover the splats: off until asked for
     viewer.update(12, {"psnr": 20.0}, seconds=0.5)
     viewer.update(13, {"psnr": 22.0}, seconds=0.25)
     text = viewer._stats_text()

@@ -47,6 +47,8 @@ class ViewerConfig:
     """Largest number of initial points shown (evenly subsampled beyond it)."""
     point_size: float | None = None
     """Size of the shown initial points in world units (unset: 0.3% of the scene extent)."""
+    show_points: bool = False
+    """Show the initial points when the viewer opens (they cover the splats; a checkbox toggles them)."""
     serve_after_training: bool = False
     """Keep serving the finished scene after training ends, until Ctrl-C."""
 

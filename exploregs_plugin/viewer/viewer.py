@@ -150,6 +150,7 @@ class Viewer:
             self._points = self.server.scene.add_point_cloud(
                 "/initial_points", points, to_uint8(rgb), point_size=cfg.point_size or _POINT_FRACTION * scene.extent,
             )
+            self._points.visible = cfg.show_points
         self._set_initial_camera(cameras)
 
     def _set_initial_camera(self, cameras: list[Camera]) -> None:
@@ -231,7 +232,7 @@ class Viewer:
             cams = gui.add_checkbox("Show cameras", True)
             cams.on_update(lambda _: self._set_cameras_visible(bool(cams.value)))
             if self._points is not None:
-                pts = gui.add_checkbox("Show initial points", True)
+                pts = gui.add_checkbox("Show initial points", self.config.show_points)
                 pts.on_update(lambda _: setattr(self._points, "visible", bool(pts.value)))
 
     def _set_cameras_visible(self, visible: bool) -> None:
