@@ -169,3 +169,22 @@ def test_trajectory_choice_and_errors():
         cp.trajectory_cameras(train[:1], test, "path")
     with pytest.raises(ValueError, match="num_frames"):
         cp.interpolate_path(train, num_frames=3)
+
+
+def test_path_stays_in_the_largest_camera_group_and_path_all_crosses_the_gap():
+    arc = _arc(12, radius=4.0, span_deg=60.0)  # spacing about 0.38
+    far = [_camera(_look_at((-4.0, 0.2 * k, 0.5)), f"far{k}") for k in range(3)]  # across the scene
+    cameras = arc + far
+    assert [len(g) for g in cp.camera_groups(cameras)] == [12, 3]
+    assert cp.camera_groups(cameras)[1] == [12, 13, 14]
+    centers = np.stack([c.camera_center.double().numpy() for c in cameras])
+    spacing = np.median(np.sort(np.linalg.norm(centers[:, None] - centers[None], axis=-1), axis=1)[:, 1])
+
+    def farthest(frames):
+        pts = np.stack([c.camera_center.double().numpy() for c in frames])
+        return np.linalg.norm(pts[:, None] - centers[None], axis=-1).min(axis=1).max()
+
+    path = cp.trajectory_cameras(cameras, [], "path", num_frames=60)
+    crossing = cp.trajectory_cameras(cameras, [], "path-all", num_frames=60)
+    assert farthest(path) <= spacing  # every frame lies among the arc's cameras
+    assert farthest(crossing) > 5 * spacing  # through the middle of the scene

@@ -19,11 +19,14 @@ import torch
 from exploregs_plugin.cameras import Camera
 
 CameraOrder = Literal["nearest", "name", "given"]
-Trajectory = Literal["test", "train", "path"]
+Trajectory = Literal["test", "train", "path", "path-all"]
 SPLINE_ALPHA = 0.5
 """Knot exponent of the Catmull-Rom spline: 0 uniform, 0.5 centripetal, 1 chordal."""
 _COINCIDENT = 1e-12
 """Key centres closer than this (relative to the path size) count as the same point."""
+GROUP_GAP = 4.0
+"""Cameras farther apart than this x the median nearest-neighbour spacing belong to different
+groups: a path between groups would cross space that no training camera saw."""
 
 
 # ----------------------------------------------------------------------------- rotations
@@ -153,6 +156,34 @@ def order_cameras(cameras: Sequence[Camera], order: CameraOrder = "nearest") -> 
     return path
 
 
+def camera_groups(cameras: Sequence[Camera], gap: float = GROUP_GAP) -> list[list[int]]:
+    """Indices of ``cameras`` split into groups, largest first: the connected components of the
+    graph that links two cameras closer than ``gap`` x the median distance of a camera to its
+    nearest neighbour (single linkage)."""
+    n = len(cameras)
+    if n <= 2:
+        return [list(range(n))] if n else []
+    centers = np.stack([c.camera_center.detach().double().cpu().numpy() for c in cameras])
+    dist = np.linalg.norm(centers[:, None] - centers[None], axis=-1)
+    np.fill_diagonal(dist, np.inf)
+    link = dist <= gap * max(float(np.median(dist.min(axis=1))), 1e-12)
+    groups, seen = [], set()
+    for start in range(n):
+        if start in seen:
+            continue
+        stack, group = [start], []
+        seen.add(start)
+        while stack:
+            i = stack.pop()
+            group.append(i)
+            for j in np.flatnonzero(link[i]):
+                if int(j) not in seen:
+                    seen.add(int(j))
+                    stack.append(int(j))
+        groups.append(sorted(group))
+    return sorted(groups, key=lambda g: (-len(g), g[0]))
+
+
 def subsample_keys(indices: Sequence[int], max_keys: int | None) -> list[int]:
     """At most ``max_keys`` evenly spread entries of ``indices``, first and last kept."""
     indices = list(indices)
@@ -265,15 +296,21 @@ def trajectory_cameras(
     order: CameraOrder = "nearest",
     loop: bool = False,
 ) -> list[Camera]:
-    """The cameras to render: the test or training views as they are, or ``path``: a smooth
-    path through up to ``max_keys`` training cameras taken in ``order``."""
+    """The cameras to render: the test or training views as they are, or a smooth path through
+    up to ``max_keys`` training cameras taken in ``order``: ``path`` through the largest group of
+    training cameras (:func:`camera_groups`), so it stays where the cameras saw the scene;
+    ``path-all`` through all of them, across the gaps between groups."""
     if trajectory == "test":
         if not test:
             raise ValueError("the dataset has no test cameras; use --trajectory train or path")
         return list(test)
     if trajectory == "train":
         return list(train)
-    if trajectory != "path":
-        raise ValueError(f"unknown trajectory {trajectory!r}; choose test, train or path")
-    keys = subsample_keys(order_cameras(train, order), max_keys)
-    return interpolate_path([train[i] for i in keys], num_frames, loop=loop).cameras
+    if trajectory not in ("path", "path-all"):
+        raise ValueError(f"unknown trajectory {trajectory!r}; choose test, train, path or path-all")
+    # with two or more cameras the largest group has two or more: some camera's nearest
+    # neighbour lies within the median spacing
+    members = list(range(len(train))) if trajectory == "path-all" or not train else camera_groups(train)[0]
+    group = [train[i] for i in members]
+    keys = subsample_keys(order_cameras(group, order), max_keys)
+    return interpolate_path([group[i] for i in keys], num_frames, loop=loop).cameras

@@ -29,7 +29,8 @@ class RenderArgs:
     out: Path | None = None
     """Output folder (default: RUN/render/TRAJECTORY-MODE-step-XXXXXXX, or PLY_STEM-render/TRAJECTORY-MODE beside a PLY)."""
     trajectory: Trajectory = "test"
-    """Which cameras: the test views, the training views, or a smooth path through the training views."""
+    """Which cameras: the test views, the training views, a smooth path through the largest group of
+    training cameras (path), or through all of them, across the gaps between groups (path-all)."""
     mode: RenderMode = "rgb"
     """What to draw: colour, expected depth (colour-mapped), or accumulated opacity."""
     cameras_from: str | None = None
