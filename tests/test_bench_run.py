@@ -159,3 +159,48 @@ def test_parallel_runs_parse_overrides_before_threads_and_lose_no_output(bench, 
     printed = [ln for ln in capsys.readouterr().err.splitlines() if ln.startswith("[")]
     assert sorted(ln.split("] ")[0] for ln in printed) == [f"[{k}/6" for k in range(1, 7)]
     assert sorted(ln.split("] ")[1] for ln in printed) == [f"tiny/default-{i}/seed0: not run" for i in range(1, 7)]
+
+
+def test_real_gpu_preset_at_tiny_scale_matches_counts_through_result_references(tmp_path, tiny_scene_dir):
+    from exploregs_plugin.bench.presets import REAL_GPU_STEPS, real_gpu
+    from exploregs_plugin.bench.spec import BenchSpecError, build_config
+    from exploregs_plugin.configs import load_config
+
+    root = tmp_path / "scenes"
+    (root / "beer").mkdir(parents=True)
+    spec = real_gpu(root)
+    assert spec.name == "real-gpu" and spec.steps == REAL_GPU_STEPS == 30_000 and spec.seeds == (0, 1, 2)
+    assert [s.name for s in spec.scenes] == ["beer"] and "fox" in spec.notes[0]
+    config = build_config(replace(spec, device="cpu"), spec.scenes[0], spec.entry("seedsplit"), 0, tmp_path / "x")
+    schedule = config.schedule.resolve(config.max_steps)
+    # the 3DGS schedule, unscaled
+    assert (schedule.refine_start, schedule.refine_stop, schedule.refine_every, schedule.reset_every,
+            schedule.sh_degree_interval) == (500, 15_000, 100, 3_000, 1_000)
+    assert config.pipeline.model.sh_degree == 3 and config.pipeline.datamanager.test_every == 8
+    assert config.pipeline.strategy.budget == "paper" and config.pipeline.datamanager.data_factor == 1
+    assert spec.entry("mcmc").depends_on() == {"default"}
+    assert spec.entry("default-lowthresh").depends_on() == {"seedsplit"}
+
+    # the same entries on the tiny scene, 30 steps: the dependent runs wait and take the counts
+    tiny = replace(spec, scenes=(BenchScene("tiny", "builtin:tiny", ("--schedule.min-refine-every", "10")),),
+                   seeds=(0,), steps=30, eval_count=1, device="cpu")
+    logs: list[str] = []
+    payload = run_bench(tiny, tmp_path / "out", RunOptions(log=logs.append))
+    assert all(r["status"] == "done" for r in payload["runs"]), logs
+    counts = {e.name: _metrics(tmp_path / "out", e.name)["num_gaussians"] for e in tiny.entries}
+    mcmc = load_config(run_dir_for(tmp_path / "out", "tiny", "mcmc", 0) / "config.yml")
+    low = load_config(run_dir_for(tmp_path / "out", "tiny", "default-lowthresh", 0) / "config.yml")
+    assert mcmc.pipeline.strategy.cap_max == counts["default"]
+    assert low.pipeline.strategy.cap_max == counts["seedsplit"] and counts["default-lowthresh"] <= counts["seedsplit"]
+    order = [line.split("] ")[1].split(":")[0] for line in logs if line.startswith("[")]
+    assert order.index("tiny/mcmc/seed0") > order.index("tiny/default/seed0")
+    assert order.index("tiny/default-lowthresh/seed0") > order.index("tiny/seedsplit/seed0")
+
+    with pytest.raises(BenchSpecError, match="uses the result of 'nope'"):
+        BenchSpec(entries=(BenchEntry("a", "exploregs-mcmc", ("--strategy.cap-max", "{nope:num_gaussians}")),),
+                  scenes=(TINY,))
+    with pytest.raises(BenchSpecError, match="itself waits for another entry"):
+        BenchSpec(entries=(BenchEntry("a", "exploregs-default"),
+                           BenchEntry("b", "exploregs-mcmc", ("--strategy.cap-max", "{a:num_gaussians}")),
+                           BenchEntry("c", "exploregs-mcmc", ("--strategy.cap-max", "{b:num_gaussians}"))),
+                  scenes=(TINY,))

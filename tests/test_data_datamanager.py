@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import io
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -149,7 +150,7 @@ def test_depth_scaled_into_normalised_units(tiny_scene_dir: Path) -> None:
 def test_random_init_replaces_the_points_inside_the_camera_bounds(tiny_scene_dir: Path) -> None:
     base = DataManagerConfig(data="builtin:tiny")
     with_points = base.setup()
-    forced = replace(base, random_init=True, n_random_points=300, seed=4).setup()
+    forced = replace(base, random_init=True, random_init_mode="box", n_random_points=300, seed=4).setup()
     assert forced.points.shape == (300, 3) and forced.points_rgb.shape == (300, 3)
     assert not torch.equal(forced.points[:1], with_points.points[:1])
     from exploregs_plugin.data.random_init import focus_point
@@ -162,5 +163,37 @@ def test_random_init_replaces_the_points_inside_the_camera_bounds(tiny_scene_dir
     pts = forced.points.numpy()
     assert (pts >= corners.min(0) - pad - 1e-5).all() and (pts <= corners.max(0) + pad + 1e-5).all()
     assert (pts.max(0) - pts.min(0) > 0.5 * (corners.max(0) - corners.min(0))).all()  # fills the box
-    again = replace(base, random_init=True, n_random_points=300, seed=4).setup()
+    again = replace(base, random_init=True, random_init_mode="box", n_random_points=300, seed=4).setup()
     assert torch.equal(again.points, forced.points)  # seeded
+
+
+def test_frustum_init_puts_points_on_training_pixels_with_their_colours(tiny_scene_dir: Path) -> None:
+    config = DataManagerConfig(data="builtin:tiny", random_init=True, n_random_points=200, seed=2,
+                               random_init_depth=(0.5, 4.0))
+    dm = config.setup()
+    near, far = 0.5 * dm.scene_extent, 4.0 * dm.scene_extent
+    pts, rgb = dm.points.double(), dm.points_rgb.double()
+    assert pts.shape == (200, 3) and bool(((rgb >= 0) & (rgb <= 1)).all())
+    explained = torch.zeros(200, dtype=torch.bool)
+    depths = []
+    for i, camera in enumerate(dm.train_cameras):
+        image = dm.train_item(i)[1].double()
+        cam = pts @ camera.viewmat[:3, :3].double().T + camera.viewmat[:3, 3].double()
+        z = cam[:, 2]
+        uv = (cam @ camera.K.double().T)[:, :2] / z.clamp_min(1e-9)[:, None]
+        px, py = torch.floor(uv[:, 0]).long(), torch.floor(uv[:, 1]).long()
+        inside = (z > 0) & (px >= 0) & (px < camera.width) & (py >= 0) & (py < camera.height)
+        centred = ((uv - torch.floor(uv) - 0.5).abs() < 1e-4).all(dim=1)  # on a pixel centre
+        hit = inside & centred & (z >= near * (1 - 1e-5)) & (z <= far * (1 + 1e-5))
+        same = torch.zeros(200, dtype=torch.bool)
+        same[hit] = (image[py[hit], px[hit]] - rgb[hit]).abs().max(dim=1).values < 1e-6
+        depths.append(z[same & ~explained])
+        explained |= same
+    assert bool(explained.all())  # every point sits on a training pixel's ray and has its colour
+    z = torch.cat(depths).log()
+    # log-uniform depths: mean log depth near the middle of [log near, log far]
+    assert abs(float(z.mean()) - 0.5 * (math.log(near) + math.log(far))) < 0.2 * math.log(far / near)
+    again = config.setup()
+    assert torch.equal(again.points, dm.points)
+    with pytest.raises(DataError, match="random-init-depth"):
+        replace(config, random_init_depth=(2.0, 1.0)).setup()

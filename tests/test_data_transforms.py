@@ -64,7 +64,7 @@ def _blender_folder(root: Path) -> Path:
 def test_blender_variant_opengl_rgba_and_split(tmp_path: Path) -> None:
     root = _blender_folder(tmp_path / "blender")
     bg = np.array([0.0, 1.0, 0.0])
-    scene = read_transforms(root, ParseOptions(background=bg, n_random_points=50))
+    scene = read_transforms(root, ParseOptions(background=bg))
     assert [im.name for im in scene.images] == ["test/r_0.png", "train/r_0.png", "train/r_1.png"]
     assert scene.split == {"train": ["train/r_0.png", "train/r_1.png"], "test": ["test/r_0.png"]}
     im = scene.images[1]
@@ -74,7 +74,7 @@ def test_blender_variant_opengl_rgba_and_split(tmp_path: Path) -> None:
     np.testing.assert_allclose(cam, [0, 0, 4], atol=1e-12)
     up_world = im.viewmat[:3, :3] @ np.array([0.0, 1.0, 0.0])
     assert up_world[1] < 0  # world up (OpenGL y) is image up = -y in OpenCV
-    assert scene.points.shape == (50, 3)
+    assert scene.points is None  # no point cloud: the datamanager initialises randomly
     from exploregs_plugin.data.images import read_image
 
     pixels = read_image(im.path, bg)
@@ -130,8 +130,8 @@ def test_ply_points_and_empty_ply(exported: Path) -> None:
     np.testing.assert_allclose(scene.points_rgb, [[1.0, 128 / 255, 0.0]])
     write_ply_points(exported.parent / "points3D.ply", np.zeros((0, 3)), np.zeros((0, 3)))
     with pytest.warns(UserWarning, match="empty point cloud; using random initialisation"):
-        scene = read_transforms(exported, ParseOptions(n_random_points=30))
-    assert scene.points.shape == (30, 3)
+        scene = read_transforms(exported, ParseOptions())
+    assert scene.points is None  # the datamanager initialises randomly (tests/test_data_datamanager.py)
 
 
 # ---- bad input ----

@@ -79,6 +79,14 @@ STANDARD_SEEDS = (0, 1, 2)
 REAL_SCENES = {"beer": ("beer", 8), "fox": ("fox", 12)}
 """name -> (folder in ../shared/scenes, data factor): beer 720x1280 -> 90x160, fox 1080x1920 -> 90x160."""
 REAL_STEPS = 600
+REAL_GPU_SCENES = {"beer": ("beer", 1), "fox": ("fox", 2)}
+"""name -> (folder, data factor) at the paper's scale: beer at its full 720x1280, fox at 540x960
+(the usual factor 2 of a 1080p capture)."""
+REAL_GPU_STEPS = 30_000
+REAL_GPU_SEEDS = (0, 1, 2)
+PAPER_BUDGET = ("--strategy.budget", "paper")
+"""The paper's absolute exploration budget (20 seeds per densification, 20 random splits per step),
+made for 30k steps and 1-3M Gaussians."""
 ANALYSIS_STEPS = 600
 ANALYSIS_BASELINES = {"branch-ablation": "all-branches", "split-ablation": "default-grad0.0002"}
 """Entry each ablation's paired differences are taken against (the unablated configuration)."""
@@ -121,6 +129,36 @@ def real(root: Path | None = None) -> BenchSpec:
                      seeds=(0,), steps=REAL_STEPS, eval_count=4, name="real", notes=tuple(notes))
 
 
+def real_gpu(root: Path | None = None) -> BenchSpec:
+    """The paper's recipe on the captured scenes, on a GPU: 30k steps with the 3DGS schedule
+    unscaled (densify from 500 to 15k every 100, opacity reset every 3k, SH degree up by one
+    every 1k to 3), full or the usual resolution, every 8th view for testing, the paper's
+    exploration budget, three seeds. MCMC is capped at Default's final count, and the
+    low-threshold control at Seed+Split's, so counts match (``{ENTRY:num_gaussians}``)."""
+    root = Path(root) if root is not None else shared_scenes_root()
+    scenes = [BenchScene(name, str(root / folder), ("--data-factor", str(factor)))
+              for name, (folder, factor) in REAL_GPU_SCENES.items() if (root / folder).is_dir()]
+    notes = [f"real-gpu preset: {root / folder} is absent; scene {name!r} skipped"
+             for name, (folder, _) in REAL_GPU_SCENES.items() if not (root / folder).is_dir()]
+    if not scenes:
+        raise BenchSpecError(f"real-gpu preset: no captured scenes under {root}; nothing to run")
+    named = named_entries()
+    entries = (
+        named["default"],
+        named["default-relaxed-prune"],
+        BenchEntry("default-lowthresh", "exploregs-default",
+                   named["default-lowthresh"].overrides + ("--strategy.cap-max", "{seedsplit:num_gaussians}"),
+                   "control: Default with the lower gradient threshold, capped at Seed+Split's final count"),
+        BenchEntry("seed", "exploregs-seed", PAPER_BUDGET, "Random Seeding, the paper's budget"),
+        BenchEntry("split", "exploregs-split", PAPER_BUDGET, "Random Splitting, the paper's budget"),
+        BenchEntry("seedsplit", "exploregs-seedsplit", PAPER_BUDGET, "Random Seeding + Splitting, the paper's budget"),
+        BenchEntry("mcmc", "exploregs-mcmc", ("--strategy.cap-max", "{default:num_gaussians}"),
+                   "3DGS-MCMC capped at Default's final count"),
+    )
+    return BenchSpec(entries=entries, scenes=tuple(scenes), seeds=REAL_GPU_SEEDS, steps=REAL_GPU_STEPS,
+                     eval_count=6, name="real-gpu", notes=tuple(notes))
+
+
 def _analysis(name: str, scenes: tuple[str, ...]) -> BenchSpec:
     """An eg-analyze ablation (branch ablation, depth supervision, split ablation) as a bench."""
     from exploregs_plugin.bench.experiments import EXPERIMENTS
@@ -134,6 +172,7 @@ PRESETS = {
     "quick": quick,
     "standard": standard,
     "real": real,
+    "real-gpu": real_gpu,
     # the paper's ablations (docs/analysis.md): every subset of position-gradient branches switched
     # off, depth supervision (ground truth and a noisy, biased "monocular" map), and n_split /
     # gradient-threshold sweeps for the PSNR-against-Gaussians plot

@@ -131,8 +131,17 @@ def same_config(run_dir: Path, config: Any) -> bool:
 
 def _config_or_error(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry,
                      seed: int) -> TrainerConfig | BenchSpecError:
+    def value_of(ref: str, field: str) -> Any:
+        """A result of entry ``ref``'s run on this scene and seed (it ran before this one)."""
+        metrics = read_json(run_dir_for(results, scene.name, ref, seed) / METRICS_NAME) or {}
+        if field not in metrics:
+            raise BenchSpecError(f"entry {entry.name!r} needs {field} of {ref!r} on {scene.name} seed {seed}, "
+                                 f"which has no finished run")
+        return metrics[field]
+
     try:
-        return build_config(spec, scene, entry, seed, run_dir_for(results, scene.name, entry.name, seed))
+        resolved = entry.resolved(value_of) if entry.depends_on() else entry
+        return build_config(spec, scene, resolved, seed, run_dir_for(results, scene.name, entry.name, seed))
     except BenchSpecError as err:
         return err
 
@@ -201,11 +210,9 @@ def execute(spec: BenchSpec, results: Path, options: RunOptions | None = None) -
     if options.jobs < 1:
         raise BenchSpecError(f"jobs must be >= 1, got {options.jobs}")
     plan = spec.runs()
-    # Configs are built here, before any thread starts: parsing overrides swaps the process-wide
-    # stderr for a moment (to catch tyro's message), which would swallow other threads' output.
-    prepared = [_config_or_error(spec, results, *item) for item in plan]
     lock = threading.Lock()
     done = {"count": 0, "trained_seconds": 0.0, "trained": 0}
+    prepared: dict[int, TrainerConfig | BenchSpecError] = {}
 
     def one(index: int) -> RunRecord:
         scene, entry, seed = plan[index]
@@ -218,10 +225,20 @@ def execute(spec: BenchSpec, results: Path, options: RunOptions | None = None) -
             options.log(_progress_line(record, done["count"], len(plan), done, options.jobs))
         return record
 
-    if options.jobs == 1:
-        return [one(i) for i in range(len(plan))]
-    with ThreadPoolExecutor(max_workers=options.jobs) as pool:
-        return list(pool.map(one, range(len(plan))))
+    # Runs whose overrides use another entry's result ({ENTRY:num_gaussians}) come in a second
+    # wave, after every run they may need.
+    records: dict[int, RunRecord] = {}
+    for wave in ([i for i, (_, e, _) in enumerate(plan) if not e.depends_on()],
+                 [i for i, (_, e, _) in enumerate(plan) if e.depends_on()]):
+        # Configs are built here, before any thread starts: parsing overrides swaps the process-wide
+        # stderr for a moment (to catch tyro's message), which would swallow other threads' output.
+        prepared.update({i: _config_or_error(spec, results, *plan[i]) for i in wave})
+        if options.jobs == 1:
+            records.update({i: one(i) for i in wave})
+        else:
+            with ThreadPoolExecutor(max_workers=options.jobs) as pool:
+                records.update(zip(wave, pool.map(one, wave)))
+    return [records[i] for i in range(len(plan))]
 
 
 def _progress_line(record: RunRecord, count: int, total: int, done: dict[str, Any], jobs: int) -> str:

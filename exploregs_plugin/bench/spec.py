@@ -14,7 +14,7 @@ import shlex
 import threading
 from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from exploregs_plugin.configs import tyro_error_text
 from exploregs_plugin.trainer import TrainerConfig
@@ -45,6 +45,10 @@ def check_name(kind: str, name: str) -> str:
     return name
 
 
+RESULT_REF = re.compile(r"\{([A-Za-z0-9][A-Za-z0-9_.+-]*):(num_gaussians)\}")
+"""``{ENTRY:num_gaussians}`` in an override: the final count of ENTRY's run (same scene and seed)."""
+
+
 @dataclass(frozen=True)
 class BenchEntry:
     """One row of the tables: a registered method plus eg-train overrides."""
@@ -54,9 +58,20 @@ class BenchEntry:
     method: str
     """Registered method (``eg-train --help`` lists them), e.g. ``exploregs-default``."""
     overrides: tuple[str, ...] = ()
-    """eg-train arguments applied to the method's config (``--strategy.prune-scale3d 10``)."""
+    """eg-train arguments applied to the method's config (``--strategy.prune-scale3d 10``). An
+    argument ``{ENTRY:num_gaussians}`` is the final Gaussian count of entry ENTRY's run on the
+    same scene and seed (``--strategy.cap-max {default:num_gaussians}``): such a run waits for it."""
     description: str = ""
     """One line for the docs and results.md."""
+
+    def depends_on(self) -> set[str]:
+        """Entries whose results this entry's overrides use."""
+        return {m.group(1) for arg in self.overrides for m in RESULT_REF.finditer(arg)}
+
+    def resolved(self, value_of: Callable[[str, str], Any]) -> "BenchEntry":
+        """The entry with every ``{ENTRY:FIELD}`` replaced by ``value_of(ENTRY, FIELD)``."""
+        args = tuple(RESULT_REF.sub(lambda m: str(value_of(m.group(1), m.group(2))), a) for a in self.overrides)
+        return replace(self, overrides=args)
 
 
 @dataclass(frozen=True)
@@ -108,6 +123,13 @@ class BenchSpec:
                 raise BenchSpecError(f"{kind} names must be unique; repeated: {', '.join(dup)}")
         if len(set(self.seeds)) != len(self.seeds):
             raise BenchSpecError(f"seeds must be unique, got {list(self.seeds)}")
+        names = {e.name for e in self.entries}
+        for e in self.entries:
+            for ref in e.depends_on():
+                if ref not in names:
+                    raise BenchSpecError(f"entry {e.name!r} uses the result of {ref!r}, which is not in the bench")
+                if self.entry(ref).depends_on():
+                    raise BenchSpecError(f"entry {e.name!r} uses {ref!r}, which itself waits for another entry")
 
     def entry(self, name: str) -> BenchEntry:
         for e in self.entries:

@@ -18,7 +18,6 @@ from .camera_prep import check_camera, check_pose, prepare_image, source_image
 from .errors import DataError
 from .images import IMAGE_SUFFIXES
 from .parsed import ImageRecord, ParsedScene, ParseOptions
-from .random_init import random_points
 
 MODEL_FILES = ("cameras", "images", "points3D")
 
@@ -182,7 +181,6 @@ def read_colmap(root: Path, options: ParseOptions) -> ParsedScene:
     if points is None:
         warnings.warn(f"{sparse}: the COLMAP model has no 3D points; using random initialisation",
                       stacklevel=2)
-        points, rgb = random_points(records, options.n_random_points, options.seed)
     return ParsedScene(
         name=root.name,
         root=root,

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
 import numpy as np
 import torch
@@ -19,7 +19,7 @@ from .errors import DataError
 from .images import read_image_alpha
 from .parsed import REGION_LABELS, ImageRecord, ParsedScene, ParseOptions
 from .dataparser import parse_dataset
-from .random_init import random_points
+from .random_init import box_points, frustum_points
 
 
 @dataclass
@@ -48,8 +48,14 @@ class DataManagerConfig:
     n_random_points: int = 10_000
     """Random initial points when the dataset has no point cloud (or with random_init)."""
     random_init: bool = False
-    """Ignore the dataset's points and start from n_random_points random points inside the
-    camera bounds, as for a dataset without points (3DGS-MCMC's random-initialisation option)."""
+    """Ignore the dataset's points and start from random ones, as for a dataset without points
+    (3DGS-MCMC's random-initialisation option)."""
+    random_init_mode: Literal["frusta", "box"] = "frusta"
+    """Where random initial points go: 'frusta', along the rays of random training pixels at
+    log-uniform depths in random_init_depth, coloured by those pixels; or 'box', uniform in the box
+    of the camera centres and their focus point, with random colours (docs/data.md compares them)."""
+    random_init_depth: tuple[float, float] = (0.1, 10.0)
+    """Near and far depth of 'frusta' points, in units of the scene extent (camera spread)."""
     cache_dir: str | None = None
     """Cache root for built-in scenes and derived images (default: $EXPLOREGS_CACHE or ~/.cache/exploregs)."""
 
@@ -65,14 +71,15 @@ class DataManagerConfig:
             raise DataError("--background", f"must be three values in [0, 1], got {self.background}")
         if self.n_random_points < 1:
             raise DataError("--n-random-points", f"must be >= 1, got {self.n_random_points}")
+        near, far = self.random_init_depth
+        if not 0.0 < near < far:
+            raise DataError("--random-init-depth", f"needs 0 < near < far, got {near}, {far}")
         root = Path(self.cache_dir).expanduser() if self.cache_dir else cache_root()
         return ParseOptions(
             data_factor=self.data_factor,
             undistort=self.undistort,
             cache_root=root,
             background=np.asarray(self.background, dtype=np.float64),
-            seed=self.seed,
-            n_random_points=self.n_random_points,
         )
 
 
@@ -117,8 +124,8 @@ class DataManager:
         self.train_cameras: list[Camera] = [it.camera for it in self._train]
         self.test_cameras: list[Camera] = [it.camera for it in self._test]
         points, points_rgb = self.parsed.points, self.parsed.points_rgb
-        if config.random_init:
-            points, points_rgb = random_points(self.parsed.images, config.n_random_points, config.seed)
+        if points is None or config.random_init:
+            points, points_rgb = self._random_points()
         self.points: Tensor | None = _tensor(points)
         self.points_rgb: Tensor | None = _tensor(points_rgb)
         self.scene_extent: float = float(self.parsed.scene_extent)
@@ -130,6 +137,15 @@ class DataManager:
         self._order: Tensor = torch.randperm(len(self._train), generator=self._generator, device="cpu")
         self._position = 0
         self._epoch = 0
+
+    def _random_points(self) -> tuple[np.ndarray, np.ndarray]:
+        """Initial points for a dataset without them (or with random_init), seeded by the run."""
+        config = self.config
+        if config.random_init_mode == "box":
+            return box_points(self.parsed.images, config.n_random_points, config.seed)
+        near, far = (d * self.parsed.scene_extent for d in config.random_init_depth)
+        views = [(it.camera.viewmat.numpy(), it.camera.K.numpy(), it.image.numpy()) for it in self._train]
+        return frustum_points(views, config.n_random_points, near, far, config.seed)
 
     def _load(self, record: ImageRecord, background: np.ndarray) -> _Item:
         pixels, alpha = read_image_alpha(record.path, background)

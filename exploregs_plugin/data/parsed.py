@@ -131,8 +131,6 @@ class ParseOptions:
     cache_root: Path = field(default_factory=cache_root)
     """Root for derived images when the dataset folder is read-only, and for built-in scenes."""
     background: np.ndarray | None = None
-    seed: int = 0
-    n_random_points: int = 10_000
 
 
 def camera_centers(images: list[ImageRecord]) -> np.ndarray:

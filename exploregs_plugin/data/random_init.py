@@ -1,7 +1,12 @@
-"""Random initial points inside the camera bounds, for datasets without a point cloud.
+"""Random initial points for datasets without a point cloud.
 
-The box spans the camera centres and the focus point (the point closest, in least squares,
-to every optical axis: where the cameras look), padded by 10% of its largest side.
+- ``frustum_points``: along the rays of random training pixels, at log-uniform depths between a
+  near and a far bound, coloured by those pixels. Every point lies in front of a training camera
+  and has the colour that camera saw there, wherever the content is (inside the ring of
+  cameras, or far beyond it for an outward-looking capture).
+- ``box_points``: uniform in the box spanned by the camera centres and the focus point (the
+  point closest, in least squares, to every optical axis: where the cameras look), padded by 10%
+  of its largest side, with random colours. Content outside that box is out of reach.
 """
 
 from __future__ import annotations
@@ -31,7 +36,7 @@ def focus_point(centers: np.ndarray, forwards: np.ndarray) -> np.ndarray:
     return centers.mean(axis=0) + radius * mean_f
 
 
-def random_points(images: list[ImageRecord], count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
+def box_points(images: list[ImageRecord], count: int, seed: int) -> tuple[np.ndarray, np.ndarray]:
     """``count`` uniform points [count, 3] in the camera box and random colours [count, 3]."""
     centers = np.stack([im.camera_center for im in images])
     forwards = np.stack([im.viewmat[2, :3] for im in images])  # camera z axis in world = row 2 of R
@@ -41,3 +46,35 @@ def random_points(images: list[ImageRecord], count: int, seed: int) -> tuple[np.
     rng = np.random.default_rng([seed, 7])
     points = rng.uniform(lo - pad, hi + pad, size=(count, 3))
     return points, rng.random((count, 3))
+
+
+def frustum_points(
+    views: list[tuple[np.ndarray, np.ndarray, np.ndarray]], count: int, near: float, far: float, seed: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` points [count, 3] on the rays of random pixels of random views, at camera depth
+    z log-uniform in [near, far], and their pixels' colours [count, 3] in [0, 1].
+
+    views: (viewmat [4, 4] world-to-camera, K [3, 3], image [H, W, 3] uint8) per training view.
+    A pixel centre (u, v) at depth z is X_cam = z K^-1 (u, v, 1); X = R^T (X_cam - t).
+    """
+    if not views:
+        raise ValueError("frustum initialisation needs at least one training view")
+    if not 0.0 < near < far:
+        raise ValueError(f"frustum initialisation needs 0 < near < far, got {near}, {far}")
+    rng = np.random.default_rng([seed, 11])
+    which = rng.integers(len(views), size=count)
+    points = np.empty((count, 3))
+    rgb = np.empty((count, 3))
+    depth = np.exp(rng.uniform(np.log(near), np.log(far), size=count))
+    for v in np.unique(which):
+        viewmat, K, image = views[v]
+        rows = np.flatnonzero(which == v)
+        h, w = image.shape[:2]
+        px = rng.integers(w, size=len(rows))
+        py = rng.integers(h, size=len(rows))
+        pix = np.stack([px + 0.5, py + 0.5, np.ones(len(rows))], axis=1)
+        cam = (np.linalg.inv(np.asarray(K, dtype=np.float64)) @ pix.T).T * depth[rows, None]
+        rot, trans = np.asarray(viewmat, dtype=np.float64)[:3, :3], np.asarray(viewmat, dtype=np.float64)[:3, 3]
+        points[rows] = (cam - trans) @ rot  # R^T (x - t), row-wise
+        rgb[rows] = image[py, px, :3] / 255.0
+    return points, rgb

@@ -34,7 +34,6 @@ from .colmap import attach_extras
 from .errors import DataError
 from .images import IMAGE_SUFFIXES, image_size
 from .parsed import ParsedScene, ParseOptions
-from .random_init import random_points
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplying a camera-to-world matrix by this flips camera y and z (OpenGL <-> OpenCV)."""
@@ -219,8 +218,6 @@ def read_transforms(path: Path, options: ParseOptions) -> ParsedScene:
             warnings.warn(f"{base / str(meta['ply_file_path'])}: empty point cloud; using random "
                           "initialisation", stacklevel=2)
             points, rgb = None, None
-    if points is None:
-        points, rgb = random_points(records, options.n_random_points, options.seed)
     return ParsedScene(
         name=base.name,
         root=base,
