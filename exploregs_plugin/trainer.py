@@ -3,10 +3,10 @@
 from __future__ import annotations
 
 import signal
-from contextlib import contextmanager
 import sys
 import threading
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from datetime import datetime
 from pathlib import Path
