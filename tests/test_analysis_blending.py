@@ -186,3 +186,22 @@ def test_blending_by_visibility_bins_each_gaussian_by_its_best_transmittance():
     assert torch.allclose(out["mean_grad"], torch.tensor([0.5, 1.0, 3.0], dtype=F64))
     assert torch.allclose(out["frac_above"], torch.tensor([0.0, 1.0, 1.0], dtype=F64))
     assert out["hi"][-1] == 1.0
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_rasterizer_visibility_sums_equal_the_blended_pairs(workers):
+    from exploregs_plugin.rasterizer import RasterSettings, rasterize
+
+    s = random_scene(80, 40, 32, torch.Generator().manual_seed(5), scale_range=(0.05, 0.3), dtype=F64)
+    params = {"means": s.means, "quats": s.quats, "scales": torch.log(s.scales),
+              "opacities": torch.logit(s.opacities), "sh0": s.sh_coeffs[:, :1], "shN": s.sh_coeffs[:, 1:]}
+    pairs = composited_pairs(params, Camera(s.viewmat, s.K, s.width, s.height))
+    weight = torch.zeros(80, dtype=F64).index_add_(0, pairs["ids"], pairs["T_before"] * pairs["alphas"])
+    alpha = torch.zeros(80, dtype=F64).index_add_(0, pairs["ids"], pairs["alphas"])
+    settings = RasterSettings(visibility_stats=True, workers=workers, chunk_elements=2048)
+    image, _, _, info = rasterize(*s.args(), settings=settings)
+    assert info["visibility"].shape == (80, 2) and (weight > 0).sum() > 20
+    assert torch.allclose(info["visibility"][:, 0], weight, rtol=1e-9, atol=1e-12)
+    assert torch.allclose(info["visibility"][:, 1], alpha, rtol=1e-9, atol=1e-12)
+    plain, _, _, plain_info = rasterize(*s.args(), settings=RasterSettings(workers=workers, chunk_elements=2048))
+    assert torch.equal(plain, image) and "visibility" not in plain_info  # the image does not change

@@ -193,12 +193,15 @@ def _transmittance(alpha: Tensor, t_keep: float) -> tuple[Tensor, Tensor]:
     return tb[..., :-1], keep
 
 
-def _forward_kernel(g, mxr, myr, pix, alpha_max: float, alpha_keep: float, t_keep: float):
-    """Compositing weights w = alpha T (0 after the stop) [B, P, K] and the largest number of
-    included pairs of any pixel (a 0-d tensor)."""
+def _forward_kernel(g, mxr, myr, pix, alpha_max: float, alpha_keep: float, t_keep: float,
+                    inside: Tensor | None = None):
+    """Compositing weights w = alpha T (0 after the stop) [B, P, K], the largest number of
+    included pairs of any pixel (a 0-d tensor) and, given ``inside`` ([B, P, 1] pixel mask),
+    each pair's included alpha summed over the tile's pixels inside the image [B, K] (else None)."""
     alpha = _chunk_alpha(g, mxr, myr, pix, alpha_max, alpha_keep)
     t_before, keep = _transmittance(alpha, t_keep)
-    return alpha.mul_(t_before).mul_(keep), keep.sum(-1).amax()
+    summed = (alpha * keep * inside).sum(1) if inside is not None else None
+    return alpha.mul_(t_before).mul_(keep), keep.sum(-1).amax(), summed
 
 
 def _backward_kernel(g, mxr, myr, pix, gf, alpha_max: float, alpha_keep: float, t_keep: float):
@@ -220,16 +223,35 @@ def _thresholds(s: RasterSettings) -> tuple[float, float, float]:
     return s.alpha_max, math.nextafter(s.alpha_min, 0.0), math.nextafter(s.transmittance_min, 0.0)
 
 
-def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used, cache):
+def _inside_image(bins: TileBins, tiles: Tensor, dtype: torch.dtype) -> Tensor:
+    """[B, P, 1]: 1 for the tiles' pixels inside the image, 0 for those past its right or bottom edge."""
+    ts = bins.tile_size
+    offs = torch.arange(ts, device=tiles.device)
+    px = (tiles % bins.tiles_x)[:, None] * ts + offs[None, :]  # [B, ts] columns
+    py = (tiles // bins.tiles_x)[:, None] * ts + offs[None, :]  # [B, ts] rows
+    inside = (py[:, :, None] < bins.height) & (px[:, None, :] < bins.width)  # [B, ts (y), ts (x)]
+    return inside.reshape(len(tiles), ts * ts, 1).to(dtype)
+
+
+def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used, cache) -> Tensor | None:
+    """Composites chunks ``ids`` into ``out``; with ``s.visibility_stats``, returns this worker's
+    per-Gaussian [M + 1, 2] sums of the weight alpha T and of alpha over its pixels."""
     pix = _pixel_offsets(bins.tile_size, geom.dtype, geom.device)
+    stats = torch.zeros(geom.shape[0], 2, dtype=geom.dtype, device=geom.device) if s.visibility_stats else None
     for i in ids:
         tiles, k = chunks[i]
         c = _Chunk.gather(geom, feat_t, bins, tiles, k)
-        w, n_used = _forward_kernel(c.g, c.mxr, c.myr, pix, *_thresholds(s))
+        inside = _inside_image(bins, tiles, geom.dtype) if stats is not None else None  # padding counts nothing
+        w, n_used, alpha_sum = _forward_kernel(c.g, c.mxr, c.myr, pix, *_thresholds(s), inside=inside)
         used[i] = int(n_used)
         out[tiles] = torch.bmm(w, c.f.transpose(1, 2))
+        if stats is not None:
+            rows = c.gidx.reshape(-1)
+            stats[:, 0].index_add_(0, rows, (w * inside).sum(1).reshape(-1))
+            stats[:, 1].index_add_(0, rows, alpha_sum.reshape(-1))
         if cache is not None:
             cache[i] = c.first(used[i])
+    return stats
 
 
 def _backward_chunks(geom, cache, ids, tile_size, s, grad_out) -> Tensor:
@@ -322,16 +344,19 @@ class _Composite(torch.autograd.Function):
         # gathered pairs are kept for the backward (O(pairs), not O(pixels x pairs))
         needs_grad = any(ctx.needs_input_grad[:4])
         cache: list[_Chunk | None] | None = [None] * len(chunks) if needs_grad else None
-        _run_split(
+        parts = _run_split(
             lambda _, ids: _forward_chunks(geom, feat_t, bins, chunks, ids, settings, out, used, cache),
             len(chunks), _workers(settings, means2d.device),
         )  # fmt: skip
+        # workers keep their own sums (no two threads add into one tensor); the padding row goes
+        visibility = sum(p for p in parts if p is not None)[:-1] if settings.visibility_stats else out.new_zeros(0, 2)
+        ctx.mark_non_differentiable(visibility)
         ctx.save_for_backward(geom)
         ctx.cache, ctx.tile_size, ctx.settings = cache, bins.tile_size, settings
-        return out
+        return out, visibility
 
     @staticmethod
-    def backward(ctx, grad_out):  # type: ignore[override]
+    def backward(ctx, grad_out, grad_visibility):  # type: ignore[override]
         (geom,) = ctx.saved_tensors
         grad_out = grad_out.contiguous()
         parts = _run_split(
@@ -380,6 +405,8 @@ def composite(
 
     means2d: [M, 2]; conics: [M, 3]; opacities: [M]; feats: [M, F] (colour, depth, ...);
     support: [M, 2] box half-widths (no gradient). Returns [T, tile_size^2, F + 1]: the
-    composited features and, last, the accumulated alpha sum_m w_m = 1 - T_final, per tile pixel.
+    composited features and, last, the accumulated alpha sum_m w_m = 1 - T_final, per tile pixel;
+    and, with ``settings.visibility_stats``, [M, 2] per Gaussian: the sum over pixels of its
+    weight alpha T and of its alpha (their ratio is the mean transmittance in front of it), else [0, 2].
     """
     return _Composite.apply(means2d, conics, opacities, feats, support.detach(), bins, settings)

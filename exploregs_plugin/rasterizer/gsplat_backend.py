@@ -45,6 +45,9 @@ def backend_problem(settings: RasterSettings, device: torch.device) -> str | Non
     if device.type != "cuda":
         return (f"--model.raster.backend gsplat renders with CUDA kernels, and this run's device is {device}: "
                 f"use --device cuda on a machine with a GPU, or --model.raster.backend torch")
+    if settings.visibility_stats:
+        return ("--model.raster.visibility-stats (occlusion-aware splitting) needs the per-Gaussian sums that only "
+                "--model.raster.backend torch computes")
     defaults = {f.name: f.default for f in fields(RasterSettings)}
     for name in _KERNEL_FIXED:
         if getattr(settings, name) != defaults[name]:

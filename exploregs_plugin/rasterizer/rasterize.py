@@ -167,7 +167,7 @@ def _rasterize(
     bins = bin_gaussians(
         means2d_vis.detach(), support, proj.depths.detach().index_select(0, vis), width, height, settings.tile_size
     )
-    out = composite(
+    out, visibility = composite(
         means2d_vis, proj.conics.index_select(0, vis), proj.opacities.index_select(0, vis), feats, support, bins,
         settings,
     )  # fmt: skip
@@ -194,4 +194,7 @@ def _rasterize(
         "n_cameras": 1,
         "n_pairs": bins.n_pairs,
     }
+    if settings.visibility_stats:
+        info["visibility"] = torch.zeros(means.shape[0], 2, dtype=dtype, device=means.device).index_copy_(
+            0, vis, visibility)
     return image, acc, depth, info

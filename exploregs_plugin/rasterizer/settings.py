@@ -39,6 +39,10 @@ class RasterSettings:
     single_threaded_backward: bool = True
     """Run the backward pass of a render (projection included) with single-threaded torch ops;
     the compositor still uses ``workers`` threads. Faster on small shared machines."""
+    visibility_stats: bool = False
+    """Also return, per Gaussian, the sums over pixels of its compositing weight alpha T and of
+    its alpha (info["visibility"] [N, 2]; occlusion-aware splitting reads them). Costs one more
+    pass over each chunk in the forward."""
     workers: int = 0
     """Compositing threads, each running single-threaded torch ops on its own chunks (0 = the
     caller's torch thread count, which eg-train's --num-threads sets). Results agree across

@@ -24,6 +24,10 @@ class TileBins:
     tiles_x: int
     tiles_y: int
     tile_size: int
+    width: int = 0
+    """Image width in pixels (tiles on the right edge may reach past it)."""
+    height: int = 0
+    """Image height in pixels."""
 
     @property
     def n_pairs(self) -> int:
@@ -50,7 +54,7 @@ def bin_gaussians(
     if means2d.shape[0] == 0:
         empty = torch.zeros(0, dtype=torch.int64, device=dev)
         zeros = torch.zeros(n_tiles, dtype=torch.int64, device=dev)
-        return TileBins(empty, zeros, zeros.clone(), tiles_x, tiles_y, tile_size)
+        return TileBins(empty, zeros, zeros.clone(), tiles_x, tiles_y, tile_size, width, height)
     size = torch.tensor([width - 1, height - 1], dtype=means2d.dtype, device=dev)
     lo = torch.ceil(means2d - support - 0.5 - 1e-3).clamp(min=0).minimum(size)
     hi = torch.floor(means2d + support - 0.5 + 1e-3).clamp(min=0).minimum(size)
@@ -71,7 +75,7 @@ def bin_gaussians(
     tile_sorted, perm = torch.sort(tile, stable=True)
     tile_counts = torch.bincount(tile_sorted, minlength=n_tiles)
     tile_offsets = torch.cumsum(tile_counts, 0) - tile_counts
-    return TileBins(gid[perm], tile_offsets, tile_counts, tiles_x, tiles_y, tile_size)
+    return TileBins(gid[perm], tile_offsets, tile_counts, tiles_x, tiles_y, tile_size, width, height)
 
 
 def plan_chunks(bins: TileBins, chunk_elements: int) -> list[tuple[Tensor, int]]:
