@@ -13,7 +13,9 @@ from __future__ import annotations
 from dataclasses import dataclass, replace
 from importlib.metadata import entry_points
 
+from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.pipeline import PipelineConfig
+from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.trainer import TrainerConfig
 
 METHOD_ENTRY_POINT_GROUP = "exploregs.methods"
@@ -31,8 +33,10 @@ class MethodRegistryError(ValueError):
     """A method name is unknown, or a plugin's method could not be loaded."""
 
 
-def _method(name: str, description: str, strategy: object, **trainer_fields: object) -> MethodSpecification:
-    config = TrainerConfig(method_name=name, pipeline=PipelineConfig(strategy=strategy), **trainer_fields)
+def _method(name: str, description: str, strategy: object, visibility_stats: bool = False) -> MethodSpecification:
+    """``visibility_stats``: the rasterizer also sums each Gaussian's weight and alpha (occlusion-aware splitting)."""
+    model = GaussianModelConfig(raster=RasterSettings(visibility_stats=visibility_stats))
+    config = TrainerConfig(method_name=name, pipeline=PipelineConfig(strategy=strategy, model=model))
     return MethodSpecification(config=config, description=description)
 
 
@@ -58,6 +62,12 @@ def builtin_methods() -> dict[str, MethodSpecification]:
                 s.MCMCStrategy()),
         _method("exploregs-mcmc-ray", "3DGS-MCMC with its position noise projected onto the viewing ray.",
                 s.MCMCStrategy(noise_mode="ray")),
+        _method("exploregs-guided", "Default + guided seeding: seeds on the rays of the pixels with the highest recent error.",
+                s.GuidedSeedingStrategy(budget=budget)),
+        _method("exploregs-occlusion", "Default + occlusion-aware splitting: split what blending hides and still errs.",
+                s.OcclusionSplittingStrategy(budget=budget), visibility_stats=True),
+        _method("exploregs-guided-occlusion", "Default + guided seeding + occlusion-aware splitting.",
+                s.GuidedOcclusionStrategy(budget=budget), visibility_stats=True),
     ]
     return {m.config.method_name: m for m in methods}
 

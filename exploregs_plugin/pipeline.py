@@ -108,6 +108,9 @@ class Pipeline:
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
 
         loss, terms = photometric_loss(image, target, self.config.ssim_lambda)
+        if self.strategy.wants_view_errors:  # guided exploration: where this view is still wrong
+            info["view"] = {"index": index, "viewmat": camera.viewmat, "K": camera.K, "target": target,
+                            "error": (image.detach() - target).abs().mean(dim=-1)}
         if self.config.depth_loss_weight > 0.0:
             if "depth" not in extras:
                 raise ValueError("depth_loss_weight > 0 but the dataset has no depth maps")

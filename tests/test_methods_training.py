@@ -83,3 +83,24 @@ def test_mcmc_grows_five_percent_and_never_deletes(tmp_path, tiny_scene_dir, nam
     capped_trainer, capped = train_method(name, tmp_path / "capped", cap_max=n0 + 3)
     assert capped["num_gaussians"] == n0 + 3
     assert torch.isfinite(capped_trainer.pipeline.params["means"]).all()
+
+
+def test_guided_seeds_land_on_training_rays_and_are_seen(tmp_path, tiny_scene_dir):
+    trainer, m = train_method("exploregs-guided", tmp_path, n_seed=12)
+    counts = m["strategy_counts"]
+    assert counts["seeded"] == 12
+    assert m["num_gaussians"] == m["initial_gaussians"] + counts["cloned"] + counts["split"] + 12 - counts["pruned"]
+    views = trainer.pipeline.strategy_state["views"]
+    assert len(views) == min(len(trainer.pipeline.datamanager.train_cameras), 14)  # one map per view trained
+    assert m["exploration"]["seeds_unseen"] == 0  # every guided seed lies in a training view
+
+
+def test_occlusion_aware_splitting_spends_the_split_budget(tmp_path, tiny_scene_dir):
+    trainer, m = train_method("exploregs-occlusion", tmp_path, n_split=5)
+    counts = m["strategy_counts"]
+    assert counts["random_split"] == 5 * 14
+    stats = trainer.pipeline.strategy_state["stats"]
+    assert {"vis_weight", "vis_alpha", "occ_error"} <= set(stats)
+    assert bool((stats["vis_weight"] <= stats["vis_alpha"] * (1 + 1e-5) + 1e-7).all())  # T <= 1
+    trainer, m = train_method("exploregs-guided-occlusion", tmp_path / "both", n_seed=7, n_split=2)
+    assert m["strategy_counts"]["seeded"] == 7 and m["strategy_counts"]["random_split"] == 2 * 14

@@ -8,6 +8,8 @@ from .mcmc import MCMCStrategy
 from .perturbation import NoiseMixin, RayPerturbationMixin, position_noise
 from .ray import RayPerturbationStrategy
 from .registry import ENTRY_POINT_GROUP, StrategyPluginError, available_strategies, builtin_strategies
+from .guided import GuidedSeedingMixin, GuidedSeedingStrategy
+from .occlusion import GuidedOcclusionStrategy, OcclusionSplittingMixin, OcclusionSplittingStrategy
 from .seeding import SeedingMixin, SeedingStrategy
 from .seedsplit import SeedSplitStrategy
 from .splitting import SplittingMixin, SplittingStrategy
@@ -17,8 +19,13 @@ __all__ = [
     "ENTRY_POINT_GROUP",
     "DefaultStrategy",
     "ExplorationBudget",
+    "GuidedOcclusionStrategy",
+    "GuidedSeedingMixin",
+    "GuidedSeedingStrategy",
     "MCMCStrategy",
     "NoiseMixin",
+    "OcclusionSplittingMixin",
+    "OcclusionSplittingStrategy",
     "RayPerturbationMixin",
     "RayPerturbationStrategy",
     "SeedSplitStrategy",

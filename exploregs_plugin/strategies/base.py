@@ -74,6 +74,10 @@ class Strategy:
     reset_every: int | None = None
     """Opacity reset interval in steps. None: the run's schedule."""
 
+    wants_view_errors: ClassVar[bool] = False
+    """When true, the pipeline passes each step's view in ``info["view"]``: {"index", "viewmat"
+    [4, 4], "K" [3, 3], "error" [H, W] (mean |render - target|), "target" [H, W, 3]}."""
+
     SCHEDULE_FIELDS: ClassVar[tuple[str, ...]] = (
         "refine_start_iter",
         "refine_stop_iter",

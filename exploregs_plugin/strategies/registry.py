@@ -22,7 +22,9 @@ class StrategyPluginError(StrategyError):
 def builtin_strategies() -> dict[str, type[Strategy]]:
     """Name -> class of the strategies shipped with ExploreGS."""
     from .default import DefaultStrategy
+    from .guided import GuidedSeedingStrategy
     from .mcmc import MCMCStrategy
+    from .occlusion import GuidedOcclusionStrategy, OcclusionSplittingStrategy
     from .ray import RayPerturbationStrategy
     from .seeding import SeedingStrategy
     from .seedsplit import SeedSplitStrategy
@@ -35,6 +37,9 @@ def builtin_strategies() -> dict[str, type[Strategy]]:
         "seedsplit": SeedSplitStrategy,
         "ray": RayPerturbationStrategy,
         "mcmc": MCMCStrategy,
+        "guided": GuidedSeedingStrategy,
+        "occlusion": OcclusionSplittingStrategy,
+        "guided-occlusion": GuidedOcclusionStrategy,
     }
 
 

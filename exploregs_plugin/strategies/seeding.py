@@ -238,13 +238,11 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
             "seeds_unseen": int((alive & (state["stats"][SEED_SEEN] == 0)).sum()),
         }
 
-    def seed(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator) -> int:
-        """Append up to n_seed seeds (fewer under cap_max; none when N = 0: no box)."""
-        n_before = num_gaussians(params)
-        n = min(self.n_seed, self.room(n_before))
-        if n <= 0 or n_before == 0:
-            return 0
-        rows = seed_rows(
+    def new_seed_rows(self, params: Params, state: dict[str, Any], n: int, generator: torch.Generator
+                  ) -> dict[str, Tensor] | None:
+        """Raw rows of ``n`` new seeds (None: nowhere to seed): uniform in the box of the centres.
+        Other placements (guided seeding) override this; flags and probation stay the same."""
+        return seed_rows(
             params["means"],
             params["scales"],
             n,
@@ -257,6 +255,14 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
             opacity_gain=self.seed_opacity_gain,
             min_scale=self.seed_min_scale * state["scene_scale"],
         )
+
+    def seed(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator) -> int:
+        """Append up to n_seed seeds (fewer under cap_max; none when N = 0: no box)."""
+        n_before = num_gaussians(params)
+        n = min(self.n_seed, self.room(n_before))
+        if n <= 0 or n_before == 0:
+            return 0
+        rows = self.new_seed_rows(params, state, n, generator)
         if rows is None:
             return 0
         stats = state["stats"]

@@ -33,11 +33,16 @@ def sample_split_indices(log_scales: Tensor, n: int, generator: torch.Generator)
     m = min(n, number of rows with a positive weight): without replacement there cannot be
     more distinct picks than candidates.
     """
-    w = split_weights(log_scales)
-    m = min(n, int((w > 0).sum()))
+    return draw_rows(split_weights(log_scales), n, generator)
+
+
+def draw_rows(weights: Tensor, n: int, generator: torch.Generator) -> Tensor:
+    """Up to ``n`` distinct rows drawn with probability proportional to ``weights`` [N]: [m] long,
+    m = min(n, rows with a positive weight)."""
+    m = min(n, int((weights > 0).sum()))
     if m <= 0:
-        return torch.zeros(0, dtype=torch.long, device=log_scales.device)
-    return torch.multinomial(w, m, replacement=False, generator=generator)
+        return torch.zeros(0, dtype=torch.long, device=weights.device)
+    return torch.multinomial(weights, m, replacement=False, generator=generator)
 
 
 @dataclass
@@ -75,6 +80,11 @@ class SplittingMixin(BudgetMixin, DefaultStrategy):
             counts["random_split"] = self.random_split(ctx.params, ctx.optimizers, ctx.state, ctx.rng("random splitting"))
         return counts
 
+    def split_candidate_weights(self, params: Params, state: dict[str, Any]) -> Tensor:
+        """Selection weight of each Gaussian [N]: its mean scale (the paper's rule). Other
+        choices of candidates (occlusion-aware splitting) override this."""
+        return split_weights(params["scales"])
+
     def random_split(
         self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator
     ) -> int:
@@ -83,7 +93,7 @@ class SplittingMixin(BudgetMixin, DefaultStrategy):
         budget = min(self.n_split, n, self.room(n))
         if budget <= 0:
             return 0
-        idx = sample_split_indices(params["scales"], budget, generator)
+        idx = draw_rows(self.split_candidate_weights(params, state), budget, generator)
         mask = torch.zeros(n, dtype=torch.bool, device=params["means"].device)
         mask[idx] = True
         return ops.split(params, optimizers, state["stats"], mask, generator, self.split_scale_factor)

@@ -1,0 +1,194 @@
+"""Guided seeding: seeds on the rays of the training pixels whose recent error is highest.
+
+Uniform Random Seeding puts most seeds in empty space, where probation prunes them again. Here
+each training step leaves a coarse error map of its view (mean |render - target| over cells of
+``guide_cell`` pixels, and the cells' target colours) in the strategy state; at a seeding step
+the seeds go through cells drawn with probability proportional to error^``guide_power`` over
+the stored maps, at a random point of the cell, at depths stratified over the batch between
+``guide_near`` x extent and the far bound (the farthest corner of the Gaussians' box seen from
+that camera, or ``guide_far`` x extent), and take the cell's target colour. A seed's scale is its
+cell's footprint at its depth, z * cell / f. Seed flags, the relaxed size prune and probation
+are Seeding's: seeds at the wrong depth fade and are pruned.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any, Literal
+
+import torch
+import torch.nn.functional as F
+from torch import Tensor
+
+from ..rasterizer.sh import rgb_to_sh0
+from .base import StrategyError
+from .default import DefaultStrategy
+from .geometry import random_unit_quats
+from .ops import Params
+from .seeding import SeedingMixin, seed_box
+
+DepthSampling = Literal["log", "inverse"]
+
+
+def coarse_view(error: Tensor, target: Tensor, cell: int) -> tuple[Tensor, Tensor]:
+    """error [H, W], target [H, W, 3] -> mean error [h, w] and mean colour [h, w, 3] over cells of
+    ``cell`` x ``cell`` pixels (h = ceil(H / cell); partial edge cells average what they hold)."""
+    e = F.avg_pool2d(error[None, None].float(), cell, ceil_mode=True)[0, 0]
+    c = F.avg_pool2d(target.permute(2, 0, 1)[None].float(), cell, ceil_mode=True)[0].permute(1, 2, 0)
+    return e, c
+
+
+def stratified_depths(n: int, near: Tensor, far: Tensor, mode: DepthSampling, generator: torch.Generator) -> Tensor:
+    """``n`` depths in [near, far] (per-sample bounds [n]), one per stratum of [0, 1) in random
+    order, uniform in log depth ('log': each octave of distance gets the same share) or in
+    inverse depth ('inverse': uniform in disparity)."""
+    dev = near.device
+    strata = torch.randperm(n, generator=generator, device=generator.device).to(dev, near.dtype)
+    u = (strata + torch.rand(n, generator=generator, device=generator.device).to(dev, near.dtype)) / n
+    if mode == "log":
+        return near * torch.exp(u * torch.log(far / near))
+    if mode == "inverse":
+        return 1.0 / (1.0 / near + u * (1.0 / far - 1.0 / near))
+    raise StrategyError(f"guide_depth must be 'log' or 'inverse', got {mode!r}")
+
+
+def far_bounds(means: Tensor, viewmats: Tensor, minimum: Tensor) -> Tensor:
+    """Per camera [V]: the largest camera depth z of the 8 corners of the centres' box (so seeds
+    can reach the farthest content), at least ``minimum`` [V]. viewmats: [V, 4, 4]."""
+    bounds = seed_box(means.detach())
+    if bounds is None:
+        return minimum
+    lo, hi = bounds
+    corners = torch.stack([torch.where(torch.tensor([(k >> a) & 1 for a in range(3)], device=lo.device).bool(), hi, lo)
+                           for k in range(8)])  # [8, 3]
+    z = torch.einsum("vj,cj->vc", viewmats[:, 2, :3], corners) + viewmats[:, 2, 3:4]  # [V, 8]
+    return torch.maximum(z.max(dim=1).values, minimum)
+
+
+def guided_seed_rows(
+    views: dict[int, dict[str, Tensor]],
+    n: int,
+    generator: torch.Generator,
+    means: Tensor,
+    sh_rest: int,
+    *,
+    cell: int,
+    power: float,
+    near: float,
+    far: float | None,
+    depth: DepthSampling,
+    opacity: float,
+    scale_mult: float,
+) -> dict[str, Tensor] | None:
+    """Raw rows of ``n`` guided seeds from the stored views (None when no view has error).
+
+    views: view index -> {"error" [h, w], "colour" [h, w, 3], "viewmat" [4, 4], "K" [3, 3],
+    "size" [2] (W, H)}; means: [N, 3] current centres (for the far bound); near, far: world units.
+    """
+    if not views or n <= 0:
+        return None
+    keys = sorted(views)
+    dtype, dev = means.dtype, means.device
+    errors = [views[k]["error"].to(dev, dtype).flatten() for k in keys]
+    weights = torch.cat(errors).clamp_min(0.0) ** power
+    if not bool(torch.isfinite(weights).all()) or float(weights.sum()) <= 0.0:
+        return None
+    # with replacement: a bad cell may take several seeds, at different (stratified) depths
+    picks = torch.multinomial(weights.to(generator.device), n, replacement=True, generator=generator).to(dev)
+    offsets = torch.cumsum(torch.tensor([0] + [e.numel() for e in errors], device=dev), 0)
+    which = torch.searchsorted(offsets[1:], picks, right=True)  # index into keys
+    local = picks - offsets[which]
+    widths = torch.tensor([views[k]["error"].shape[1] for k in keys], device=dev)
+    cy, cx = local // widths[which], local % widths[which]
+    viewmats = torch.stack([views[k]["viewmat"].to(dev, dtype) for k in keys])
+    Ks = torch.stack([views[k]["K"].to(dev, dtype) for k in keys])
+    sizes = torch.stack([views[k]["size"].to(dev, dtype) for k in keys])
+    jitter = torch.rand(n, 2, generator=generator, device=generator.device, dtype=dtype).to(dev)
+    px = torch.minimum((cx + jitter[:, 0]) * cell, sizes[which, 0])
+    py = torch.minimum((cy + jitter[:, 1]) * cell, sizes[which, 1])
+    near_t = torch.full((n,), near, dtype=dtype, device=dev)
+    far_v = far_bounds(means, viewmats, torch.full((len(keys),), 2.0 * near, dtype=dtype, device=dev))
+    far_t = far_v[which] if far is None else torch.full((n,), max(far, 2.0 * near), dtype=dtype, device=dev)
+    z = stratified_depths(n, near_t, far_t, depth, generator)
+    K = Ks[which]
+    cam = torch.stack([(px - K[:, 0, 2]) / K[:, 0, 0], (py - K[:, 1, 2]) / K[:, 1, 1], torch.ones_like(px)], -1)
+    cam = cam * z[:, None]
+    R, t = viewmats[which, :3, :3], viewmats[which, :3, 3]
+    positions = torch.einsum("nji,nj->ni", R, cam - t)  # R^T (x - t)
+    colours = torch.stack([views[keys[int(w)]]["colour"].to(dev, dtype)[int(y), int(x)]
+                           for w, y, x in zip(which.tolist(), cy.tolist(), cx.tolist())])
+    scale = (z * cell / K[:, 0, 0] * scale_mult).clamp_min(1e-9)
+    logit = math.log(opacity / (1.0 - opacity))
+    return {
+        "means": positions,
+        "scales": torch.log(scale).unsqueeze(-1).expand(n, 3).clone(),
+        "quats": random_unit_quats(n, generator, dtype).to(dev),
+        "opacities": torch.full((n,), logit, dtype=dtype, device=dev),
+        "sh0": rgb_to_sh0(colours.clamp(0.0, 1.0)),
+        "shN": torch.zeros(n, sh_rest, 3, dtype=dtype, device=dev),
+    }
+
+
+@dataclass
+class GuidedSeedingMixin(SeedingMixin):
+    """Guided seeding operator: Random Seeding's schedule, flags and probation, with seeds placed
+    on the rays of the pixels whose recent error is highest. Compose it in front of Default."""
+
+    guide_cell: int = 4
+    """Side in pixels of the cells of the stored error maps (memory: one value per cell and view)."""
+    guide_power: float = 2.0
+    """Cells are drawn with probability proportional to error^power (higher: more to the worst)."""
+    guide_near: float = 0.05
+    """Nearest seed depth, as a fraction of the scene extent."""
+    guide_far: float | None = None
+    """Farthest seed depth, as a fraction of the scene extent. None: per camera, the farthest
+    corner of the box of the current centres (so far content is in reach)."""
+    guide_depth: DepthSampling = "log"
+    """Depth sampling between the bounds: 'log' (each octave of distance gets the same share of
+    seeds, so far content gets its share) or 'inverse' (uniform in disparity, near-heavy)."""
+    guide_opacity: float = 0.3
+    """Opacity of a new guided seed."""
+    guide_scale: float = 1.0
+    """Seed scale as a multiple of its cell's footprint at its depth (z * cell / f)."""
+
+    wants_view_errors = True
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if self.guide_cell < 1 or self.guide_power < 0 or not 0.0 < self.guide_opacity < 1.0:
+            raise StrategyError("guide_cell must be >= 1, guide_power >= 0 and guide_opacity in (0, 1)")
+        if self.guide_near <= 0 or (self.guide_far is not None and self.guide_far <= self.guide_near):
+            raise StrategyError(f"need 0 < guide_near < guide_far, got {self.guide_near}, {self.guide_far}")
+        if self.guide_depth not in ("log", "inverse") or self.guide_scale <= 0:
+            raise StrategyError("guide_depth must be 'log' or 'inverse' and guide_scale > 0")
+
+    def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
+        counts = super().observe(params, state, info)
+        view = info.get("view")
+        if view is None:
+            raise StrategyError(f"{type(self).__name__} needs info['view'] (the step's error map): the "
+                                f"pipeline passes it to strategies whose wants_view_errors is true")
+        error, colour = coarse_view(view["error"].detach(), view["target"].detach(), self.guide_cell)
+        width, height = view["target"].shape[1], view["target"].shape[0]
+        state.setdefault("views", {})[int(view["index"])] = {
+            "error": error, "colour": colour, "viewmat": view["viewmat"].detach().to(error.device),
+            "K": view["K"].detach().to(error.device),
+            "size": torch.tensor([float(width), float(height)], device=error.device),
+        }
+        return counts
+
+    def new_seed_rows(self, params: Params, state: dict[str, Any], n: int, generator: torch.Generator
+                      ) -> dict[str, Tensor] | None:
+        extent = state["scene_scale"]
+        return guided_seed_rows(
+            state.get("views", {}), n, generator, params["means"].detach(), params["shN"].shape[1],
+            cell=self.guide_cell, power=self.guide_power, near=self.guide_near * extent,
+            far=None if self.guide_far is None else self.guide_far * extent, depth=self.guide_depth,
+            opacity=self.guide_opacity, scale_mult=self.guide_scale,
+        )
+
+
+@dataclass
+class GuidedSeedingStrategy(GuidedSeedingMixin, DefaultStrategy):
+    """Guided seeding on top of 3DGS adaptive density control."""

@@ -1,0 +1,101 @@
+"""Occlusion-aware splitting: split candidates chosen by what alpha blending attenuates.
+
+Alpha blending scales every gradient reaching a Gaussian by the transmittance T in front of it,
+so an occluded Gaussian's screen-space gradient, the densification statistic, stays small even
+where its pixels are wrong. This operator keeps, per Gaussian, the sums over its pixels of its
+compositing weight alpha T and of its alpha (from the rasterizer, ``visibility_stats``): their
+ratio is the mean transmittance T-bar in front of it. Its error signal is the view's
+screen-space gradient norm divided by that view's T-bar (the attenuation undone), kept as an
+exponential moving average over the views that see it. Random Splitting's budget then goes to
+Gaussians drawn in proportion to
+
+    mean scale x (1 - T-bar) x compensated gradient,
+
+large, occluded Gaussians whose pixels still carry error, instead of by scale alone.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from .base import StrategyError
+from .default import DefaultStrategy, visible_mask
+from .guided import GuidedSeedingMixin
+from .ops import Params, num_gaussians
+from .splitting import SplittingMixin, split_weights
+
+VIS_WEIGHT, VIS_ALPHA, OCC_ERROR = "vis_weight", "vis_alpha", "occ_error"
+"""Per-Gaussian statistics: summed weight alpha T, summed alpha, and the compensated-gradient average."""
+
+
+def mean_transmittance(vis_weight: Tensor, vis_alpha: Tensor) -> Tensor:
+    """T-bar = sum(alpha T) / sum(alpha) per Gaussian [N]; 1 (unoccluded) where nothing was summed."""
+    seen = vis_alpha > 0
+    return torch.where(seen, vis_weight / vis_alpha.clamp_min(1e-12), torch.ones_like(vis_alpha)).clamp(0.0, 1.0)
+
+
+def occlusion_weights(log_scales: Tensor, vis_weight: Tensor, vis_alpha: Tensor, occ_error: Tensor) -> Tensor:
+    """mean scale x (1 - T-bar) x compensated gradient, per Gaussian [N] (0 for non-finite rows)."""
+    w = split_weights(log_scales) * (1.0 - mean_transmittance(vis_weight, vis_alpha)) * occ_error
+    return torch.where(torch.isfinite(w), w, torch.zeros_like(w))
+
+
+@dataclass
+class OcclusionSplittingMixin(SplittingMixin):
+    """Random Splitting with candidates drawn by occlusion and compensated error (needs
+    ``--model.raster.visibility-stats``, which the built-in method sets)."""
+
+    occlusion_t_floor: float = 0.05
+    """Smallest T-bar the gradient is divided by (a fully hidden Gaussian's gradient is noise)."""
+    occlusion_decay: float = 0.9
+    """Weight of the old value in the moving average of the compensated gradient, per view that sees it."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        if not 0.0 < self.occlusion_t_floor <= 1.0 or not 0.0 <= self.occlusion_decay < 1.0:
+            raise StrategyError("occlusion_t_floor must be in (0, 1] and occlusion_decay in [0, 1)")
+
+    def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
+        counts = super().observe(params, state, info)
+        n = num_gaussians(params)
+        if n == 0:
+            return counts
+        if "visibility" not in info:
+            raise StrategyError(f"{type(self).__name__} needs info['visibility']: set "
+                                f"--model.raster.visibility-stats (the torch rasterizer computes it)")
+        stats = state["stats"]
+        vis = info["visibility"].detach().to(params["means"].dtype)  # [N, 2]
+        for key in (VIS_WEIGHT, VIS_ALPHA, OCC_ERROR):
+            stats.setdefault(key, torch.zeros(n, device=params["means"].device))
+        stats[VIS_WEIGHT] += vis[:, 0]
+        stats[VIS_ALPHA] += vis[:, 1]
+        grad = info["means2d"].grad
+        if grad is None:
+            return counts
+        scale = torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=grad.device)
+        norm = (grad.detach().reshape(-1, n, 2)[0] * scale).norm(dim=-1)
+        t_view = mean_transmittance(vis[:, 0], vis[:, 1]).clamp_min(self.occlusion_t_floor)
+        seen = visible_mask(info, n)[0] & torch.isfinite(norm) & (vis[:, 1] > 0)
+        error = stats[OCC_ERROR]
+        error[seen] = self.occlusion_decay * error[seen] + (1.0 - self.occlusion_decay) * (norm / t_view)[seen]
+        return counts
+
+    def split_candidate_weights(self, params: Params, state: dict[str, Any]) -> Tensor:
+        stats = state["stats"]
+        if OCC_ERROR not in stats:  # nothing observed yet: the paper's rule
+            return super().split_candidate_weights(params, state)
+        return occlusion_weights(params["scales"], stats[VIS_WEIGHT], stats[VIS_ALPHA], stats[OCC_ERROR])
+
+
+@dataclass
+class OcclusionSplittingStrategy(OcclusionSplittingMixin, DefaultStrategy):
+    """Occlusion-aware splitting on top of 3DGS adaptive density control."""
+
+
+@dataclass
+class GuidedOcclusionStrategy(GuidedSeedingMixin, OcclusionSplittingMixin, DefaultStrategy):
+    """Guided seeding (far side) + occlusion-aware splitting (near side) on top of 3DGS ADC."""
