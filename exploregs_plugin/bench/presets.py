@@ -37,6 +37,9 @@ def named_entries() -> dict[str, BenchEntry]:
         BenchEntry("ray", "exploregs-ray", (), "Default + ray-constrained position noise"),
         BenchEntry("mcmc", "exploregs-mcmc", (), "3DGS-MCMC"),
         BenchEntry("mcmc-ray", "exploregs-mcmc-ray", (), "3DGS-MCMC with ray-only noise"),
+        BenchEntry("guided", "exploregs-guided", (), "guided seeding: seeds on the rays of the highest-error pixels"),
+        BenchEntry("occlusion", "exploregs-occlusion", (), "occlusion-aware splitting"),
+        BenchEntry("guided-occlusion", "exploregs-guided-occlusion", (), "guided seeding + occlusion-aware splitting"),
     ]
     return {e.name: e for e in entries}
 
