@@ -164,3 +164,14 @@ def test_cli_dry_run_prints_the_plan_and_bad_input_is_one_line(capsys):
         run_cli("eg-bench", main, ["--methods", "default", "--scenes", "builtin:tiny", "--override", "nocolon"])
     assert exit_.value.code == 2
     assert "eg-bench: error: --override 'nocolon': expected 'ENTRY:ARGS'" in capsys.readouterr().err
+
+
+def test_override_and_scene_option_flags_repeat(capsys):
+    from exploregs_plugin.scripts.bench import main
+
+    assert main(["quick", "--dry-run", "--methods", "default", "seed", "--override", "seed:--strategy.n-seed 5",
+                 "--override", "default:--strategy.grow-grad2d 0.0003", "--scene-option", "tiny:--data-factor 2",
+                 "--scene-option", "tiny:--datamanager.test-every 4"]) is None
+    err = capsys.readouterr().err
+    assert "seed [--strategy.n-seed 5]" in err and "default [--strategy.grow-grad2d 0.0003]" in err
+    assert "--data-factor 2 --datamanager.test-every 4" in err

@@ -15,7 +15,7 @@ import shlex
 import sys
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
 
 import tyro
 
@@ -55,9 +55,9 @@ class BenchCommand:
     """Test evaluations per run (points of the PSNR-against-time curves)."""
     baseline: Optional[str] = None
     """Entry for the paired differences (default: default)."""
-    override: tuple[str, ...] = ()
+    override: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """Per-entry eg-train arguments, 'ENTRY:ARGS', e.g. 'seed:--strategy.n-seed 50' (repeatable)."""
-    scene_option: tuple[str, ...] = ()
+    scene_option: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """Per-scene eg-train arguments, 'SCENE:ARGS', e.g. 'beer:--data-factor 8' (repeatable)."""
     data_factor: Optional[int] = None
     """Add --data-factor N to every scene."""
