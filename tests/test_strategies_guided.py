@@ -87,3 +87,12 @@ def test_occlusion_weights_prefer_hidden_gaussians_with_error():
     assert torch.allclose(t, torch.tensor([1.0, 0.2, 1.0, 0.2]))
     w = occlusion_weights(log_scales, vis_weight, vis_alpha, error)
     assert w[0] == 0 and w[2] == 0 and w[3] == 0 and w[1] == pytest.approx(0.1 * 0.8 * 2.0)
+
+
+def test_the_cell_grows_on_large_images_so_maps_stay_small():
+    from exploregs_plugin.strategies.guided import MAX_CELLS_PER_SIDE, view_cell
+
+    assert view_cell(4, 144, 108) == 4
+    assert view_cell(4, 1920, 1080) == 15 and math.ceil(1920 / 15) <= MAX_CELLS_PER_SIDE
+    e, c = coarse_view(torch.rand(1080, 1920), torch.rand(1080, 1920, 3), view_cell(4, 1920, 1080))
+    assert e.shape == (72, 128) and c.shape == (72, 128, 3)

@@ -31,6 +31,16 @@ from .seeding import SeedingMixin, seed_box
 DepthSampling = Literal["log", "inverse"]
 
 
+MAX_CELLS_PER_SIDE = 128
+"""Longest side of a stored error map in cells: bounds the state (and checkpoints) on large images."""
+
+
+def view_cell(cell: int, width: int, height: int) -> int:
+    """The cell size used for a ``width`` x ``height`` view: ``cell``, or larger so the map's longer
+    side has at most MAX_CELLS_PER_SIDE cells (a 1080p view: 15 px cells, 128 x 72, 37k values)."""
+    return max(cell, math.ceil(max(width, height) / MAX_CELLS_PER_SIDE))
+
+
 def coarse_view(error: Tensor, target: Tensor, cell: int) -> tuple[Tensor, Tensor]:
     """error [H, W], target [H, W, 3] -> mean error [h, w] and mean colour [h, w, 3] over cells of
     ``cell`` x ``cell`` pixels (h = ceil(H / cell); partial edge cells average what they hold)."""
@@ -84,7 +94,8 @@ def guided_seed_rows(
     """Raw rows of ``n`` guided seeds from the stored views (None when no view has error).
 
     views: view index -> {"error" [h, w], "colour" [h, w, 3], "viewmat" [4, 4], "K" [3, 3],
-    "size" [2] (W, H)}; means: [N, 3] current centres (for the far bound); near, far: world units.
+    "size" [2] (W, H), "cell" [] (its cell side; ``cell`` where absent)}; means: [N, 3] current
+    centres (for the far bound); near, far: world units.
     """
     if not views or n <= 0:
         return None
@@ -104,9 +115,10 @@ def guided_seed_rows(
     viewmats = torch.stack([views[k]["viewmat"].to(dev, dtype) for k in keys])
     Ks = torch.stack([views[k]["K"].to(dev, dtype) for k in keys])
     sizes = torch.stack([views[k]["size"].to(dev, dtype) for k in keys])
+    cells = torch.tensor([float(views[k].get("cell", cell)) for k in keys], device=dev, dtype=dtype)[which]
     jitter = torch.rand(n, 2, generator=generator, device=generator.device, dtype=dtype).to(dev)
-    px = torch.minimum((cx + jitter[:, 0]) * cell, sizes[which, 0])
-    py = torch.minimum((cy + jitter[:, 1]) * cell, sizes[which, 1])
+    px = torch.minimum((cx + jitter[:, 0]) * cells, sizes[which, 0])
+    py = torch.minimum((cy + jitter[:, 1]) * cells, sizes[which, 1])
     near_t = torch.full((n,), near, dtype=dtype, device=dev)
     far_v = far_bounds(means, viewmats, torch.full((len(keys),), 2.0 * near, dtype=dtype, device=dev))
     far_t = far_v[which] if far is None else torch.full((n,), max(far, 2.0 * near), dtype=dtype, device=dev)
@@ -118,7 +130,7 @@ def guided_seed_rows(
     positions = torch.einsum("nji,nj->ni", R, cam - t)  # R^T (x - t)
     colours = torch.stack([views[keys[int(w)]]["colour"].to(dev, dtype)[int(y), int(x)]
                            for w, y, x in zip(which.tolist(), cy.tolist(), cx.tolist())])
-    scale = (z * cell / K[:, 0, 0] * scale_mult).clamp_min(1e-9)
+    scale = (z * cells / K[:, 0, 0] * scale_mult).clamp_min(1e-9)
     logit = math.log(opacity / (1.0 - opacity))
     return {
         "means": positions,
@@ -136,7 +148,8 @@ class GuidedSeedingMixin(SeedingMixin):
     on the rays of the pixels whose recent error is highest. Compose it in front of Default."""
 
     guide_cell: int = 4
-    """Side in pixels of the cells of the stored error maps (memory: one value per cell and view)."""
+    """Side in pixels of the cells of the stored error maps (memory: four values per cell and view);
+    larger on big images, so a map's longer side has at most 128 cells."""
     guide_power: float = 2.0
     """Cells are drawn with probability proportional to error^power (higher: more to the worst)."""
     guide_near: float = 0.05
@@ -169,12 +182,14 @@ class GuidedSeedingMixin(SeedingMixin):
         if view is None:
             raise StrategyError(f"{type(self).__name__} needs info['view'] (the step's error map): the "
                                 f"pipeline passes it to strategies whose wants_view_errors is true")
-        error, colour = coarse_view(view["error"].detach(), view["target"].detach(), self.guide_cell)
         width, height = view["target"].shape[1], view["target"].shape[0]
+        cell = view_cell(self.guide_cell, width, height)
+        error, colour = coarse_view(view["error"].detach(), view["target"].detach(), cell)
         state.setdefault("views", {})[int(view["index"])] = {
             "error": error, "colour": colour, "viewmat": view["viewmat"].detach().to(error.device),
             "K": view["K"].detach().to(error.device),
             "size": torch.tensor([float(width), float(height)], device=error.device),
+            "cell": torch.tensor(float(cell), device=error.device),
         }
         return counts
 
