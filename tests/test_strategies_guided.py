@@ -17,7 +17,7 @@ def _view(error: torch.Tensor, colour: torch.Tensor, viewmat: torch.Tensor, f: f
     h, w = error.shape
     K = torch.tensor([[f, 0.0, 2.0 * w], [0.0, f, 2.0 * h], [0.0, 0.0, 1.0]])
     return {"error": error, "colour": colour, "viewmat": viewmat, "K": K,
-            "size": torch.tensor([4.0 * w, 4.0 * h])}
+            "size": torch.tensor([4.0 * w, 4.0 * h]), "cell": torch.tensor(4.0)}
 
 
 def test_stratified_depths_share_the_range_evenly():
@@ -45,7 +45,7 @@ def test_guided_seeds_go_through_the_worst_cell_with_its_colour():
     viewmat[:3, 3] = torch.tensor([0.0, 0.0, 1.0])  # camera at z = -1 in the world
     views = {3: _view(error, colour, viewmat)}
     means = torch.randn(50, 3, generator=torch.Generator().manual_seed(1)) * 2.0 + torch.tensor([0.0, 0.0, 6.0])
-    rows = guided_seed_rows(views, 40, torch.Generator().manual_seed(2), means, 3, cell=4, power=2.0, near=0.5,
+    rows = guided_seed_rows(views, 40, torch.Generator().manual_seed(2), means, 3, power=2.0, near=0.5,
                             far=20.0, depth="log", opacity=0.3, scale_mult=1.0)
     cam = rows["means"] + viewmat[:3, 3]
     z = cam[:, 2]
@@ -59,12 +59,12 @@ def test_guided_seeds_go_through_the_worst_cell_with_its_colour():
     assert torch.allclose(torch.sigmoid(rows["opacities"]), torch.full((40,), 0.3), atol=1e-6)
     assert rows["shN"].shape == (40, 3, 3) and torch.allclose(rows["quats"].norm(dim=-1), torch.ones(40), atol=1e-6)
     # far bound from the Gaussians' box when guide_far is unset: reaches its farthest corner
-    auto = guided_seed_rows(views, 200, torch.Generator().manual_seed(3), means, 0, cell=4, power=2.0, near=0.5,
+    auto = guided_seed_rows(views, 200, torch.Generator().manual_seed(3), means, 0, power=2.0, near=0.5,
                             far=None, depth="log", opacity=0.3, scale_mult=1.0)
     corner_far = float((means.max(0).values[2] + 1.0))
     assert float((auto["means"][:, 2] + 1.0).max()) <= corner_far * (1 + 1e-5)
     assert float((auto["means"][:, 2] + 1.0).max()) > 0.5 * corner_far
-    assert guided_seed_rows({}, 5, torch.Generator(), means, 0, cell=4, power=2.0, near=0.5, far=None,
+    assert guided_seed_rows({}, 5, torch.Generator(), means, 0, power=2.0, near=0.5, far=None,
                             depth="log", opacity=0.3, scale_mult=1.0) is None
 
 

@@ -16,6 +16,7 @@ the contract the strategies read: ``means2d`` (whose gradient is the densificati
 
 from __future__ import annotations
 
+import functools
 import importlib.util
 from dataclasses import fields
 from typing import Any
@@ -34,8 +35,10 @@ class BackendError(ValueError):
     """A renderer backend that cannot run with these settings or on this machine."""
 
 
+@functools.lru_cache(maxsize=32)
 def backend_problem(settings: RasterSettings, device: torch.device) -> str | None:
-    """Why ``settings.backend`` cannot render on ``device`` (one line), or None when it can."""
+    """Why ``settings.backend`` cannot render on ``device`` (one line), or None when it can.
+    Cached: every gsplat render asks it, and the answer depends on its arguments alone."""
     if settings.backend == "torch":
         return None
     if settings.backend != "gsplat":

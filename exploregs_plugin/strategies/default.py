@@ -55,16 +55,22 @@ def accumulate_grad_stats(
             f"strategy statistics have {stats['grad2d'].shape[0]} rows but the gradient has {n}: "
             f"the Gaussian set was changed without strategies.ops"
         )
-    # NDC spans [-1, 1] over W (H) pixels: d/d(ndc) = d/d(pixel) * W/2 (H/2). The n_cameras
-    # factor undoes the loss's mean over a batch of views, as gsplat does.
-    scale = torch.tensor([width / 2.0, height / 2.0], dtype=torch.float32, device=pixel_grads.device) * float(n_cameras)
-    norms = (pixel_grads.detach().to(torch.float32) * scale).norm(dim=-1)
+    norms = ndc_gradient_norms(pixel_grads, width, height, n_cameras)
     finite = torch.isfinite(norms)
     take = visible & finite
     _, ids = torch.where(take)
     stats["grad2d"].index_add_(0, ids, norms[take])
     stats["count"].index_add_(0, ids, torch.ones_like(norms[take]))
     return int((visible & ~finite).sum())
+
+
+def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: int = 1) -> Tensor:
+    """|dL/d(mean2d)| in NDC units, float32: [..., 2] pixel gradients -> [...].
+
+    NDC spans [-1, 1] over W (H) pixels: d/d(ndc) = d/d(pixel) * W/2 (H/2). The n_cameras
+    factor undoes the loss's mean over a batch of views, as gsplat does."""
+    scale = torch.tensor([width / 2.0, height / 2.0], dtype=torch.float32, device=pixel_grads.device) * float(n_cameras)
+    return (pixel_grads.detach().to(torch.float32) * scale).norm(dim=-1)
 
 
 def visible_mask(info: dict[str, Any], n: int) -> Tensor:

@@ -83,7 +83,6 @@ def guided_seed_rows(
     means: Tensor,
     sh_rest: int,
     *,
-    cell: int,
     power: float,
     near: float,
     far: float | None,
@@ -94,8 +93,8 @@ def guided_seed_rows(
     """Raw rows of ``n`` guided seeds from the stored views (None when no view has error).
 
     views: view index -> {"error" [h, w], "colour" [h, w, 3], "viewmat" [4, 4], "K" [3, 3],
-    "size" [2] (W, H), "cell" [] (its cell side; ``cell`` where absent)}; means: [N, 3] current
-    centres (for the far bound); near, far: world units.
+    "size" [2] (W, H), "cell" [] (the map's cell side in pixels)}; means: [N, 3] current centres
+    (for the far bound); near, far: world units.
     """
     if not views or n <= 0:
         return None
@@ -115,7 +114,7 @@ def guided_seed_rows(
     viewmats = torch.stack([views[k]["viewmat"].to(dev, dtype) for k in keys])
     Ks = torch.stack([views[k]["K"].to(dev, dtype) for k in keys])
     sizes = torch.stack([views[k]["size"].to(dev, dtype) for k in keys])
-    cells = torch.tensor([float(views[k].get("cell", cell)) for k in keys], device=dev, dtype=dtype)[which]
+    cells = torch.stack([views[k]["cell"].to(dev, dtype) for k in keys])[which]
     jitter = torch.rand(n, 2, generator=generator, device=generator.device, dtype=dtype).to(dev)
     px = torch.minimum((cx + jitter[:, 0]) * cells, sizes[which, 0])
     py = torch.minimum((cy + jitter[:, 1]) * cells, sizes[which, 1])
@@ -198,7 +197,7 @@ class GuidedSeedingMixin(SeedingMixin):
         extent = state["scene_scale"]
         return guided_seed_rows(
             state.get("views", {}), n, generator, params["means"].detach(), params["shN"].shape[1],
-            cell=self.guide_cell, power=self.guide_power, near=self.guide_near * extent,
+            power=self.guide_power, near=self.guide_near * extent,
             far=None if self.guide_far is None else self.guide_far * extent, depth=self.guide_depth,
             opacity=self.guide_opacity, scale_mult=self.guide_scale,
         )

@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from .base import StrategyError
-from .default import DefaultStrategy, visible_mask
+from .default import DefaultStrategy, ndc_gradient_norms, visible_mask
 from .guided import GuidedSeedingMixin
 from .ops import Params, num_gaussians
 from .splitting import SplittingMixin, split_weights
@@ -76,8 +76,7 @@ class OcclusionSplittingMixin(SplittingMixin):
         grad = info["means2d"].grad
         if grad is None:
             return counts
-        scale = torch.tensor([info["width"] / 2.0, info["height"] / 2.0], device=grad.device)
-        norm = (grad.detach().reshape(-1, n, 2)[0] * scale).norm(dim=-1)
+        norm = ndc_gradient_norms(grad.reshape(-1, n, 2)[0], int(info["width"]), int(info["height"]))
         t_view = mean_transmittance(vis[:, 0], vis[:, 1]).clamp_min(self.occlusion_t_floor)
         seen = visible_mask(info, n)[0] & torch.isfinite(norm) & (vis[:, 1] > 0)
         error = stats[OCC_ERROR]
