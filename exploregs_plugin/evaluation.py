@@ -6,7 +6,7 @@ import json
 import math
 import time
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 import torch
@@ -49,6 +49,19 @@ def evaluate(
     (the trainer keeps a few for tensorboard without rendering them again; on the host).
     Renders and scores on the model's device; the targets come from the host.
     """
+    part = evaluate_views(model, datamanager, range(len(datamanager.test_cameras)), save_dir, on_image)
+    return summarize_evaluation([part], model.num_gaussians)
+
+
+def evaluate_views(
+    model: GaussianModel,
+    datamanager: Any,
+    views: Iterable[int],
+    save_dir: Path | None = None,
+    on_image: Callable[[int, str, torch.Tensor, torch.Tensor], None] | None = None,
+) -> dict[str, Any]:
+    """Score some of the test views (a rank's share): a part for :func:`summarize_evaluation`,
+    {"per_image": [...], "region_sq": {...}, "region_n": {...}, "render_seconds": s}, picklable."""
     device = model.params["means"].device
     per_image: list[dict[str, Any]] = []
     region_sq: dict[str, float] = {}
@@ -56,8 +69,7 @@ def evaluate(
     render_seconds = 0.0
     if save_dir is not None:
         Path(save_dir).mkdir(parents=True, exist_ok=True)
-    n_test = len(datamanager.test_cameras)
-    for i in range(n_test):
+    for i in views:
         camera, target, extras = datamanager.test_item(i)
         target = target.to(device)
         start = time.perf_counter()
@@ -68,6 +80,7 @@ def evaluate(
         render_seconds += time.perf_counter() - start
         image = image.clamp(0.0, 1.0)
         entry: dict[str, Any] = {
+            "index": i,
             "name": camera.name,
             "psnr": psnr(image, target),
             "ssim": float(ssim(image, target)),
@@ -87,15 +100,28 @@ def evaluate(
         if save_dir is not None:
             panel = evaluation_panel(image, target)
             Image.fromarray(_to_uint8(panel)).save(Path(save_dir) / f"{i:04d}_{Path(camera.name).stem}.png")
+    return {"per_image": per_image, "region_sq": region_sq, "region_n": region_n, "render_seconds": render_seconds}
+
+
+def summarize_evaluation(parts: Sequence[dict[str, Any]], num_gaussians: int) -> dict[str, Any]:
+    """The metrics of the test views scored in ``parts`` (the ranks' shares, in any order)."""
+    per_image = sorted((entry for part in parts for entry in part["per_image"]), key=lambda e: e["index"])
+    region_sq: dict[str, float] = {}
+    region_n: dict[str, int] = {}
+    for part in parts:
+        for region, value in part["region_sq"].items():
+            region_sq[region] = region_sq.get(region, 0.0) + value
+            region_n[region] = region_n.get(region, 0) + part["region_n"][region]
+    n_test = len(per_image)
     result: dict[str, Any] = {
         "num_test_images": n_test,
         "psnr": float(np.mean([e["psnr"] for e in per_image])) if per_image else float("nan"),
         "ssim": float(np.mean([e["ssim"] for e in per_image])) if per_image else float("nan"),
         "lpips": None,
         "lpips_note": LPIPS_ABSENT,
-        "num_gaussians": model.num_gaussians,
-        "render_seconds_per_image": render_seconds / max(n_test, 1),
-        "per_image": per_image,
+        "num_gaussians": num_gaussians,
+        "render_seconds_per_image": sum(part["render_seconds"] for part in parts) / max(n_test, 1),
+        "per_image": [{k: v for k, v in e.items() if k != "index"} for e in per_image],
     }
     if region_n:
         result["region_psnr"] = {

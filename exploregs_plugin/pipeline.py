@@ -11,13 +11,73 @@ from torch import Tensor, nn
 
 from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.device import make_generator, restore_generator, to_device
+from exploregs_plugin.distributed import World
 from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.model.losses import DepthSpace, depth_l1, photometric_loss, psnr
-from exploregs_plugin.model.optim import OptimizerConfig, set_lr
+from exploregs_plugin.model.optim import OptimizerConfig, batch_lr_scale, set_lr
 from exploregs_plugin.rasterizer import BackendError, backend_problem
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
+
+
+VIEW_ROWS = ("radii", "visibility")
+"""Per-Gaussian [N, 2] entries of a view's render info that the strategies read."""
+
+
+def gather_view_infos(world: World, infos: list[dict[str, Any]], n: int) -> list[dict[str, Any]]:
+    """Every rank's views, in the order of the global batch, as the strategies read them.
+
+    Each view keeps what the densification statistics need: the gradient of its 2D means
+    (``means2d_grad`` [N, 2], None where none reached them), ``radii`` and (when the rasterizer
+    made it) ``visibility`` [N, 2], ``camera_center`` [3], its size, ``n_cameras`` and, for
+    guided exploration, its error map (``view``). Every rank gets the same bits, own views
+    included, so every rank's strategy makes the same decisions. Tensors travel in all-gathers;
+    only the error maps (guided exploration) are pickled."""
+    device = infos[0]["means2d"].device
+    kept = [_kept_gradient(info["means2d"]) for info in infos]
+    grads = torch.stack([g if g is not None else torch.zeros(n, 2, device=device) for g in kept]).to(torch.float32)
+    # per view: has_grad, width, height, n_cameras, camera centre (float64 keeps the centre's bits)
+    header = torch.stack([torch.cat([
+        torch.tensor([float(g is not None), info["width"], info["height"], info.get("n_cameras", 1)],
+                     dtype=torch.float64, device=device),
+        info["camera_center"].detach().to(device, torch.float64).reshape(3)]) for info, g in zip(infos, kept)])
+    gathered = {"means2d_grad": torch.cat(world.all_gather(grads))}
+    for key in VIEW_ROWS:
+        if key in infos[0]:
+            gathered[key] = torch.cat(world.all_gather(torch.stack([info[key].detach() for info in infos])))
+    header = torch.cat(world.all_gather(header)).cpu()
+    centers = header[:, 4:7].to(device, infos[0]["camera_center"].dtype)
+    errors = None
+    if "view" in infos[0]:
+        local = [{k: v.detach().cpu() if isinstance(v, Tensor) else v for k, v in info["view"].items()} for info in infos]
+        errors = [view for rank_views in world.all_gather_object(local) for view in rank_views]
+    views = []
+    for i, (has_grad, width, height, n_cameras) in enumerate(header[:, :4].tolist()):
+        view = {key: value[i] for key, value in gathered.items()}
+        if not has_grad:
+            view["means2d_grad"] = None
+        view.update(camera_center=centers[i], width=int(width), height=int(height), n_cameras=int(n_cameras))
+        if errors is not None:
+            view["view"] = {k: v.to(device) if isinstance(v, Tensor) else v for k, v in errors[i].items()}
+        views.append(view)
+    return views
+
+
+def resolve_batch_size(batch_size: int | None, world_size: int = 1) -> int:
+    """The global batch: ``batch_size``, or one view per rank when unset; a multiple of the ranks."""
+    batch = world_size if batch_size is None else int(batch_size)
+    if batch < 1:
+        raise ValueError(f"--batch-size must be >= 1, got {batch}")
+    if batch % world_size:
+        raise ValueError(f"--batch-size {batch} cannot be shared by {world_size} ranks: use a multiple "
+                         f"of {world_size}")
+    return batch
+
+
+def _kept_gradient(means2d: Tensor) -> Tensor | None:
+    """The gradient of a view's 2D means if the strategy kept it (step_pre_backward), else None."""
+    return means2d.grad if (means2d.is_leaf or means2d.retains_grad) else None
 
 
 class NonFiniteError(RuntimeError):
@@ -43,9 +103,17 @@ class PipelineConfig:
     """Compare depth ('depth', z) or inverse depth ('inverse', 1/z: far pixels weigh less)."""
     depth_supervision: DepthSupervisionConfig = field(default_factory=DepthSupervisionConfig)
     """Degrade the depth maps before the depth loss (noise, smooth bias) to play a monocular estimate."""
+    batch_size: int | None = None
+    """Training views per step: the global batch, shared among the ranks of a data-parallel run
+    (a multiple of their number). Unset: one view per rank. The schedule counts images seen, so
+    a run at B views per step takes 1/B of the steps for the same images (docs/scale.md)."""
+    batch_rule: bool = True
+    """With B > 1 views per step, scale the learning rates by sqrt(B) and raise Adam's betas to
+    the power B (Grendel's rule); off: the one-view values."""
 
-    def setup(self, schedule: Schedule, seed: int, device: torch.device | str = "cpu") -> "Pipeline":
-        return Pipeline(self, schedule, seed, torch.device(device))
+    def setup(self, schedule: Schedule, seed: int, device: torch.device | str = "cpu",
+              world: World = World()) -> "Pipeline":
+        return Pipeline(self, schedule, seed, torch.device(device), world)
 
 
 class Pipeline:
@@ -55,10 +123,16 @@ class Pipeline:
     datamanager keeps its images on the host, and each step moves its one view there."""
 
     def __init__(self, config: PipelineConfig, schedule: Schedule, seed: int,
-                 device: torch.device = torch.device("cpu")) -> None:
+                 device: torch.device = torch.device("cpu"), world: World = World()) -> None:
         self.config = config
         self.schedule = schedule
         self.device = device
+        self.world = world
+        self.batch_size = resolve_batch_size(config.batch_size, world.size)
+        if schedule.views_per_step != self.batch_size:
+            raise ValueError(f"the schedule was resolved for {schedule.views_per_step} views per step but the "
+                             f"batch has {self.batch_size}: resolve it with views_per_step={self.batch_size}")
+        self.lr_scale = batch_lr_scale(self.batch_size, config.batch_rule)
         problem = backend_problem(config.model.raster, device)
         if problem is not None:
             raise BackendError(problem)
@@ -70,7 +144,7 @@ class Pipeline:
         self.scene_extent = float(dm.scene_extent)
         self.background = dm.background.to(device)
         self.model = config.model.setup(*to_device((dm.points, dm.points_rgb), device))
-        self.optimizers = config.optim.setup(self.model.params, self.scene_extent)
+        self.optimizers = self._make_optimizers()
         self.strategy = config.strategy.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
         # Scene centre = mean training-camera centre (seeding measures distances from it).
@@ -79,6 +153,9 @@ class Pipeline:
             scene_scale=self.scene_extent, scene_center=centers.mean(dim=0)), device)
         if config.random_background and not dm.has_alpha:
             raise ValueError("random_background needs a dataset whose images have an alpha channel")
+
+    def _make_optimizers(self) -> dict[str, torch.optim.Adam]:
+        return self.config.optim.setup(self.params, self.scene_extent, self.batch_size, self.config.batch_rule)
 
     def exploration_summary(self) -> dict[str, int]:
         """Current totals a strategy reports about its exploration (e.g. seeds alive)."""
@@ -92,39 +169,70 @@ class Pipeline:
         return min(step // self.schedule.sh_degree_interval, self.model.config.sh_degree)
 
     def means_lr_at(self, step: int) -> float:
-        return self.config.optim.means_lr_at(step, self.schedule.max_steps, self.scene_extent)
+        return self.config.optim.means_lr_at(step, self.schedule.max_steps, self.scene_extent) * self.lr_scale
 
     def train_step(self, step: int) -> dict[str, Any]:
-        """Render one training view, step the optimizers, then let the strategy change the set."""
-        index, camera, target, extras = self.datamanager.next_train()
-        target = target.to(self.device, non_blocking=True)
-        background = self.background
-        if self.config.random_background:
-            # The target was composited on the dataset background b0 with alpha a:
-            # t = c a + b0 (1 - a), so on a new background b it is t + (b - b0)(1 - a).
-            background = torch.rand(3, generator=self.generator, device=self.device)
-            target = target + (background - self.background) * (1.0 - extras["alpha"].to(self.device))
-        image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background)
-        self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
+        """Render the step's views, step the optimizers, then let the strategy change the set.
 
-        loss, terms = photometric_loss(image, target, self.config.ssim_lambda)
-        if self.strategy.wants_view_errors:  # guided exploration: where this view is still wrong
-            info["view"] = {"index": index, "viewmat": camera.viewmat, "K": camera.K, "target": target,
-                            "error": (image.detach() - target).abs().mean(dim=-1)}
-        if self.config.depth_loss_weight > 0.0:
-            if "depth" not in extras:
-                raise ValueError("depth_loss_weight > 0 but the dataset has no depth maps")
-            gt_depth = self.config.depth_supervision.apply(extras["depth"], index).to(self.device)
-            depth_term = depth_l1(depth, gt_depth, self.config.depth_loss_space)
-            loss = loss + self.config.depth_loss_weight * depth_term
-            terms["depth"] = depth_term.detach()
-        reg = self.strategy.regularization_loss(self.params)
-        loss = loss + reg
-        terms["reg"] = reg.detach()
-        if not math.isfinite(float(loss.detach())):
-            raise NonFiniteError(f"step {step}: the loss is {float(loss.detach())} (terms: "
-                                 + ", ".join(f"{k}={float(v):.4g}" for k, v in terms.items()) + ")")
-        loss.backward()
+        A step takes ``batch_size`` training views (the global batch; each rank of a
+        data-parallel run renders its share) and minimises their mean loss. Each view is
+        back-propagated on its own (one view's graph in memory at a time), the ranks' gradients
+        are summed with one all-reduce, and the strategy sees every view's observations."""
+        batch, world = self.batch_size, self.world
+        indices = self.datamanager.next_train_indices(batch)  # every rank draws the whole batch
+        # the backgrounds too, so that the run's generator advances alike on every rank
+        backgrounds = [self._step_background() for _ in indices]
+        share = batch // world.size
+        mine = range(world.rank * share, (world.rank + 1) * share)
+        sh_degree = self.sh_degree_at(step)
+        infos: list[dict[str, Any]] = []
+        totals: dict[str, Tensor] = {}
+        for position in mine:
+            index = indices[position]
+            camera, target, extras = self.datamanager.train_item(index)
+            target = target.to(self.device, non_blocking=True)
+            background = backgrounds[position]
+            if self.config.random_background:
+                # The target was composited on the dataset background b0 with alpha a:
+                # t = c a + b0 (1 - a), so on a new background b it is t + (b - b0)(1 - a).
+                target = target + (background - self.background) * (1.0 - extras["alpha"].to(self.device))
+            image, _, depth, info = self.model.render(camera, sh_degree, background)
+            self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
+            loss, terms = photometric_loss(image, target, self.config.ssim_lambda)
+            if self.strategy.wants_view_errors:  # guided exploration: where this view is still wrong
+                info["view"] = {"index": index, "viewmat": camera.viewmat, "K": camera.K, "target": target,
+                                "error": (image.detach() - target).abs().mean(dim=-1)}
+            if self.config.depth_loss_weight > 0.0:
+                if "depth" not in extras:
+                    raise ValueError("depth_loss_weight > 0 but the dataset has no depth maps")
+                gt_depth = self.config.depth_supervision.apply(extras["depth"], index).to(self.device)
+                depth_term = depth_l1(depth, gt_depth, self.config.depth_loss_space)
+                loss = loss + self.config.depth_loss_weight * depth_term
+                terms["depth"] = depth_term.detach()
+            if batch > 1:
+                loss = loss / batch  # the batch's mean loss (its gradient is the mean of the views')
+                terms = {k: v / batch for k, v in terms.items()}
+                info["n_cameras"] = batch  # so the strategies undo the 1/B in the 2D-mean gradients
+            if position == mine.start and world.is_main:  # the regulariser enters once per step
+                reg = self.strategy.regularization_loss(self.params)
+                loss = loss + reg
+                terms["reg"] = reg.detach()
+            loss.backward()
+            for key, value in {"loss": loss.detach(), "psnr": torch.tensor(psnr(image, target) / batch, device="cpu"),
+                               **terms}.items():
+                value = value.detach().reshape(()).to("cpu", torch.float64)
+                totals[key] = totals[key] + value if key in totals else value
+            infos.append(info)
+        if world.is_distributed:
+            totals.setdefault("reg", torch.zeros((), dtype=torch.float64))  # rank 0 adds it: same keys everywhere
+            self._all_reduce_gradients(totals)
+            step_info = {"views": gather_view_infos(world, infos, self.model.num_gaussians)}
+        else:
+            step_info = infos[0] if batch == 1 else {"views": infos}
+        loss_value = float(totals["loss"])
+        if not math.isfinite(loss_value):
+            raise NonFiniteError(f"step {step}: the loss is {loss_value} (terms: " + ", ".join(
+                f"{k}={float(v):.4g}" for k, v in totals.items() if k not in ("loss", "psnr")) + ")")
 
         means_lr = self.means_lr_at(step)
         set_lr(self.optimizers["means"], means_lr)
@@ -133,15 +241,40 @@ class Pipeline:
             optimizer.zero_grad(set_to_none=True)
         self.check_finite(step)
         counts = self.strategy.step_post_backward(
-            self.params, self.optimizers, self.strategy_state, step, info, lr=means_lr, generator=self.generator
+            self.params, self.optimizers, self.strategy_state, step, step_info, lr=means_lr,
+            generator=self.generator,
         )
         return {
-            "loss": float(loss.detach()),
-            "terms": {k: float(v) for k, v in terms.items()},
-            "psnr": psnr(image, target),
+            "loss": loss_value,
+            "terms": {k: float(v) for k, v in totals.items() if k not in ("loss", "psnr")},
+            "psnr": float(totals["psnr"]),
             "counts": dict(counts or {}),
             "means_lr": means_lr,
         }
+
+    def _step_background(self) -> Tensor:
+        if not self.config.random_background:
+            return self.background
+        return torch.rand(3, generator=self.generator, device=self.device)
+
+    def _all_reduce_gradients(self, totals: dict[str, Tensor]) -> None:
+        """Sum the parameters' gradients and the step's loss terms over the ranks (one all-reduce).
+
+        A parameter without a gradient on every rank keeps none (Adam then skips it, as it does
+        in one process); one that has a gradient on some rank gets zeros elsewhere."""
+        names = list(self.params.keys())
+        present = torch.tensor([self.params[n].grad is not None for n in names], dtype=torch.float32,
+                               device=self.device)
+        grads = [self.params[n].grad if self.params[n].grad is not None else torch.zeros_like(self.params[n])
+                 for n in names]
+        keys = sorted(totals)
+        scalars = torch.stack([totals[k] for k in keys]).to(self.device, torch.float32)
+        flat = [g.to(torch.float32) for g in grads] + [present, scalars]
+        self.world.all_reduce_sum_(flat)
+        for name, grad, summed, seen in zip(names, grads, flat, present):
+            self.params[name].grad = summed.to(grad.dtype) if float(seen) > 0 else None
+        for k, value in zip(keys, flat[-1].cpu()):
+            totals[k] = value.to(torch.float64)
 
     def check_finite(self, step: int) -> None:
         for name, p in self.params.items():
@@ -175,7 +308,7 @@ class Pipeline:
             raise ValueError(f"checkpoint lacks parameters {sorted(missing)}")
         for name, value in state["params"].items():
             self.params[name] = nn.Parameter(value.to(self.device, copy=True))
-        self.optimizers = self.config.optim.setup(self.params, self.scene_extent)
+        self.optimizers = self._make_optimizers()
         for name, opt in self.optimizers.items():
             opt.load_state_dict(state["optimizers"][name])  # Adam's moments follow their parameter's device
         self.strategy_state = to_device(state["strategy_state"], self.device)

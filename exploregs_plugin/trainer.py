@@ -18,9 +18,11 @@ import tyro
 from exploregs_plugin.callbacks import TrainingCallback
 from exploregs_plugin.configs import load_config, save_config
 from exploregs_plugin.device import resolve_device
-from exploregs_plugin.evaluation import evaluate, evaluation_panel, write_metrics_json
-from exploregs_plugin.io.checkpoint import load_checkpoint, resolve_run, save_checkpoint
-from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig
+from exploregs_plugin.distributed import MachineConfig, init_world, params_checksum
+from exploregs_plugin.evaluation import (evaluate, evaluate_views, evaluation_panel, summarize_evaluation,
+                                         write_metrics_json)
+from exploregs_plugin.io.checkpoint import checkpoint_path, load_checkpoint, resolve_run, save_checkpoint
+from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig, resolve_batch_size
 from exploregs_plugin.run_logger import RunLogger
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.viewer.callback import ViewerCallback
@@ -56,6 +58,8 @@ class TrainerConfig:
     """Where parameters, optimizer and strategy state live and rendering runs: auto (CUDA when
     available, else CPU), cpu, cuda or cuda:N."""
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    machine: MachineConfig = field(default_factory=MachineConfig)
+    """Data-parallel training over several processes and machines (--machine.*; docs/scale.md)."""
     pipeline: Annotated[PipelineConfig, tyro.conf.arg(name="")] = field(default_factory=PipelineConfig)
     """Data, model, optimizer, strategy and loss (set as --datamanager.*, --model.*, --strategy.*, ...)."""
     output_dir: Path = Path("outputs")
@@ -133,10 +137,18 @@ class Trainer:
             torch.set_flush_denormal(True)
         if config.num_threads:
             torch.set_num_threads(config.num_threads)
-        self.device = resolve_device(config.device)
-        self.schedule = config.schedule.resolve(config.max_steps)
-        self.pipeline: Pipeline = config.pipeline.setup(self.schedule, config.seed, self.device)
-        self.run_dir = Path(run_dir or config.run_dir or self._default_run_dir())
+        self.world, self.device = init_world(resolve_device(config.device), config.machine.timeout_minutes)
+        if not self.world.is_main:  # rank 0 alone logs, serves the viewer and runs the diagnostics
+            self.callbacks = []
+            config = replace(config, quiet=True, tensorboard=False)
+        # The batch is written into the run's config.yml, so a resume at another world size
+        # keeps the same global batch (and so the same run).
+        batch = resolve_batch_size(config.pipeline.batch_size, self.world.size)
+        config = self.config = replace(config, pipeline=replace(config.pipeline, batch_size=batch))
+        self.schedule = config.schedule.resolve(config.max_steps, batch)
+        self.pipeline: Pipeline = config.pipeline.setup(self.schedule, config.seed, self.device, self.world)
+        # one run folder for all ranks: rank 0's (its default name holds a timestamp)
+        self.run_dir = Path(self.world.broadcast_object(str(run_dir or config.run_dir or self._default_run_dir())))
         self.start_step = 0
         self.train_seconds = 0.0
         self.history: list[dict[str, Any]] = []
@@ -147,7 +159,7 @@ class Trainer:
         self._stop: _StopOnSignals | None = None
         if checkpoint is not None:
             self._restore(checkpoint)
-        else:
+        elif self.world.is_main:
             with _run_folder_errors(self.run_dir):
                 self.run_dir.mkdir(parents=True, exist_ok=True)
                 save_config(config, self.run_dir / CONFIG_NAME)
@@ -166,13 +178,17 @@ class Trainer:
 
     @classmethod
     def from_run(cls, path: Path, max_steps: int | None = None, quiet: bool | None = None,
-                 callbacks: Sequence[TrainingCallback] = (), device: str | None = None) -> "Trainer":
+                 callbacks: Sequence[TrainingCallback] = (), device: str | None = None,
+                 num_devices: int | None = None) -> "Trainer":
         """Resume a run folder (or a checkpoint inside one) from its saved config; ``device``
-        overrides the run's (a GPU run resumes on a CPU-only machine with device="cpu")."""
+        overrides the run's (a GPU run resumes on a CPU-only machine with device="cpu"), and
+        ``num_devices`` its ranks per machine (the global batch stays the run's)."""
         run_dir, ckpt = resolve_run(Path(path))
         config = load_config(run_dir / CONFIG_NAME)
         if device is not None:
             config = replace(config, device=device)
+        if num_devices is not None:
+            config = replace(config, machine=replace(config.machine, num_devices=num_devices))
         if max_steps is not None:
             config = replace(config, max_steps=max_steps)
         if quiet is not None:
@@ -200,9 +216,13 @@ class Trainer:
                 for step in range(self.start_step, self.schedule.max_steps):
                     for callback in self.callbacks:
                         callback.before_step(self, step)
-                    if stop.requested:
+                    # one agreement per step, so that the ranks stop and checkpoint at the same step
+                    stop_now, minutes_due = self.world.any_of(stop.requested, self._minutes_due())
+                    if stop_now:
                         self.save_checkpoint(step)
-                        raise Stopped(stop.signum, step, self.last_checkpoint)
+                        raise Stopped(stop.signum or signal.SIGTERM, step, self.last_checkpoint)
+                    if minutes_due and step > self.start_step:
+                        self.save_checkpoint(step)
                     start = time.perf_counter()
                     stats = self._train_step(step)
                     stats["step_seconds"] = elapsed = time.perf_counter() - start
@@ -214,7 +234,7 @@ class Trainer:
                         callback.after_step(self, step + 1, stats)
                     if step + 1 in eval_steps:
                         self.run_eval(step + 1)
-                    if step + 1 < self.schedule.max_steps and self._checkpoint_due(step + 1):
+                    if step + 1 < self.schedule.max_steps and (step + 1) % self.config.checkpoint_every == 0:
                         self.save_checkpoint(step + 1)
                 if self.schedule.max_steps not in eval_steps or not self.history:
                     self.run_eval(self.schedule.max_steps)
@@ -234,10 +254,8 @@ class Trainer:
             where = self.last_checkpoint or "none was written yet"
             raise NonFiniteError(f"{err}. Training stopped; the last good checkpoint is {where}") from err
 
-    def _checkpoint_due(self, steps_done: int) -> bool:
-        """Every checkpoint_every steps, or when checkpoint_minutes of training have passed."""
-        if steps_done % self.config.checkpoint_every == 0:
-            return True
+    def _minutes_due(self) -> bool:
+        """Whether checkpoint_minutes of training have passed since the last checkpoint."""
         minutes = self.config.checkpoint_minutes
         return minutes > 0 and self.train_seconds - self._checkpointed_at >= 60.0 * minutes
 
@@ -250,16 +268,23 @@ class Trainer:
 
     # ----------------------------------------------------------------------------- eval
     def run_eval(self, step: int) -> dict[str, Any]:
-        """Evaluate on the test views and record a point of the PSNR-against-time curve."""
+        """Evaluate on the test views and record a point of the PSNR-against-time curve. In a
+        data-parallel run each rank scores every world-size-th view and rank 0 gathers the parts."""
         final = step >= self.schedule.max_steps
         save_dir = self.run_dir / "renders" if (final and self.config.save_eval_images) else None
-        panels: list[tuple[str, torch.Tensor]] = []
+        panels: list[tuple[int, str, torch.Tensor]] = []
 
         def keep_panel(index: int, name: str, image: torch.Tensor, target: torch.Tensor) -> None:
             if index < EVAL_PANELS:
-                panels.append((name or f"view{index}", evaluation_panel(image, target)))
+                panels.append((index, name or f"view{index}", evaluation_panel(image, target)))
 
-        metrics = evaluate(self.pipeline.model, self.pipeline.datamanager, save_dir=save_dir, on_image=keep_panel)
+        dm, world = self.pipeline.datamanager, self.world
+        views = range(world.rank, len(dm.test_cameras), world.size)
+        part = evaluate_views(self.pipeline.model, dm, views, save_dir=save_dir, on_image=keep_panel)
+        parts = world.all_gather_object((part, panels))
+        metrics = summarize_evaluation([p for p, _ in parts], self.pipeline.model.num_gaussians)
+        panels = sorted(panel for _, rank_panels in parts for panel in rank_panels)
+        panels = [(name, image) for _, name, image in panels]
         self.history.append({"step": step, "train_seconds": self.train_seconds, "psnr": metrics["psnr"],
                              "ssim": metrics["ssim"], "num_gaussians": metrics["num_gaussians"],
                              **({"region_psnr": metrics["region_psnr"]} if "region_psnr" in metrics else {})})
@@ -272,6 +297,9 @@ class Trainer:
 
     def write_metrics(self) -> dict[str, Any]:
         metrics = dict(self.last_metrics)
+        if self.world.is_distributed or self.pipeline.batch_size > 1:
+            metrics.update({"batch_size": self.pipeline.batch_size, "world_size": self.world.size,
+                            "images_seen": self.schedule.max_steps * self.pipeline.batch_size})
         metrics.update({
             "method": self.config.method_name,
             "scene": self.pipeline.datamanager.scene_name,
@@ -283,11 +311,21 @@ class Trainer:
             "strategy_counts": dict(sorted(self.op_totals.items())),
             "exploration": self.pipeline.exploration_summary(),
         })
-        write_metrics_json(self.run_dir / METRICS_NAME, metrics)
+        if self.world.is_main:
+            write_metrics_json(self.run_dir / METRICS_NAME, metrics)
         return metrics
 
     # ----------------------------------------------------------------------------- checkpoints
     def save_checkpoint(self, step: int) -> Path:
+        """Rank 0 writes the checkpoint (atomically); first the ranks compare a checksum of their
+        parameters, so that a checkpoint never holds one of several diverged models."""
+        self.world.check_same(f"parameters at step {step}", torch.cat([
+            params_checksum(list(self.pipeline.params.values())).to(self.device),
+            torch.tensor([float(self.pipeline.model.num_gaussians)], dtype=torch.float64, device=self.device)]))
+        if not self.world.is_main:
+            self.last_checkpoint = checkpoint_path(self.run_dir, step)
+            self._checkpointed_at = self.train_seconds
+            return self.last_checkpoint
         payload = {
             "version": 1,
             "step": step,
@@ -313,6 +351,9 @@ class Trainer:
         self.last_checkpoint = Path(path)
         if self.start_step >= self.schedule.max_steps:
             self.last_metrics = evaluate(self.pipeline.model, self.pipeline.datamanager)
+        # a resumed checkpoint from another device or world: all ranks start from the same bits
+        self.world.check_same("parameters after loading the checkpoint",
+                              params_checksum(list(self.pipeline.params.values())))
 
 
 class RunFolderError(ValueError):

@@ -20,7 +20,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("trainer", "pipeline", "method_configs", "evaluation", "run_logger"),
     ("model", "data", "strategies", "viewer"),
     ("rasterizer", "io", "configs"),
-    ("cameras", "schedule", "callbacks", "device", ""),  # "" = the package's own __init__
+    ("cameras", "schedule", "callbacks", "device", "distributed", ""),  # "" = the package's own __init__
 ]
 LAYER_OF = {name: depth for depth, names in enumerate(LAYERS) for name in names}
 

@@ -141,18 +141,18 @@ def test_ctrl_c_then_resume_is_bit_identical(tmp_path, tiny_scene_dir, monkeypat
 def test_nan_in_loss_stops_with_step_and_keeps_checkpoint(tmp_path, tiny_scene_dir, monkeypatch):
     trainer = tiny_config(tmp_path / "nan", checkpoint_every=5).setup()
     dm = trainer.pipeline.datamanager
-    real_next = dm.next_train
+    real_item = dm.train_item
     calls = {"n": 0}
 
-    def poisoned():
-        index, camera, image, extras = real_next()
+    def poisoned(index):
+        camera, image, extras = real_item(index)
         calls["n"] += 1
         if calls["n"] == 13:  # step 12
             image = image.clone()
             image[0, 0, 0] = float("nan")
-        return index, camera, image, extras
+        return camera, image, extras
 
-    monkeypatch.setattr(dm, "next_train", poisoned)
+    monkeypatch.setattr(dm, "train_item", poisoned)
     with pytest.raises(NonFiniteError, match=r"step 12: the loss is nan.*last good checkpoint is .*step-0000010\.pt"):
         trainer.train()
     good = load_checkpoint(latest_checkpoint(tmp_path / "nan"))

@@ -86,13 +86,13 @@ def test_empty_space_seeds_are_pruned_and_unseen_seeds_counted(tmp_path, tiny_sc
             targets[i] = image
             a, d = alpha[..., 0], depth[..., 0]
             surfaces.append(torch.where(a > 0.5, d / a.clamp_min(1e-6), torch.full_like(d, float("inf"))))
-    next_train = dm.next_train
+    train_item = dm.train_item
 
-    def explained_target():
-        index, camera, _, extras = next_train()
-        return index, camera, targets[index], extras
+    def explained_target(index):
+        camera, _, extras = train_item(index)
+        return camera, targets[index], extras
 
-    monkeypatch.setattr(dm, "next_train", explained_target)
+    monkeypatch.setattr(dm, "train_item", explained_target)
 
     stats = pipeline.strategy_state["stats"]
     born_means, born_sigma = [], []

@@ -193,13 +193,22 @@ class DataManager:
 
     def next_train(self) -> tuple[int, Camera, Tensor, dict[str, Any]]:
         """The next training image in a seeded random order; a fresh permutation each epoch."""
-        if self._position >= len(self._order):
-            self._order = torch.randperm(len(self._train), generator=self._generator, device="cpu")
-            self._position = 0
-            self._epoch += 1
-        index = int(self._order[self._position])
-        self._position += 1
+        index = self.next_train_indices(1)[0]
         return (index, *self.train_item(index))
+
+    def next_train_indices(self, count: int) -> list[int]:
+        """The next ``count`` training indices of the seeded order (a fresh permutation each
+        epoch). Every rank of a data-parallel run draws the whole global batch this way, so the
+        ranks agree on it, and loads only its own share with :meth:`train_item`."""
+        indices = []
+        for _ in range(count):
+            if self._position >= len(self._order):
+                self._order = torch.randperm(len(self._train), generator=self._generator, device="cpu")
+                self._position = 0
+                self._epoch += 1
+            indices.append(int(self._order[self._position]))
+            self._position += 1
+        return indices
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to continue the same camera order after a resume."""

@@ -2,12 +2,31 @@
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import torch
 from torch import nn
 
 ADAM_EPS = 1e-15  # 3DGS uses a tiny epsilon: Adam steps stay near lr even for tiny gradients
+ADAM_BETAS = (0.9, 0.999)
+
+
+def batch_lr_scale(batch_size: int, rule: bool = True) -> float:
+    """Learning-rate factor for B views per step: sqrt(B) under the batch rule, else 1.
+
+    Grendel (Zhao et al. 2025) keeps a run's trajectory close to the B = 1 run by scaling every
+    learning rate by sqrt(B) (the mean gradient of B views has about 1/sqrt(B) of one view's
+    noise) and raising Adam's betas to the power B (the moments then forget at the same rate per
+    image seen)."""
+    return math.sqrt(batch_size) if rule else 1.0
+
+
+def batch_betas(batch_size: int, rule: bool = True) -> tuple[float, float]:
+    """Adam's (beta1, beta2) for B views per step: (0.9^B, 0.999^B) under the batch rule."""
+    if not rule:
+        return ADAM_BETAS
+    return (ADAM_BETAS[0] ** batch_size, ADAM_BETAS[1] ** batch_size)
 
 
 @dataclass
@@ -35,11 +54,16 @@ class OptimizerConfig:
             "shN": self.shN_lr,
         }
 
-    def setup(self, params: nn.ParameterDict, scene_extent: float) -> dict[str, torch.optim.Adam]:
-        """One Adam per parameter name (so ops can resize one tensor and its moments at a time)."""
-        lrs = self.base_lrs(scene_extent)
+    def setup(self, params: nn.ParameterDict, scene_extent: float, batch_size: int = 1,
+              batch_rule: bool = True) -> dict[str, torch.optim.Adam]:
+        """One Adam per parameter name (so ops can resize one tensor and its moments at a time),
+        with the learning rates and betas of :func:`batch_lr_scale` / :func:`batch_betas`."""
+        scale = batch_lr_scale(batch_size, batch_rule)
+        lrs = {name: lr * scale for name, lr in self.base_lrs(scene_extent).items()}
+        betas = batch_betas(batch_size, batch_rule)
         return {
-            name: torch.optim.Adam([{"params": [params[name]], "lr": lrs[name], "name": name}], eps=ADAM_EPS)
+            name: torch.optim.Adam([{"params": [params[name]], "lr": lrs[name], "name": name}], eps=ADAM_EPS,
+                                   betas=betas)
             for name in params.keys()
         }
 

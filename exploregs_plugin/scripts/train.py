@@ -1,7 +1,9 @@
 """eg-train: train a method on a dataset.
 
     eg-train exploregs-seedsplit --data PATH        # train
-    eg-train --resume RUN_DIR [--device DEVICE]     # continue an interrupted run
+    eg-train --resume RUN_DIR [--device DEVICE] [--machine.num-devices N]   # continue a run
+    eg-train exploregs-seedsplit --data PATH --machine.num-devices 2   # 2 data-parallel ranks
+    torchrun --nproc-per-node 2 -m exploregs_plugin.scripts.train exploregs-seedsplit --data PATH
 """
 
 from __future__ import annotations
@@ -10,19 +12,25 @@ import contextlib
 import io
 import signal
 import sys
+from dataclasses import replace
+from pathlib import Path
 
 import tyro
 
 from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
-from exploregs_plugin.configs import tyro_error_text
+from exploregs_plugin.configs import load_config, tyro_error_text
+from exploregs_plugin.distributed import DistributedError, MachineConfig, launched_by_torchrun, leave_world
+from exploregs_plugin.io.checkpoint import resolve_run
 from exploregs_plugin.scripts import run_cli
 from exploregs_plugin.method_configs import MethodRegistryError, all_methods
 from exploregs_plugin.pipeline import NonFiniteError
-from exploregs_plugin.trainer import Stopped, Trainer, TrainerConfig
+from exploregs_plugin.scripts.launch import LaunchError, launch
+from exploregs_plugin.trainer import CONFIG_NAME, Stopped, Trainer, TrainerConfig
 
 
 DESCRIPTION = ("Train a 3D Gaussian Splatting scene with ExploreGS. Continue an interrupted run with: "
-               "eg-train --resume RUN_DIR [--device DEVICE].")
+               "eg-train --resume RUN_DIR [--device DEVICE] [--machine.num-devices N].")
+RESUME_USAGE = "usage: eg-train --resume RUN_DIR [--device auto|cpu|cuda|cuda:N] [--machine.num-devices N]"
 
 
 def _fail(message: str, code: int) -> "SystemExit":
@@ -57,22 +65,49 @@ def _stop_before_training(signum: int, frame: object) -> None:
     raise Stopped(signum)
 
 
+def resume_options(argv: list[str]) -> tuple[Path, str | None, int | None]:
+    """``--resume RUN_DIR [--device D] [--machine.num-devices N]`` -> (run, device, num_devices)."""
+    if len(argv) < 2 or len(argv) % 2:
+        raise _fail(RESUME_USAGE, 2)
+    options = dict(zip(argv[2::2], argv[3::2]))
+    if set(options) - {"--device", "--machine.num-devices"} or len(options) != (len(argv) - 2) // 2:
+        raise _fail(RESUME_USAGE, 2)
+    devices = options.get("--machine.num-devices")
+    if devices is not None and not (devices.isdigit() and int(devices) >= 1):
+        raise _fail(f"--machine.num-devices must be a positive integer, got {devices!r}", 2)
+    return Path(argv[1]), options.get("--device"), None if devices is None else int(devices)
+
+
+def _machine(argv: list[str]) -> tuple[MachineConfig, TrainerConfig | None]:
+    """The run's machine settings (from the command line, or the resumed run's config.yml)."""
+    if argv[:1] == ["--resume"]:
+        run, _, devices = resume_options(argv)
+        machine = load_config(resolve_run(run)[0] / CONFIG_NAME).machine
+        return (machine if devices is None else replace(machine, num_devices=devices)), None
+    config = parse_config(argv)
+    return config.machine, config
+
+
 def main(argv: list[str]) -> dict:
     # Before the loop installs its own handler, SIGTERM ends the command with one line (pycolmap's
     # failure handler would otherwise print a crash dump); during training it checkpoints first.
     signal.signal(signal.SIGTERM, _stop_before_training)
     trainer = None
     try:
-        if argv[:1] == ["--resume"]:
-            if len(argv) not in (2, 4) or (len(argv) == 4 and argv[2] != "--device"):
-                raise _fail("usage: eg-train --resume RUN_DIR [--device auto|cpu|cuda|cuda:N]", 2)
-            device = argv[3] if len(argv) == 4 else None
-            trainer = Trainer.from_run(argv[1], callbacks=[BranchGradientLogger()], device=device)
-            print(f"resuming {trainer.run_dir} from step {trainer.start_step} ({trainer.last_checkpoint})",
-                  file=sys.stderr)
+        machine, config = _machine(argv)
+        if machine.world_size > 1 and not launched_by_torchrun():
+            launch(machine, argv)  # the ranks run this same command under torch's launcher
+            return {}
+        if config is None:
+            run, device, devices = resume_options(argv)
+            trainer = Trainer.from_run(run, callbacks=[BranchGradientLogger()], device=device, num_devices=devices)
+            if trainer.world.is_main:
+                print(f"resuming {trainer.run_dir} from step {trainer.start_step} ({trainer.last_checkpoint})",
+                      file=sys.stderr)
         else:
-            trainer = parse_config(argv).setup(callbacks=[BranchGradientLogger()])
-        print(f"run folder: {trainer.run_dir}", file=sys.stderr)
+            trainer = config.setup(callbacks=[BranchGradientLogger()])
+        if trainer.world.is_main:
+            print(f"run folder: {trainer.run_dir}", file=sys.stderr)
         metrics = trainer.train()
     except Stopped as err:
         resume = f"; resume with: eg-train --resume {trainer.run_dir}" if err.checkpoint is not None else ""
@@ -80,11 +115,18 @@ def main(argv: list[str]) -> dict:
     except KeyboardInterrupt:
         where = f"; resume with: eg-train --resume {trainer.run_dir}" if trainer is not None else ""
         raise _fail(f"interrupted{where}", 130) from None
-    except NonFiniteError as err:
+    except (NonFiniteError, DistributedError, LaunchError) as err:
         raise _fail(str(err), 1) from err
-    print(f"done: test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, "
-          f"{metrics['num_gaussians']} Gaussians, {metrics['train_seconds']:.1f} s; "
-          f"metrics in {trainer.run_dir / 'metrics.json'}", file=sys.stderr)
+    finally:
+        if trainer is not None and trainer.world.is_distributed:
+            # the launcher stops the other ranks with SIGTERM when one fails: the run is over, so
+            # leaving the group must not turn that signal into a second error
+            signal.signal(signal.SIGTERM, signal.SIG_DFL)
+            leave_world(trainer.world)
+    if trainer.world.is_main:
+        print(f"done: test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, "
+              f"{metrics['num_gaussians']} Gaussians, {metrics['train_seconds']:.1f} s; "
+              f"metrics in {trainer.run_dir / 'metrics.json'}", file=sys.stderr)
     return metrics
 
 

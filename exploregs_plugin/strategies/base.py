@@ -202,6 +202,19 @@ class Strategy:
         return {}
 
 
+def view_infos(info: dict[str, Any]) -> list[dict[str, Any]]:
+    """The views one step rendered, each with its own render info.
+
+    A step of several views (a batch, or the views of every rank of a data-parallel run) passes
+    ``info = {"views": [info_0, info_1, ...]}`` in the order of the global batch; a step of one
+    view passes that view's info itself, as gsplat's trainers do. Each view's info carries the
+    gradient of its 2D means either on ``info["means2d"].grad`` (the render's own tensor) or as
+    ``info["means2d_grad"]`` [N, 2] (a view rendered by another rank), and ``n_cameras``, the
+    number of views whose mean loss the gradient comes from."""
+    views = info.get("views")
+    return list(views) if views is not None else [info]
+
+
 def require_generator(generator: torch.Generator | None, who: str) -> torch.Generator:
     """The strategies draw random numbers only from the caller's generator."""
     if generator is None:

@@ -57,9 +57,10 @@ class ExplorationBudget:
     split_every: int
 
 
-def paper_budget(refine_every: int) -> ExplorationBudget:
-    """The paper's counts: 20 seeds per densification step, 20 random splits per step."""
-    return ExplorationBudget(PAPER_N_SEED, refine_every, PAPER_N_SPLIT, PAPER_SPLIT_EVERY)
+def paper_budget(refine_every: int, views_per_step: int = 1) -> ExplorationBudget:
+    """The paper's counts: 20 seeds per densification step, 20 random splits per image seen
+    (per step at one view per step; a step of B views splits 20 B)."""
+    return ExplorationBudget(PAPER_N_SEED, refine_every, PAPER_N_SPLIT * views_per_step, PAPER_SPLIT_EVERY)
 
 
 SPREAD_TOLERANCE = 0.05
@@ -102,13 +103,16 @@ def scaled_budget(final_gaussians: int, refine_start: int, refine_stop: int, ref
     return ExplorationBudget(n_seed, seed_every, n_split, split_every)
 
 
-def resolve_budget(name: str, refine_start: int, refine_stop: int, refine_every: int) -> ExplorationBudget:
-    """The budget of a preset name for a given densification window."""
+def resolve_budget(name: str, refine_start: int, refine_stop: int, refine_every: int,
+                   views_per_step: int = 1) -> ExplorationBudget:
+    """The budget of a preset name for a given densification window (in steps of
+    ``views_per_step`` views). The scaled presets fix totals over the window, so they need no
+    batch correction; the paper's per-step split count is per image seen."""
     if name not in BUDGET_PRESETS:
         raise ValueError(f"unknown exploration budget '{name}'; known presets: {sorted(BUDGET_PRESETS)}")
     final = BUDGET_PRESETS[name]
     if final is None:
-        return paper_budget(refine_every)
+        return paper_budget(refine_every, views_per_step)
     return scaled_budget(final, refine_start, refine_stop, refine_every)
 
 
@@ -126,7 +130,7 @@ class BudgetMixin(Strategy):
             raise ValueError(f"unknown exploration budget '{self.budget}'; known presets: {sorted(BUDGET_PRESETS)}")
         super().__post_init__()
 
-    def resolved_budget(self, defaults: dict[str, int]) -> ExplorationBudget:
+    def resolved_budget(self, defaults: dict[str, int], views_per_step: int = 1) -> ExplorationBudget:
         """The budget for this strategy's densification window (own values, else ``defaults``)."""
 
         def value(name: str) -> int:
@@ -134,5 +138,6 @@ class BudgetMixin(Strategy):
             return defaults[name] if own is None else own
 
         return resolve_budget(
-            self.budget, value("refine_start_iter"), value("refine_stop_iter"), value("refine_every")
+            self.budget, value("refine_start_iter"), value("refine_stop_iter"), value("refine_every"),
+            views_per_step,
         )

@@ -22,7 +22,7 @@ import torch
 from torch import Tensor
 
 from . import ops
-from .base import StepContext, Strategy, StrategyError, require_generator
+from .base import StepContext, Strategy, StrategyError, require_generator, view_infos
 from .geometry import max_world_scale
 from .ops import Optimizers, Params, Stats, num_gaussians
 
@@ -71,6 +71,23 @@ def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: 
     factor undoes the loss's mean over a batch of views, as gsplat does."""
     scale = torch.tensor([width / 2.0, height / 2.0], dtype=torch.float32, device=pixel_grads.device) * float(n_cameras)
     return (pixel_grads.detach().to(torch.float32) * scale).norm(dim=-1)
+
+
+def screen_gradient(info: dict[str, Any]) -> Tensor | None:
+    """dL/d(mean2d) of one view's info: ``info["means2d_grad"]`` when given (a view rendered by
+    another rank), else the retained gradient of ``info["means2d"]``; None when no gradient
+    reached the 2D means."""
+    if "means2d_grad" in info:
+        return info["means2d_grad"]
+    means2d = info.get("means2d")
+    if means2d is None:
+        raise StrategyError("info['means2d'] is required for the screen-space gradient statistic")
+    if not means2d.is_leaf and not means2d.retains_grad:
+        raise StrategyError(
+            "info['means2d'].grad is not retained: call strategy.step_pre_backward(...) before "
+            "loss.backward() so the screen-space gradient is kept"
+        )
+    return means2d.grad
 
 
 def visible_mask(info: dict[str, Any], n: int) -> Tensor:
@@ -190,7 +207,9 @@ class DefaultStrategy(Strategy):
         counts = {"cloned": 0, "split": 0, "pruned": 0, "opacity_reset": 0, "nonfinite_grads": 0}
         in_window = step < self.refine_stop_iter
         if in_window:
-            counts.update(self.observe(params, state, ctx.info))
+            for view in view_infos(ctx.info):
+                for key, value in self.observe(params, state, view).items():
+                    counts[key] = counts.get(key, 0) + value
             if step > self.refine_start_iter and step % self.refine_every == 0:
                 counts["cloned"], counts["split"] = self._grow(params, optimizers, state, ctx.generator)
                 counts.update(self._prune(params, optimizers, state, step))
@@ -206,17 +225,9 @@ class DefaultStrategy(Strategy):
     # ------------------------------------------------------------------ steps
     def _update_stats(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> int:
         n = num_gaussians(params)
-        means2d = info.get("means2d")
-        if means2d is None:
-            raise StrategyError("info['means2d'] is required for the screen-space gradient statistic")
         if n == 0:
             return 0
-        if not means2d.is_leaf and not means2d.retains_grad:
-            raise StrategyError(
-                "info['means2d'].grad is not retained: call strategy.step_pre_backward(...) before "
-                "loss.backward() so the screen-space gradient is kept"
-            )
-        grad = means2d.grad
+        grad = screen_gradient(info)
         if grad is None:
             return 0  # no gradient reached the 2D means this step (nothing visible)
         if grad.dim() < 2 or tuple(grad.shape[-2:]) != (n, 2):

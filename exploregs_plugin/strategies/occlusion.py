@@ -23,7 +23,7 @@ import torch
 from torch import Tensor
 
 from .base import StrategyError
-from .default import DefaultStrategy, ndc_gradient_norms, visible_mask
+from .default import DefaultStrategy, ndc_gradient_norms, screen_gradient, visible_mask
 from .guided import GuidedSeedingMixin
 from .ops import Params, num_gaussians
 from .splitting import SplittingMixin, split_weights
@@ -73,10 +73,11 @@ class OcclusionSplittingMixin(SplittingMixin):
             stats.setdefault(key, torch.zeros(n, device=params["means"].device))
         stats[VIS_WEIGHT] += vis[:, 0]
         stats[VIS_ALPHA] += vis[:, 1]
-        grad = info["means2d"].grad
+        grad = screen_gradient(info)
         if grad is None:
             return counts
-        norm = ndc_gradient_norms(grad.reshape(-1, n, 2)[0], int(info["width"]), int(info["height"]))
+        norm = ndc_gradient_norms(grad.reshape(-1, n, 2)[0], int(info["width"]), int(info["height"]),
+                                  int(info.get("n_cameras", 1)))
         t_view = mean_transmittance(vis[:, 0], vis[:, 1]).clamp_min(self.occlusion_t_floor)
         seen = visible_mask(info, n)[0] & torch.isfinite(norm) & (vis[:, 1] > 0)
         error = stats[OCC_ERROR]

@@ -17,7 +17,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from .base import StepContext, Strategy, StrategyError
+from .base import StepContext, Strategy, StrategyError, view_infos
 from .default import DefaultStrategy
 from ..rasterizer.projection import covariances_3d
 from .ops import num_gaussians
@@ -93,7 +93,8 @@ class NoiseMixin(Strategy):
             self.noise_lr * lr,
             ctx.rng("position noise"),
             mode=mode,
-            camera_center=ctx.info.get("camera_center"),
+            # a step of several views perturbs along the rays of its first view
+            camera_center=view_infos(ctx.info)[0].get("camera_center"),
             gate_k=self.noise_gate_k,
             gate_t=self.noise_gate_t,
         )

@@ -168,7 +168,7 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
 
     def schedule_defaults(self, schedule: Any) -> dict[str, int]:
         defaults = super().schedule_defaults(schedule)
-        budget = self.resolved_budget(defaults)
+        budget = self.resolved_budget(defaults, schedule.views_per_step)
         return {**defaults, "n_seed": budget.n_seed, "seed_every": budget.seed_every}
 
     def seeding_active(self, step: int) -> bool:

@@ -66,7 +66,7 @@ class SplittingMixin(BudgetMixin, DefaultStrategy):
 
     def schedule_defaults(self, schedule: Any) -> dict[str, int]:
         defaults = super().schedule_defaults(schedule)
-        budget = self.resolved_budget(defaults)
+        budget = self.resolved_budget(defaults, schedule.views_per_step)
         return {**defaults, "n_split": budget.n_split, "split_every": budget.split_every}
 
     def explore(self, ctx: StepContext) -> dict[str, int]:
