@@ -79,13 +79,14 @@ def test_gsplat_backend_agrees_with_the_torch_reference():
     assert gs[4]["means2d"].shape == (1, 3000, 2) and gs[4]["radii"].shape == (3000, 2)
 
 
-def _train(tmp_path, name: str, device: str, backend: str = "torch") -> dict:
+def _train(tmp_path, name: str, device: str, backend: str = "torch", batch_size: int = 1, max_steps: int = 300) -> dict:
     from exploregs_plugin.trainer import Trainer, TrainerConfig
 
-    config = TrainerConfig(method_name="exploregs-default", data="builtin:default", max_steps=300, device=device,
+    config = TrainerConfig(method_name="exploregs-default", data="builtin:default", max_steps=max_steps, device=device,
                            run_dir=tmp_path / name, quiet=True, tensorboard=False, eval_count=1,
                            save_eval_images=False)
     config.pipeline.model.raster = RasterSettings(backend=backend)
+    config.pipeline.batch_size = batch_size
     return Trainer(config).train()
 
 
@@ -95,6 +96,14 @@ def test_a_300_step_run_on_cuda_matches_the_cpu_run(tmp_path, backend):
     gpu = _train(tmp_path, backend, "cuda", backend)
     assert abs(gpu["psnr"] - cpu["psnr"]) <= 0.3, (cpu["psnr"], gpu["psnr"])
     assert gpu["num_gaussians"] > 3000  # it densified
+
+
+def test_a_batched_run_on_cuda_matches_the_cpu_run(tmp_path):
+    # 4 views per step, 75 steps: the same 300 images as the one-view run above
+    cpu = _train(tmp_path, "cpu-b4", "cpu", batch_size=4, max_steps=75)
+    gpu = _train(tmp_path, "cuda-b4", "cuda", batch_size=4, max_steps=75)
+    assert abs(gpu["psnr"] - cpu["psnr"]) <= 0.3, (cpu["psnr"], gpu["psnr"])
+    assert gpu["batch_size"] == 4 and gpu["images_seen"] == 300 and gpu["num_gaussians"] > 3000
 
 
 def test_checkpoint_from_cuda_resumes_on_cpu(tmp_path):

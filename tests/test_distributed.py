@@ -216,13 +216,20 @@ def test_two_rank_checkpoint_resumes_in_one_process(two_rank_runs, tmp_path):
 def test_two_machines_on_loopback_train_together(tmp_path, tiny_scene_dir):
     port = free_port()
     run_dir = tmp_path / "run"
-    argv = tiny_argv("exploregs-default", run_dir, "--machine.num-machines", "2", "--machine.master-port", str(port))
+    argv = tiny_argv("exploregs-default", run_dir, "--machine.num-machines", "2", "--machine.master-port", str(port),
+                     "--tensorboard")
     procs = [subprocess.Popen([sys.executable, "-m", "exploregs_plugin.scripts.train", *argv,
                                "--machine.machine-rank", str(rank)], env=worker_env(), stderr=subprocess.PIPE,
                               text=True) for rank in (0, 1)]
-    errs = [p.communicate(timeout=240)[1] for p in procs]
+    try:
+        errs = [p.communicate(timeout=180)[1] for p in procs]
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
     assert [p.returncode for p in procs] == [0, 0], errs
     metrics = json.loads((run_dir / "metrics.json").read_text())
+    assert len(list(run_dir.glob("events.out.tfevents.*"))) == 1  # rank 0 alone logs
     assert metrics["world_size"] == 2 and metrics["batch_size"] == 2 and metrics["images_seen"] == 2 * STEPS
     reference = parse_config(tiny_argv("exploregs-default", tmp_path / "one", "--batch-size", "2")).setup().train()
     assert metrics["num_gaussians"] == reference["num_gaussians"]
