@@ -288,3 +288,12 @@ def test_resume_options_take_device_and_ranks(capsys):
         with pytest.raises(SystemExit):
             resume_options(bad)
     assert "--machine.num-devices" in capsys.readouterr().err
+
+
+def test_a_batch_the_ranks_cannot_share_is_refused_before_any_rank_starts(tmp_path):
+    from exploregs_plugin.scripts.train import main
+
+    argv = tiny_argv("exploregs-default", tmp_path / "run", "--batch-size", "3", "--machine.num-devices", "2")
+    with pytest.raises(ValueError, match="--batch-size 3 cannot be shared by 2 ranks"):
+        main(argv)
+    assert not (tmp_path / "run").exists()

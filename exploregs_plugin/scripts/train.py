@@ -23,7 +23,7 @@ from exploregs_plugin.distributed import DistributedError, MachineConfig, launch
 from exploregs_plugin.io.checkpoint import resolve_run
 from exploregs_plugin.scripts import run_cli
 from exploregs_plugin.method_configs import MethodRegistryError, all_methods
-from exploregs_plugin.pipeline import NonFiniteError
+from exploregs_plugin.pipeline import NonFiniteError, resolve_batch_size
 from exploregs_plugin.scripts.launch import LaunchError, launch
 from exploregs_plugin.trainer import CONFIG_NAME, Stopped, Trainer, TrainerConfig
 
@@ -79,12 +79,16 @@ def resume_options(argv: list[str]) -> tuple[Path, str | None, int | None]:
 
 
 def _machine(argv: list[str]) -> tuple[MachineConfig, TrainerConfig | None]:
-    """The run's machine settings (from the command line, or the resumed run's config.yml)."""
+    """The run's machine settings (from the command line, or the resumed run's config.yml),
+    checked against its batch before any rank starts."""
     if argv[:1] == ["--resume"]:
         run, _, devices = resume_options(argv)
-        machine = load_config(resolve_run(run)[0] / CONFIG_NAME).machine
-        return (machine if devices is None else replace(machine, num_devices=devices)), None
+        saved = load_config(resolve_run(run)[0] / CONFIG_NAME)
+        machine = saved.machine if devices is None else replace(saved.machine, num_devices=devices)
+        resolve_batch_size(saved.pipeline.batch_size, machine.world_size)
+        return machine, None
     config = parse_config(argv)
+    resolve_batch_size(config.pipeline.batch_size, config.machine.world_size)
     return config.machine, config
 
 
