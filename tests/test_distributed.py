@@ -19,7 +19,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from exploregs_plugin.distributed import MachineConfig, World, launched_by_torchrun, params_checksum
+from exploregs_plugin.distributed import RANK_ENV, MachineConfig, World, launched_by_torchrun, params_checksum
 from exploregs_plugin.io.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.model.losses import photometric_loss
@@ -48,7 +48,7 @@ def tiny_argv(method: str, run_dir: Path, *extra: str, steps: int = STEPS) -> li
 
 def worker_env() -> dict[str, str]:
     env = dict(os.environ, OMP_NUM_THREADS="1", CUDA_HOME="/nonexistent-cuda")
-    for key in ("RANK", "WORLD_SIZE", "LOCAL_RANK", "MASTER_ADDR", "MASTER_PORT"):
+    for key in RANK_ENV:  # a test run under torchrun must not hand its own world to the children
         env.pop(key, None)
     return env
 

@@ -78,11 +78,12 @@ def resume_options(argv: list[str]) -> tuple[Path, str | None, int | None]:
     return Path(argv[1]), options.get("--device"), None if devices is None else int(devices)
 
 
-def _machine(argv: list[str]) -> tuple[MachineConfig, TrainerConfig | None]:
+def _machine(argv: list[str], resume: tuple[Path, str | None, int | None] | None
+             ) -> tuple[MachineConfig, TrainerConfig | None]:
     """The run's machine settings (from the command line, or the resumed run's config.yml),
     checked against its batch before any rank starts."""
-    if argv[:1] == ["--resume"]:
-        run, _, devices = resume_options(argv)
+    if resume is not None:
+        run, _, devices = resume
         saved = load_config(resolve_run(run)[0] / CONFIG_NAME)
         machine = saved.machine if devices is None else replace(saved.machine, num_devices=devices)
         resolve_batch_size(saved.pipeline.batch_size, machine.world_size)
@@ -98,12 +99,13 @@ def main(argv: list[str]) -> dict:
     signal.signal(signal.SIGTERM, _stop_before_training)
     trainer = None
     try:
-        machine, config = _machine(argv)
+        resume = resume_options(argv) if argv[:1] == ["--resume"] else None
+        machine, config = _machine(argv, resume)
         if machine.world_size > 1 and not launched_by_torchrun():
             launch(machine, argv)  # the ranks run this same command under torch's launcher
             return {}
-        if config is None:
-            run, device, devices = resume_options(argv)
+        if resume is not None:
+            run, device, devices = resume
             trainer = Trainer.from_run(run, callbacks=[BranchGradientLogger()], device=device, num_devices=devices)
             if trainer.world.is_main:
                 print(f"resuming {trainer.run_dir} from step {trainer.start_step} ({trainer.last_checkpoint})",
