@@ -26,6 +26,8 @@ class Camera:
     width: int
     height: int
     name: str = ""
+    time: float | None = None
+    """Normalised time in [0, 1] of a frame of a dynamic scene (None: a static scene's view)."""
 
     @property
     def camera_center(self) -> Tensor:
@@ -36,7 +38,7 @@ class Camera:
     def to(self, *args: Any, **kwargs: Any) -> "Camera":
         """The camera with viewmat and K moved like ``Tensor.to`` (a dtype, a device, or both)."""
         return Camera(self.viewmat.to(*args, **kwargs), self.K.to(*args, **kwargs), self.width, self.height,
-                      self.name)
+                      self.name, self.time)
 
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by ``factor`` (e.g. 0.5 halves each side)."""
@@ -47,4 +49,4 @@ class Camera:
         K[0, :] *= sx
         K[1, :] *= sy
         K[2, :] = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype, device=K.device)
-        return Camera(self.viewmat, K, width, height, self.name)
+        return Camera(self.viewmat, K, width, height, self.name, self.time)

@@ -1,4 +1,5 @@
-"""Test-set evaluation: PSNR, SSIM, region PSNR, LPIPS when available, render time."""
+"""Test-set evaluation: PSNR, SSIM, MS-SSIM and D-SSIM per image and per region, LPIPS when
+available, render time; per frame (with its time) for dynamic scenes."""
 
 from __future__ import annotations
 
@@ -12,7 +13,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from exploregs_plugin.model.losses import MSE_FLOOR, psnr, ssim
+from exploregs_plugin.model.losses import MSE_FLOOR, SSIM_WINDOW, d_ssim, ms_ssim, psnr, ssim_map
 from exploregs_plugin.model import GaussianModel
 from exploregs_plugin.io.atomic import atomic_write_text
 
@@ -61,10 +62,12 @@ def evaluate_views(
     on_image: Callable[[int, str, torch.Tensor, torch.Tensor], None] | None = None,
 ) -> dict[str, Any]:
     """Score some of the test views (a rank's share): a part for :func:`summarize_evaluation`,
-    {"per_image": [...], "region_sq": {...}, "region_n": {...}, "render_seconds": s}, picklable."""
+    {"per_image": [...], "region_sq": {...}, "region_ssim": {...}, "region_n": {...},
+    "render_seconds": s}, picklable."""
     device = model.params["means"].device
     per_image: list[dict[str, Any]] = []
     region_sq: dict[str, float] = {}
+    region_ssim: dict[str, float] = {}
     region_n: dict[str, int] = {}
     render_seconds = 0.0
     if save_dir is not None:
@@ -79,44 +82,70 @@ def evaluate_views(
             torch.cuda.synchronize(device)  # kernels run asynchronously: time the work, not the launch
         render_seconds += time.perf_counter() - start
         image = image.clamp(0.0, 1.0)
+        ssim_pixels = ssim_map(image, target).mean(dim=-1)  # [H, W]
         entry: dict[str, Any] = {
             "index": i,
             "name": camera.name,
             "psnr": psnr(image, target),
-            "ssim": float(ssim(image, target)),
+            "ssim": float(ssim_pixels.mean()),
         }
+        if min(image.shape[:2]) >= SSIM_WINDOW:
+            entry["ms_ssim"] = ms_ssim(image, target)
+            entry["dssim"] = d_ssim(entry["ms_ssim"])
+        if camera.time is not None:
+            entry["time"] = camera.time
         masks = extras.get("masks", {}) if isinstance(extras, dict) else {}
         if masks:
-            entry["region_psnr"] = {}
+            entry["region_psnr"], entry["region_ssim"], entry["region_ms_ssim"] = {}, {}, {}
             sq = ((image.double() - target.double()) ** 2).mean(dim=-1)
             for region, mask in masks.items():
                 mask = mask.to(device)
                 entry["region_psnr"][region] = psnr(image, target, mask)
+                count = int(mask.sum())
+                entry["region_ssim"][region] = float(ssim_pixels[mask].mean()) if count else float("nan")
+                if "ms_ssim" in entry:
+                    entry["region_ms_ssim"][region] = ms_ssim(image, target, mask)
                 region_sq[region] = region_sq.get(region, 0.0) + float(sq[mask].sum())
-                region_n[region] = region_n.get(region, 0) + int(mask.sum())
+                region_ssim[region] = region_ssim.get(region, 0.0) + float(ssim_pixels[mask].double().sum())
+                region_n[region] = region_n.get(region, 0) + count
         per_image.append(entry)
         if on_image is not None:
             on_image(i, camera.name, image.cpu(), target.cpu())
         if save_dir is not None:
             panel = evaluation_panel(image, target)
             Image.fromarray(_to_uint8(panel)).save(Path(save_dir) / f"{i:04d}_{Path(camera.name).stem}.png")
-    return {"per_image": per_image, "region_sq": region_sq, "region_n": region_n, "render_seconds": render_seconds}
+    return {"per_image": per_image, "region_sq": region_sq, "region_ssim": region_ssim, "region_n": region_n,
+            "render_seconds": render_seconds}
 
 
 def summarize_evaluation(parts: Sequence[dict[str, Any]], num_gaussians: int) -> dict[str, Any]:
-    """The metrics of the test views scored in ``parts`` (the ranks' shares, in any order)."""
+    """The metrics of the test views scored in ``parts`` (the ranks' shares, in any order).
+
+    Image metrics are means over the test images. Region PSNR and SSIM pool all pixels of the
+    region in all test images (a region may cover a few pixels of one view); region MS-SSIM is
+    the mean over the images where the region has a window at every scale. D-SSIM is
+    (1 - MS-SSIM) / 2, the dynamic-scene convention."""
     per_image = sorted((entry for part in parts for entry in part["per_image"]), key=lambda e: e["index"])
     region_sq: dict[str, float] = {}
+    region_ssim: dict[str, float] = {}
     region_n: dict[str, int] = {}
     for part in parts:
         for region, value in part["region_sq"].items():
             region_sq[region] = region_sq.get(region, 0.0) + value
+            region_ssim[region] = region_ssim.get(region, 0.0) + part.get("region_ssim", {}).get(region, 0.0)
             region_n[region] = region_n.get(region, 0) + part["region_n"][region]
     n_test = len(per_image)
+
+    def mean(key: str) -> float:
+        values = [e[key] for e in per_image if key in e]
+        return float(np.mean(values)) if values else float("nan")
+
     result: dict[str, Any] = {
         "num_test_images": n_test,
-        "psnr": float(np.mean([e["psnr"] for e in per_image])) if per_image else float("nan"),
-        "ssim": float(np.mean([e["ssim"] for e in per_image])) if per_image else float("nan"),
+        "psnr": mean("psnr"),
+        "ssim": mean("ssim"),
+        "ms_ssim": mean("ms_ssim"),
+        "dssim": mean("dssim"),
         "lpips": None,
         "lpips_note": LPIPS_ABSENT,
         "num_gaussians": num_gaussians,
@@ -128,6 +157,14 @@ def summarize_evaluation(parts: Sequence[dict[str, Any]], num_gaussians: int) ->
             r: (-10.0 * math.log10(max(region_sq[r] / region_n[r], MSE_FLOOR)) if region_n[r] else float("nan"))
             for r in sorted(region_n)
         }
+        result["region_ssim"] = {r: (region_ssim[r] / region_n[r] if region_n[r] else float("nan"))
+                                 for r in sorted(region_n)}
+        result["region_ms_ssim"] = {}
+        for r in sorted(region_n):
+            values = [e["region_ms_ssim"][r] for e in per_image if r in e.get("region_ms_ssim", {})]
+            finite = [v for v in values if math.isfinite(v)]
+            result["region_ms_ssim"][r] = float(np.mean(finite)) if finite else float("nan")
+        result["region_dssim"] = {r: d_ssim(v) for r, v in result["region_ms_ssim"].items()}
         result["region_pixels"] = dict(sorted(region_n.items()))
     return result
 

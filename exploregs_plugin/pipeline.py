@@ -15,7 +15,7 @@ from exploregs_plugin.distributed import World
 from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.model.losses import DepthSpace, depth_l1, photometric_loss, psnr
-from exploregs_plugin.model.optim import OptimizerConfig, batch_lr_scale, set_lr
+from exploregs_plugin.model.optim import OptimizerConfig, batch_betas, batch_lr_scale, set_lr
 from exploregs_plugin.rasterizer import BackendError, backend_problem
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
@@ -143,8 +143,10 @@ class Pipeline:
         dm = self.datamanager
         self.scene_extent = float(dm.scene_extent)
         self.background = dm.background.to(device)
-        self.model = config.model.setup(*to_device((dm.points, dm.points_rgb), device))
+        self.model = config.model.setup(*to_device((dm.points, dm.points_rgb), device), seed=seed)
         self.optimizers = self._make_optimizers()
+        # a dynamic model's deformation field trains with its own optimizer, out of the strategies' reach
+        self.field_optimizer = self._make_field_optimizer()
         self.strategy = config.strategy.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
         # Scene centre = mean training-camera centre (seeding measures distances from it).
@@ -156,6 +158,14 @@ class Pipeline:
 
     def _make_optimizers(self) -> dict[str, torch.optim.Adam]:
         return self.config.optim.setup(self.params, self.scene_extent, self.batch_size, self.config.batch_rule)
+
+    def _make_field_optimizer(self) -> torch.optim.Optimizer | None:
+        return self.model.make_field_optimizer(self.scene_extent, self.lr_scale,
+                                               batch_betas(self.batch_size, self.config.batch_rule))
+
+    def trained_tensors(self) -> list[tuple[str, nn.Parameter]]:
+        """Every trained parameter by name: the Gaussians' and, for a dynamic model, the field's."""
+        return list(self.params.items()) + self.model.field_parameters()
 
     def exploration_summary(self) -> dict[str, int]:
         """Current totals a strategy reports about its exploration (e.g. seeds alive)."""
@@ -179,6 +189,7 @@ class Pipeline:
         back-propagated on its own (one view's graph in memory at a time), the ranks' gradients
         are summed with one all-reduce, and the strategy sees every view's observations."""
         batch, world = self.batch_size, self.world
+        self.model.begin_step(step, self.schedule.max_steps)
         indices = self.datamanager.next_train_indices(batch)  # every rank draws the whole batch
         # the backgrounds too, so that the run's generator advances alike on every rank
         backgrounds = [self._step_background() for _ in indices]
@@ -215,6 +226,9 @@ class Pipeline:
                 info["n_cameras"] = batch  # so the strategies undo the 1/B in the 2D-mean gradients
             if position == mine.start and world.is_main:  # the regulariser enters once per step
                 reg = self.strategy.regularization_loss(self.params)
+                model_reg = self.model.regularization_loss()  # a deformation field's plane regularisers
+                if model_reg is not None:
+                    reg = reg + model_reg
                 loss = loss + reg
                 terms["reg"] = reg.detach()
             loss.backward()
@@ -239,6 +253,12 @@ class Pipeline:
         for optimizer in self.optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
+        if self.field_optimizer is not None:
+            lrs = self.model.field_lrs(step, self.schedule.max_steps, self.scene_extent, self.lr_scale)
+            for group in self.field_optimizer.param_groups:
+                group["lr"] = lrs[group["name"]]
+            self.field_optimizer.step()
+            self.field_optimizer.zero_grad(set_to_none=True)
         self.check_finite(step)
         counts = self.strategy.step_post_backward(
             self.params, self.optimizers, self.strategy_state, step, step_info, lr=means_lr,
@@ -262,22 +282,20 @@ class Pipeline:
 
         A parameter without a gradient on every rank keeps none (Adam then skips it, as it does
         in one process); one that has a gradient on some rank gets zeros elsewhere."""
-        names = list(self.params.keys())
-        present = torch.tensor([self.params[n].grad is not None for n in names], dtype=torch.float32,
-                               device=self.device)
-        grads = [self.params[n].grad if self.params[n].grad is not None else torch.zeros_like(self.params[n])
-                 for n in names]
+        tensors = [p for _, p in self.trained_tensors()]
+        present = torch.tensor([p.grad is not None for p in tensors], dtype=torch.float32, device=self.device)
+        grads = [p.grad if p.grad is not None else torch.zeros_like(p) for p in tensors]
         keys = sorted(totals)
         scalars = torch.stack([totals[k] for k in keys]).to(self.device, torch.float32)
         flat = [g.to(torch.float32) for g in grads] + [present, scalars]
         self.world.all_reduce_sum_(flat)
-        for name, grad, summed, seen in zip(names, grads, flat, present):
-            self.params[name].grad = summed.to(grad.dtype) if float(seen) > 0 else None
+        for param, grad, summed, seen in zip(tensors, grads, flat, present):
+            param.grad = summed.to(grad.dtype) if float(seen) > 0 else None
         for k, value in zip(keys, flat[-1].cpu()):
             totals[k] = value.to(torch.float64)
 
     def check_finite(self, step: int) -> None:
-        for name, p in self.params.items():
+        for name, p in self.trained_tensors():
             # One reduction per tensor: NaN and inf propagate through a sum, so a finite sum
             # means finite entries. Only a non-finite sum (or float32 overflow of a large one)
             # pays for the element-wise scan.
@@ -286,19 +304,25 @@ class Pipeline:
             bad = ~torch.isfinite(p.detach())
             if not bool(bad.any()):
                 continue
+            if name.startswith("deformation."):
+                raise NonFiniteError(f"step {step}: parameter '{name}' has {int(bad.sum())} non-finite values")
             rows = int(bad.reshape(p.shape[0], -1).any(dim=1).sum()) if p.ndim else 1
             raise NonFiniteError(
                 f"step {step}: parameter '{name}' has non-finite values in {rows} of {p.shape[0]} Gaussians"
             )
 
     def state_dict(self) -> dict[str, Any]:
-        return {
+        state = {
             "params": {k: v.detach().clone() for k, v in self.params.items()},
             "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
             "strategy_state": self.strategy_state,
             "generator": self.generator.get_state(),
             "datamanager": self.datamanager.state_dict(),
         }
+        if self.field_optimizer is not None:  # a dynamic model: its deformation field and optimizer
+            state["field"] = self.model.field_state()
+            state["field_optimizer"] = self.field_optimizer.state_dict()
+        return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
         """Restore a checkpoint, saved on any device, onto this pipeline's device. The Gaussian
@@ -311,6 +335,14 @@ class Pipeline:
         self.optimizers = self._make_optimizers()
         for name, opt in self.optimizers.items():
             opt.load_state_dict(state["optimizers"][name])  # Adam's moments follow their parameter's device
+        if self.field_optimizer is not None:
+            if "field" not in state:
+                raise ValueError("the checkpoint holds no deformation field: it was made by a static method")
+            self.model.load_field_state(state["field"])
+            self.field_optimizer = self._make_field_optimizer()
+            self.field_optimizer.load_state_dict(state["field_optimizer"])
+        elif "field" in state:
+            raise ValueError("the checkpoint holds a deformation field: load it with its dynamic (4D) method's config")
         self.strategy_state = to_device(state["strategy_state"], self.device)
         # a generator state from another device type cannot be loaded: the stream is then
         # reseeded from it (deterministic, not bit-identical to an uninterrupted run)

@@ -89,6 +89,9 @@ class RunLogger:
     def log_eval(self, step: int, metrics: dict[str, Any], panels: list[tuple[str, torch.Tensor]]) -> None:
         self.scalar("test/psnr", metrics["psnr"], step)
         self.scalar("test/ssim", metrics["ssim"], step)
+        for key in ("ms_ssim", "dssim"):  # D-SSIM = (1 - MS-SSIM) / 2 (the loss's train/dssim is 1 - SSIM)
+            if np.isfinite(metrics.get(key, float("nan"))):
+                self.scalar(f"test/{key}", metrics[key], step)
         for region, value in metrics.get("region_psnr", {}).items():
             if np.isfinite(value):
                 self.scalar(f"test/psnr_{region}", value, step)

@@ -320,7 +320,7 @@ class Trainer:
         """Rank 0 writes the checkpoint (atomically); first the ranks compare a checksum of their
         parameters, so that a checkpoint never holds one of several diverged models."""
         self.world.check_same(f"parameters at step {step}", torch.cat([
-            params_checksum(list(self.pipeline.params.values())).to(self.device),
+            params_checksum([p for _, p in self.pipeline.trained_tensors()]).to(self.device),
             torch.tensor([float(self.pipeline.model.num_gaussians)], dtype=torch.float64, device=self.device)]))
         if not self.world.is_main:
             self.last_checkpoint = checkpoint_path(self.run_dir, step)
@@ -353,7 +353,7 @@ class Trainer:
             self.last_metrics = evaluate(self.pipeline.model, self.pipeline.datamanager)
         # a resumed checkpoint from another device or world: all ranks start from the same bits
         self.world.check_same("parameters after loading the checkpoint",
-                              params_checksum(list(self.pipeline.params.values())))
+                              params_checksum([p for _, p in self.pipeline.trained_tensors()]))
 
 
 class RunFolderError(ValueError):

@@ -39,3 +39,30 @@ def tiny_dm(tiny_scene_dir: Path):
     from exploregs_plugin.data import DataManagerConfig
 
     return DataManagerConfig(data="builtin:tiny").setup()
+
+
+@pytest.fixture()
+def ctrl_c_after_step(monkeypatch: pytest.MonkeyPatch):
+    """``arm(step)`` makes the next training send a real SIGINT (Ctrl-C) to this process right
+    after that step, which the trainer handles at the step boundary; ``disarm()`` undoes it."""
+    import os
+    import signal
+
+    from exploregs_plugin.pipeline import Pipeline
+
+    real_step = Pipeline.train_step
+
+    class Switch:
+        def arm(self, at_step: int) -> None:
+            def step_then_ctrl_c(pipeline, step):
+                out = real_step(pipeline, step)
+                if step == at_step:
+                    os.kill(os.getpid(), signal.SIGINT)
+                return out
+
+            monkeypatch.setattr(Pipeline, "train_step", step_then_ctrl_c)
+
+        def disarm(self) -> None:
+            monkeypatch.setattr(Pipeline, "train_step", real_step)
+
+    return Switch()

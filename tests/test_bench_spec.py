@@ -175,3 +175,18 @@ def test_override_and_scene_option_flags_repeat(capsys):
     err = capsys.readouterr().err
     assert "seed [--strategy.n-seed 5]" in err and "default [--strategy.grow-grad2d 0.0003]" in err
     assert "--data-factor 2 --datamanager.test-every 4" in err
+
+
+def test_frame_curves_average_runs_by_frame_time():
+    from exploregs_plugin.bench.plots import frame_curves
+
+    runs = [
+        {"per_image": [{"time": 0.0, "psnr": 20.0, "region_psnr": {"occluded": 18.0}},
+                       {"time": 0.5, "psnr": 22.0, "region_psnr": {"occluded": float("nan")}}]},
+        {"per_image": [{"time": 0.5, "psnr": 24.0, "region_psnr": {"occluded": 21.0}},
+                       {"time": 0.0, "psnr": 22.0, "region_psnr": {"occluded": 20.0}}]},
+        {"per_image": [{"psnr": 30.0}]},  # a static run's views have no time
+    ]
+    assert frame_curves(runs) == ([0.0, 0.5], [21.0, 23.0])
+    assert frame_curves(runs, "occluded") == ([0.0, 0.5], [19.0, 21.0])  # NaN frames left out
+    assert frame_curves([{"per_image": [{"psnr": 1.0}]}]) == ([], [])

@@ -117,3 +117,27 @@ def test_checkpoint_from_cuda_resumes_on_cpu(tmp_path):
     assert all(p.device.type == "cpu" for p in loaded.pipeline.params.values())
     resumed = Trainer.from_run(tmp_path / "run", max_steps=20, device="cpu")
     assert resumed.train()["steps"] == 20
+
+
+def test_a_dynamic_run_on_cuda_matches_the_cpu_run_and_resumes_on_cpu(tmp_path):
+    from exploregs_plugin.method_configs import get_method
+    from exploregs_plugin.runs import load_run
+    from exploregs_plugin.schedule import ScheduleConfig
+
+    def config(name: str, device: str):
+        base = get_method("exploregs-4d-seedsplit").config
+        pipeline = replace(base.pipeline, datamanager=replace(base.pipeline.datamanager, data="builtin:dynamic-tiny"))
+        return replace(base, pipeline=pipeline, max_steps=200, device=device, run_dir=tmp_path / name, quiet=True,
+                       tensorboard=False, eval_count=1, save_eval_images=False,
+                       schedule=ScheduleConfig(min_refine_every=20, refine_every_frac=0.1))
+
+    from exploregs_plugin.trainer import Trainer
+
+    cpu = Trainer(config("cpu", "cpu")).train()
+    gpu_trainer = Trainer(config("cuda", "cuda"))
+    gpu = gpu_trainer.train()
+    assert all(p.device.type == "cuda" for _, p in gpu_trainer.pipeline.trained_tensors())
+    assert abs(gpu["psnr"] - cpu["psnr"]) <= 0.5, (cpu["psnr"], gpu["psnr"])
+    loaded = load_run(tmp_path / "cuda", device="cpu")
+    assert bool(loaded.pipeline.model.deformation.active)
+    assert all(p.device.type == "cpu" for _, p in loaded.pipeline.trained_tensors())

@@ -87,3 +87,50 @@ def test_depth_l1_in_depth_and_inverse_space():
     assert float(empty.detach()) == 0.0 and empty.requires_grad
     with pytest.raises(ValueError, match="'depth' or 'inverse'"):
         depth_l1(depth, target, "log")
+
+
+def test_ms_ssim_levels_and_limits():
+    from exploregs_plugin.model.losses import ms_ssim_levels
+
+    assert ms_ssim_levels(256, 256) == 5
+    assert ms_ssim_levels(72, 96) == 3  # 72 -> 36 -> 18; 9 px would be narrower than the window
+    assert ms_ssim_levels(11, 40) == 1
+
+
+def test_ms_ssim_values():
+    import torch.nn.functional as F
+
+    from exploregs_plugin.model.losses import SSIM_C1, SSIM_C2, SSIM_WINDOW, _gaussian_kernel_1d, ms_ssim
+
+    gen = torch.Generator().manual_seed(0)
+    a = torch.rand(20, 30, 3, generator=gen, dtype=torch.float64)
+    b = (a + 0.05 * torch.randn(a.shape, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    assert ms_ssim(a, a) == pytest.approx(1.0)
+    # one scale (min side 20 < 2 x 11): the mean SSIM over the windows inside the image
+    g = _gaussian_kernel_1d(SSIM_WINDOW, 1.5, torch.float64, a.device)
+    window = (g[:, None] * g[None, :])[None, None].expand(3, 1, -1, -1)
+
+    def blur(t):
+        return F.conv2d(t.permute(2, 0, 1)[None], window, groups=3)[0]
+
+    mx, my = blur(a), blur(b)
+    sxx, syy, sxy = blur(a * a) - mx**2, blur(b * b) - my**2, blur(a * b) - mx * my
+    ssim_valid = (2 * mx * my + SSIM_C1) * (2 * sxy + SSIM_C2) / ((mx**2 + my**2 + SSIM_C1) * (sxx + syy + SSIM_C2))
+    assert ms_ssim(a, b) == pytest.approx(float(ssim_valid.mean()), rel=1e-9)
+    # more noise, lower score; the whole image as a region is the image's score
+    worse = (a + 0.2 * torch.randn(a.shape, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    assert ms_ssim(a, worse) < ms_ssim(a, b) < 1.0
+    big = torch.rand(64, 64, 3, generator=gen, dtype=torch.float64)  # two scales
+    assert 0.0 < ms_ssim(big, (big + 0.05).clamp(0, 1)) < 1.0 and ms_ssim(big, big) == pytest.approx(1.0)
+    assert ms_ssim(a, b, torch.ones(20, 30, dtype=torch.bool)) == pytest.approx(ms_ssim(a, b))
+    # a region no window centre touches is NaN; an error restricted to a region shows there only
+    edge = torch.zeros(20, 30, dtype=torch.bool)
+    edge[:, :2] = True
+    assert math.isnan(ms_ssim(a, b, edge))
+    half = torch.zeros(20, 30, dtype=torch.bool)
+    half[:, :15] = True
+    spoiled = a.clone()
+    spoiled[:, 18:] = worse[:, 18:]
+    assert ms_ssim(a, spoiled, half) > ms_ssim(a, spoiled, ~half)
+    with pytest.raises(ValueError, match="at least 11 px"):
+        ms_ssim(a[:8], b[:8])

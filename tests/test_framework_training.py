@@ -15,7 +15,7 @@ import torch
 from exploregs_plugin.configs import load_config
 from exploregs_plugin.evaluation import evaluate
 from exploregs_plugin.io.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
-from exploregs_plugin.pipeline import NonFiniteError, Pipeline
+from exploregs_plugin.pipeline import NonFiniteError
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.trainer import Trainer, TrainerConfig
 
@@ -98,23 +98,15 @@ def test_same_seed_same_result_other_seed_differs(tmp_path, tiny_scene_dir):
                    for k in runs["a"])
 
 
-def test_ctrl_c_then_resume_is_bit_identical(tmp_path, tiny_scene_dir, monkeypatch):
+def test_ctrl_c_then_resume_is_bit_identical(tmp_path, tiny_scene_dir, ctrl_c_after_step):
     full = tiny_config(tmp_path / "full").setup()
     full.train()
 
     interrupted = tiny_config(tmp_path / "cut").setup()
-    real_step = Pipeline.train_step
-
-    def step_then_ctrl_c(self, step):
-        out = real_step(self, step)
-        if step == 16:
-            os.kill(os.getpid(), signal.SIGINT)  # a real Ctrl-C, handled at the step boundary
-        return out
-
-    monkeypatch.setattr(Pipeline, "train_step", step_then_ctrl_c)
+    ctrl_c_after_step.arm(16)  # a real Ctrl-C, handled at the step boundary
     with pytest.raises(KeyboardInterrupt):
         interrupted.train()
-    monkeypatch.setattr(Pipeline, "train_step", real_step)
+    ctrl_c_after_step.disarm()
     ckpt = latest_checkpoint(tmp_path / "cut")
     assert ckpt.name == "step-0000017.pt"
     saved = load_checkpoint(ckpt)

@@ -1,8 +1,10 @@
-"""PNG plots of a bench (matplotlib, Agg): test PSNR against training time per scene, and final
-PSNR against Gaussian count."""
+"""PNG plots of a bench (matplotlib, Agg): test PSNR against training time per scene, final
+PSNR against Gaussian count, and for dynamic scenes PSNR per test frame."""
 
 from __future__ import annotations
 
+import json
+import math
 from pathlib import Path
 from typing import Any
 
@@ -35,6 +37,15 @@ def _safe(name: str) -> str:
     return "".join(c if c.isalnum() or c in "-_." else "_" for c in name)
 
 
+def _save(fig: Any, path: Path) -> Path:
+    """Lay out, write (110 dpi) and release a figure."""
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    fig.clf()
+    _pyplot().close(fig)
+    return path
+
+
 def psnr_vs_time(payload: dict[str, Any], spec: BenchSpec, out_dir: Path) -> list[Path]:
     """One PNG per scene: a line per entry (mean over seeds), thin lines for single seeds."""
     plt = _pyplot()
@@ -63,11 +74,7 @@ def psnr_vs_time(payload: dict[str, Any], spec: BenchSpec, out_dir: Path) -> lis
             ax.legend(fontsize=8)
         else:
             ax.text(0.5, 0.5, "no finished run", ha="center", va="center", transform=ax.transAxes)
-        fig.tight_layout()
-        path = Path(out_dir) / f"psnr_vs_time_{_safe(scene.name)}.png"
-        fig.savefig(path, dpi=110)
-        plt.close(fig)
-        paths.append(path)
+        paths.append(_save(fig, Path(out_dir) / f"psnr_vs_time_{_safe(scene.name)}.png"))
     return paths
 
 
@@ -96,12 +103,60 @@ def psnr_vs_gaussians(payload: dict[str, Any], spec: BenchSpec, out_dir: Path) -
         if ax.get_legend_handles_labels()[0]:
             ax.legend(fontsize=7)
     fig.suptitle(f"final test PSNR against Gaussian count ({spec.steps} steps)", fontsize=10)
-    fig.tight_layout()
-    path = Path(out_dir) / "psnr_vs_gaussians.png"
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    return _save(fig, Path(out_dir) / "psnr_vs_gaussians.png")
+
+
+def frame_curves(metrics: list[dict[str, Any]], region: str | None = None) -> tuple[list[float], list[float]]:
+    """Mean over runs of the PSNR of each test frame, by the frame's time: (times, PSNRs).
+    ``region``: that region's PSNR in each frame (frames without the region are left out).
+    metrics: each run's metrics.json; frames are matched by time."""
+    by_time: dict[float, list[float]] = {}
+    for m in metrics:
+        for frame in m.get("per_image", []):
+            value = frame.get("psnr") if region is None else frame.get("region_psnr", {}).get(region)
+            if "time" in frame and value is not None and math.isfinite(value):
+                by_time.setdefault(round(float(frame["time"]), 9), []).append(float(value))
+    times = sorted(by_time)
+    return times, [sum(by_time[t]) / len(by_time[t]) for t in times]
+
+
+def psnr_per_frame(payload: dict[str, Any], spec: BenchSpec, out_dir: Path) -> list[Path]:
+    """Dynamic scenes: test PSNR of each frame against its time, whole image and the region
+    occluded by motion, a line per entry (mean over seeds). Scenes without timed frames get none."""
+    plt = _pyplot()
+    colors = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    paths = []
+    for scene in spec.scenes:
+        per_entry = {}
+        for entry in spec.entries:
+            runs = [r for r in payload["runs"] if r["scene"] == scene.name and r["entry"] == entry.name
+                    and r["status"] == "done"]
+            metrics = []
+            for r in runs:
+                try:
+                    metrics.append(json.loads((Path(r["run_dir"]) / "metrics.json").read_text()))
+                except (OSError, ValueError):
+                    continue
+            per_entry[entry.name] = metrics
+        if not any(frame_curves(m)[0] for m in per_entry.values()):
+            continue
+        fig, axes = plt.subplots(1, 2, figsize=(10.0, 3.8))
+        for i, (name, metrics) in enumerate(per_entry.items()):
+            for ax, region in zip(axes, (None, "occluded")):
+                times, values = frame_curves(metrics, region)
+                if times:
+                    ax.plot(times, values, marker="o", ms=2.5, color=colors[i % len(colors)], label=name)
+        for ax, title in zip(axes, ("whole frame", "occluded by motion")):
+            ax.set_xlabel("time of the test frame")
+            ax.set_ylabel("PSNR (dB)")
+            ax.set_title(f"{scene.name}: {title}")
+            ax.grid(alpha=0.3)
+            if ax.get_legend_handles_labels()[0]:
+                ax.legend(fontsize=8)
+        paths.append(_save(fig, Path(out_dir) / f"psnr_per_frame_{_safe(scene.name)}.png"))
+    return paths
 
 
 def write_plots(results: Path, spec: BenchSpec, payload: dict[str, Any]) -> list[Path]:
-    return psnr_vs_time(payload, spec, Path(results)) + [psnr_vs_gaussians(payload, spec, Path(results))]
+    return (psnr_vs_time(payload, spec, Path(results)) + [psnr_vs_gaussians(payload, spec, Path(results))]
+            + psnr_per_frame(payload, spec, Path(results)))

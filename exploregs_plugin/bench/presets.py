@@ -1,4 +1,5 @@
-"""Named bench entries (the methods and the two controls) and the presets quick / standard / real."""
+"""Named bench entries (the methods and the controls) and the presets quick / standard / real /
+real-gpu / dynamic and the ablations."""
 
 from __future__ import annotations
 
@@ -11,6 +12,24 @@ LOWTHRESH_GROW_GRAD2D = 0.0001
 ``--strategy.grow-grad2d`` on ``builtin:combined`` at the standard budget (1000 steps,
 docs/bench.md): 1e-4 gives 16305 Gaussians, between Split's 13634 and Seed+Split's 18545 there
 (seed 0), so a gain of exploration over it is not a gain of count."""
+
+
+DYNAMIC_LOWTHRESH_GROW_GRAD2D = 6e-05
+"""Gradient threshold of the ``4d-default-lowthresh`` control on ``builtin:dynamic`` (Default:
+0.0002), from a sweep at 2000 steps, seed 0 (docs/results.md): 1.4e-4, 1.2e-4, 8e-5 and 6e-5 give
+17 904, 18 634, 21 301 and 23 025 Gaussians, against 25 085 for 4d-split; the lowest comes closest,
+so a gain of exploration over it is not a gain of count."""
+
+
+DYNAMIC_ENTRIES = (
+    BenchEntry("4d-default", "exploregs-4d-default", (), "4DGS with 3DGS density control (the baseline)"),
+    BenchEntry("4d-split", "exploregs-4d-split", (), "4DGS + Random Splitting (5 per step)"),
+    BenchEntry("4d-seedsplit", "exploregs-4d-seedsplit", (), "4DGS + Random Seeding + Random Splitting"),
+    BenchEntry("4d-default-lowthresh", "exploregs-4d-default",
+               ("--strategy.grow-grad2d", repr(DYNAMIC_LOWTHRESH_GROW_GRAD2D)),
+               "control: 4d-default with a lower gradient threshold, near 4d-split's count"),
+)
+"""The dynamic bench's entries (also named entries for --methods)."""
 
 
 def relaxed_prune_scale3d() -> float:
@@ -40,6 +59,7 @@ def named_entries() -> dict[str, BenchEntry]:
         BenchEntry("guided", "exploregs-guided", (), "guided seeding: seeds on the rays of the highest-error pixels"),
         BenchEntry("occlusion", "exploregs-occlusion", (), "occlusion-aware splitting"),
         BenchEntry("guided-occlusion", "exploregs-guided-occlusion", (), "guided seeding + occlusion-aware splitting"),
+        *DYNAMIC_ENTRIES,
     ]
     return {e.name: e for e in entries}
 
@@ -162,6 +182,18 @@ def real_gpu(root: Path | None = None) -> BenchSpec:
                      eval_count=6, name="real-gpu", notes=tuple(notes))
 
 
+DYNAMIC_SEEDS = (0, 1, 2)
+
+
+def dynamic() -> BenchSpec:
+    """The paper's 4DGS experiment at CPU scale: the three dynamic methods and the count control
+    on the built-in dynamic scene, three seeds, at the dynamic methods' step budget."""
+    from exploregs_plugin.method_configs import DYNAMIC_STEPS
+
+    return BenchSpec(entries=DYNAMIC_ENTRIES, scenes=(BenchScene("dynamic", "builtin:dynamic"),),
+                     seeds=DYNAMIC_SEEDS, steps=DYNAMIC_STEPS, eval_count=5, name="dynamic", baseline="4d-default")
+
+
 def _analysis(name: str, scenes: tuple[str, ...]) -> BenchSpec:
     """An eg-analyze ablation (branch ablation, depth supervision, split ablation) as a bench."""
     from exploregs_plugin.bench.experiments import EXPERIMENTS
@@ -176,6 +208,7 @@ PRESETS = {
     "standard": standard,
     "real": real,
     "real-gpu": real_gpu,
+    "dynamic": dynamic,
     # the paper's ablations (docs/analysis.md): every subset of position-gradient branches switched
     # off, depth supervision (ground truth and a noisy, biased "monocular" map), and n_split /
     # gradient-threshold sweeps for the PSNR-against-Gaussians plot

@@ -14,11 +14,14 @@ from exploregs_plugin.bench.runner import RunRecord
 from exploregs_plugin.bench.spec import BenchSpec
 from exploregs_plugin.io.atomic import atomic_write_text
 
-REGIONS = ("far", "occluded", "other")
-QUALITY = ("psnr", "ssim", "lpips")
+REGIONS = ("far", "occluded", "other", "moving")
+"""Regions of the region masks; ``moving`` only in dynamic scenes (occluded there: by motion)."""
+QUALITY = ("psnr", "ssim", "ms_ssim", "dssim", "lpips")
 COST = ("num_gaussians", "train_seconds", "seconds_per_step", "render_seconds_per_image")
-METRICS = QUALITY + tuple(f"region_{r}" for r in REGIONS) + COST
-"""Every per-run number the tables use (region PSNR as ``region_far`` ...)."""
+METRICS = (QUALITY + tuple(f"region_{r}" for r in REGIONS) + tuple(f"region_dssim_{r}" for r in REGIONS)
+           + COST)
+"""Every per-run number the tables use (region PSNR as ``region_far``, region D-SSIM as
+``region_dssim_far`` ...)."""
 
 
 def _number(value: Any) -> float | None:
@@ -38,8 +41,10 @@ def run_row(spec: BenchSpec, record: RunRecord) -> dict[str, Any]:
     }
     for key in QUALITY + COST:
         row[key] = _number(m.get(key))
+    dssim = m.get("region_dssim") or {}
     for r in REGIONS:
         row[f"region_{r}"] = _number(regions.get(r))
+        row[f"region_dssim_{r}"] = _number(dssim.get(r))
     return row
 
 
@@ -158,20 +163,29 @@ def markdown(spec: BenchSpec, rows: list[dict[str, Any]], summary: list[dict[str
     has_base = any(e.name == base for e in spec.entries)
     lines += ["## Test image quality", ""]
     lines += _grouped(spec, summary, [("PSNR", "psnr", 2, 1.0, False), ("SSIM", "ssim", 4, 1.0, False),
-                                      ("LPIPS", "lpips", 4, 1.0, False)]
+                                      ("D-SSIM", "dssim", 4, 1.0, False), ("LPIPS", "lpips", 4, 1.0, False)]
                       + ([("ΔPSNR", "psnr", 2, 1.0, True)] if has_base else []))
+    lines += ["", "D-SSIM = (1 - MS-SSIM) / 2, as the dynamic-scene papers report it (MS-SSIM with "
+              "fewer scales on small images; docs/dynamic.md)."]
     region_scenes = [s.name for s in spec.scenes
                      if any(r["scene"] == s.name and r["region_far"] is not None for r in rows)]
+    regions = [g for g in REGIONS if any(r[f"region_{g}"] is not None for r in rows)]
     lines += ["", "## Paired differences to " + f"`{base}`", ""]
-    region_deltas: list[Column] = [(f"Δ{r}", f"region_{r}", 2, 1.0, True) for r in REGIONS]
+    region_deltas: list[Column] = [(f"Δ{r}", f"region_{r}", 2, 1.0, True) for r in regions]
     if has_base:
         lines += _grouped(spec, summary, [("ΔPSNR", "psnr", 2, 1.0, True), ("ΔSSIM", "ssim", 4, 1.0, True)],
                           extra={sc: region_deltas for sc in region_scenes})
     else:
         lines += [f"No entry named `{base}` in this bench (set another with --baseline)."]
-    lines += ["", "## Region PSNR (dB; far / occluded / other, pooled over test views)", ""]
+    lines += ["", f"## Region PSNR (dB; {' / '.join(regions) or 'no regions'}, pooled over test views)", ""]
     if region_scenes:
-        lines += _grouped(spec, summary, [(r, f"region_{r}", 2, 1.0, False) for r in REGIONS], region_scenes)
+        lines += _grouped(spec, summary, [(r, f"region_{r}", 2, 1.0, False) for r in regions], region_scenes)
+        if "moving" in regions:  # a dynamic scene: occluded means occluded by motion
+            lines += ["", "## Region D-SSIM (dynamic scenes; occluded = static content that moving things "
+                      "cover part of the time)", ""]
+            lines += _grouped(spec, summary, [(r, f"region_dssim_{r}", 4, 1.0, False) for r in regions]
+                              + ([(f"Δ{r}", f"region_dssim_{r}", 4, 1.0, True) for r in regions] if has_base else []),
+                              region_scenes)
     else:
         lines += ["No scene of this bench has region masks."]
     lines += ["", "## Gaussians, training time, render time", "",

@@ -27,6 +27,8 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
+from .builtin_dynamic import (DYNAMIC_GENERATOR_VERSION, DYNAMIC_PRESETS, DynamicPreset, generate_dynamic,
+                              write_dynamic_scene)
 from .cache import cache_root
 from .errors import DataError
 from .scene_layouts import LAYOUTS, build_world, camera_path, intrinsics
@@ -190,19 +192,21 @@ def write_scene(scene: GeneratedScene, out_dir: Path, seconds: float) -> None:
     (out_dir / "scene.json").write_text(json.dumps(meta, indent=1))
 
 
-def make_scene(preset: ScenePreset, out_dir: Path, overwrite: bool = False) -> Path:
-    """Generate ``preset`` and write it to ``out_dir`` atomically (temp dir, then rename)."""
+def make_scene(preset: ScenePreset | DynamicPreset, out_dir: Path, overwrite: bool = False) -> Path:
+    """Generate ``preset`` (static or dynamic) and write it to ``out_dir`` atomically (temp dir,
+    then rename)."""
     out_dir = Path(out_dir).expanduser()
     if out_dir.exists() and any(out_dir.iterdir()):
         if not overwrite:
             raise DataError(out_dir, "directory exists and is not empty (use --overwrite / overwrite=True to replace it)")
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     start = time.perf_counter()
-    scene = generate(preset)
+    dynamic = isinstance(preset, DynamicPreset)
+    scene = generate_dynamic(preset) if dynamic else generate(preset)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", dir=out_dir.parent))
     os.chmod(tmp, 0o755)  # mkdtemp makes it private; the scene is an ordinary readable folder
     try:
-        write_scene(scene, tmp, time.perf_counter() - start)
+        (write_dynamic_scene if dynamic else write_scene)(scene, tmp, time.perf_counter() - start)
         if out_dir.exists():
             shutil.rmtree(out_dir)
         os.replace(tmp, out_dir)
@@ -212,18 +216,20 @@ def make_scene(preset: ScenePreset, out_dir: Path, overwrite: bool = False) -> P
     return out_dir
 
 
-def _cached_matches(path: Path, preset: ScenePreset) -> bool:
+def _cached_matches(path: Path, preset: ScenePreset | DynamicPreset) -> bool:
     try:
         meta = json.loads((path / "scene.json").read_text())
     except (OSError, ValueError):
         return False
-    return meta.get("generator_version") == GENERATOR_VERSION and meta.get("preset") == asdict(preset)
+    version = DYNAMIC_GENERATOR_VERSION if isinstance(preset, DynamicPreset) else GENERATOR_VERSION
+    return meta.get("generator_version") == version and meta.get("preset") == asdict(preset)
 
 
-def preset_by_name(name: str) -> ScenePreset:
-    if name not in PRESETS:
-        raise DataError(f"builtin:{name}", f"unknown built-in scene; available: {', '.join(PRESETS)}")
-    return PRESETS[name]
+def preset_by_name(name: str) -> ScenePreset | DynamicPreset:
+    presets = {**PRESETS, **DYNAMIC_PRESETS}
+    if name not in presets:
+        raise DataError(f"builtin:{name}", f"unknown built-in scene; available: {', '.join(presets)}")
+    return presets[name]
 
 
 def ensure_builtin(name: str, cache_dir: Path | None = None, **overrides: object) -> Path:

@@ -15,7 +15,7 @@ import numpy as np
 import pycolmap
 
 from .camera_prep import check_camera, check_pose, prepare_image, source_image
-from .errors import DataError
+from .errors import DataError, dataset_folder
 from .images import IMAGE_SUFFIXES
 from .parsed import ImageRecord, ParsedScene, ParseOptions
 
@@ -154,9 +154,7 @@ def attach_extras(root: Path, record: ImageRecord) -> ImageRecord:
 
 def read_colmap(root: Path, options: ParseOptions) -> ParsedScene:
     """Parse a COLMAP dataset (file units; normalise afterwards)."""
-    root = Path(root)
-    if not root.is_dir():
-        raise DataError(root, "dataset folder does not exist")
+    root = dataset_folder(root)
     sparse = find_sparse_dir(root)
     rec = read_reconstruction(sparse)
     images = sorted(rec.images.values(), key=lambda im: im.name)

@@ -27,8 +27,9 @@ class DataManagerConfig:
     """Which dataset to load and how."""
 
     data: str = "builtin:default"
-    """Dataset: builtin:NAME (tiny, default, farside, nearside, combined, *-large), a COLMAP
-    folder (images/ + sparse/0), or a transforms.json (or its folder)."""
+    """Dataset: builtin:NAME (tiny, default, farside, nearside, combined, *-large; dynamic,
+    dynamic-tiny), a COLMAP folder (images/ + sparse/0), a transforms.json (or its folder), or a
+    Neu3D / DyNeRF multi-view video folder (poses_bounds.npy + cam00.mp4 ...)."""
     data_factor: int = 1
     """Downscale images by this integer factor (uses images_N/ when present, else caches a resize)."""
     test_every: int = 8
@@ -56,6 +57,10 @@ class DataManagerConfig:
     of the camera centres and their focus point, with random colours (docs/data.md compares them)."""
     random_init_depth: tuple[float, float] = (0.1, 10.0)
     """Near and far depth of 'frusta' points, in units of the scene extent (camera spread)."""
+    frame_stride: int = 1
+    """Dynamic scenes: keep every this-many-th frame of each camera."""
+    max_frames: int | None = None
+    """Dynamic scenes: use the first this-many frames of each camera's clip (unset: all)."""
     cache_dir: str | None = None
     """Cache root for built-in scenes and derived images (default: $EXPLOREGS_CACHE or ~/.cache/exploregs)."""
 
@@ -71,6 +76,10 @@ class DataManagerConfig:
             raise DataError("--background", f"must be three values in [0, 1], got {self.background}")
         if self.n_random_points < 1:
             raise DataError("--n-random-points", f"must be >= 1, got {self.n_random_points}")
+        if self.frame_stride < 1:
+            raise DataError("--frame-stride", f"must be >= 1, got {self.frame_stride}")
+        if self.max_frames is not None and self.max_frames < 1:
+            raise DataError("--max-frames", f"must be >= 1, got {self.max_frames}")
         near, far = self.random_init_depth
         if not 0.0 < near < far:
             raise DataError("--random-init-depth", f"needs 0 < near < far, got {near}, {far}")
@@ -80,6 +89,8 @@ class DataManagerConfig:
             undistort=self.undistort,
             cache_root=root,
             background=np.asarray(self.background, dtype=np.float64),
+            frame_stride=self.frame_stride,
+            max_frames=self.max_frames,
         )
 
 
@@ -121,6 +132,11 @@ class DataManager:
         background = options.background
         self._train = [self._load(self.parsed.images[i], background) for i in train_ids]
         self._test = [self._load(self.parsed.images[i], background) for i in test_ids]
+        # Region masks: the labels every dataset has, and "moving" where a dynamic one marks it.
+        present = set().union(*(set(np.unique(it.labels.numpy()).tolist()) for it in self._train + self._test
+                                if it.labels is not None))
+        self.regions = {name: value for name, value in REGION_LABELS.items()
+                        if name != "moving" or value in present}
         self.train_cameras: list[Camera] = [it.camera for it in self._train]
         self.test_cameras: list[Camera] = [it.camera for it in self._test]
         points, points_rgb = self.parsed.points, self.parsed.points_rgb
@@ -155,7 +171,7 @@ class DataManager:
         camera = Camera(
             torch.tensor(record.viewmat, dtype=torch.float32),
             torch.tensor(record.K, dtype=torch.float32),
-            record.width, record.height, record.name,
+            record.width, record.height, record.name, record.time,
         )
         depth = labels = None
         size = (record.width, record.height)
@@ -167,13 +183,17 @@ class DataManager:
         alpha_t = torch.from_numpy(alpha) if alpha is not None else None
         return _Item(camera, torch.from_numpy(np.ascontiguousarray(pixels).copy()), depth, labels, alpha_t)
 
-    @staticmethod
-    def _item(item: _Item) -> tuple[Camera, Tensor, dict[str, Any]]:
+    @property
+    def is_dynamic(self) -> bool:
+        """The views are frames of a dynamic scene (their cameras carry times)."""
+        return any(camera.time is not None for camera in self.train_cameras)
+
+    def _item(self, item: _Item) -> tuple[Camera, Tensor, dict[str, Any]]:
         extras: dict[str, Any] = {}
         if item.depth is not None:
             extras["depth"] = item.depth
         if item.labels is not None:
-            extras["masks"] = {name: item.labels == value for name, value in REGION_LABELS.items()}
+            extras["masks"] = {name: item.labels == value for name, value in self.regions.items()}
         if item.alpha is not None:
             extras["alpha"] = item.alpha.to(torch.float32) / 255.0
         return item.camera, item.image.to(torch.float32) / 255.0, extras
@@ -264,5 +284,6 @@ def _load_labels(path: Path, size: tuple[int, int]) -> np.ndarray:
     except OSError as err:
         raise DataError(path, f"mask file is unreadable ({err})") from err
     if labels.ndim != 2 or labels.max(initial=0) > max(REGION_LABELS.values()):
-        raise DataError(path, "mask must be a single-channel image of region labels 0, 1, 2")
+        raise DataError(path, "mask must be a single-channel image of region labels " +
+                        ", ".join(f"{v} ({k})" for k, v in REGION_LABELS.items()))
     return labels.copy()

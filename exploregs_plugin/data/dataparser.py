@@ -1,7 +1,8 @@
 """Pick the parser for a ``--data`` argument and normalise the result.
 
-``builtin:NAME`` -> generated (or cached) built-in scene, read as COLMAP;
-a folder with ``sparse/`` -> COLMAP; a ``transforms.json`` file, or a folder holding one -> transforms.json.
+``builtin:NAME`` -> generated (or cached) built-in scene, read as COLMAP (static scenes) or
+Neu3D (dynamic ones); a folder with ``sparse/`` -> COLMAP; a folder with ``poses_bounds.npy``
+-> Neu3D / DyNeRF; a ``transforms.json`` file, or a folder holding one -> transforms.json.
 """
 
 from __future__ import annotations
@@ -12,6 +13,7 @@ from pathlib import Path
 from .builtin import ensure_builtin
 from .colmap import read_colmap
 from .errors import DataError
+from .neu3d import is_neu3d, read_neu3d
 from .parsed import ParsedScene, ParseOptions, normalize_scene
 from .transforms_json import read_transforms
 
@@ -19,12 +21,13 @@ BUILTIN_PREFIX = "builtin:"
 
 
 def resolve_data(data: str, cache_dir: Path) -> tuple[str, Path]:
-    """(format, path) for a data argument; format is "colmap" or "transforms".
+    """(format, path) for a data argument; format is "colmap", "neu3d" or "transforms".
 
     Built-in scenes are generated into (or reused from) ``cache_dir/scenes``."""
     if data.startswith(BUILTIN_PREFIX):
         name = data[len(BUILTIN_PREFIX):]
-        return "colmap", ensure_builtin(name, Path(cache_dir).expanduser() / "scenes")
+        path = ensure_builtin(name, Path(cache_dir).expanduser() / "scenes")
+        return ("neu3d" if is_neu3d(path) else "colmap"), path
     path = Path(data).expanduser()
     if not path.exists():
         raise DataError(f"--data {data}", "path does not exist (and is not builtin:NAME)")
@@ -34,17 +37,21 @@ def resolve_data(data: str, cache_dir: Path) -> tuple[str, Path]:
         raise DataError(path, "a data file must be a transforms.json; otherwise pass the dataset folder")
     if (path / "sparse").is_dir():
         return "colmap", path
+    if is_neu3d(path):
+        return "neu3d", path
     if (path / "transforms.json").is_file():
         return "transforms", path / "transforms.json"
     if (path / "transforms_train.json").is_file():
         return "transforms", path  # Blender / NeRF-synthetic: transforms_{train,val,test}.json
-    raise DataError(path, "not a dataset: expected sparse/0 (COLMAP), transforms.json or transforms_train.json")
+    raise DataError(path, "not a dataset: expected sparse/0 (COLMAP), transforms.json, transforms_train.json "
+                    "or poses_bounds.npy (Neu3D)")
 
 
 def parse_dataset(data: str, options: ParseOptions, normalize: bool = True) -> ParsedScene:
     """Parse ``data`` and return it normalised (see :mod:`exploregs_plugin.data.parsed`)."""
     kind, path = resolve_data(data, options.cache_root)
-    scene = read_colmap(path, options) if kind == "colmap" else read_transforms(path, options)
+    readers = {"colmap": read_colmap, "neu3d": read_neu3d, "transforms": read_transforms}
+    scene = readers[kind](path, options)
     if data.startswith(BUILTIN_PREFIX):
         scene = replace(scene, name=data[len(BUILTIN_PREFIX):])
     return normalize_scene(scene, enabled=normalize)

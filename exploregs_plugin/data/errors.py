@@ -15,3 +15,11 @@ class DataError(ValueError):
         self.where = str(where)
         self.problem = problem
         super().__init__(f"{where}: {problem}")
+
+
+def dataset_folder(root: str | Path) -> Path:
+    """``root`` as a Path, checked to be an existing folder."""
+    root = Path(root)
+    if not root.is_dir():
+        raise DataError(root, "dataset folder does not exist")
+    return root

@@ -37,8 +37,10 @@ EXTENT_MARGIN = 1.1
 MIN_RADIUS = 1e-12
 """Below this camera-centre radius (one camera, or all at one spot) the scale stays 1."""
 
-REGION_LABELS = {"other": 0, "far": 1, "occluded": 2}
-"""Values in a region-mask PNG (``masks/<stem>.png``): one label per pixel."""
+REGION_LABELS = {"other": 0, "far": 1, "occluded": 2, "moving": 3}
+"""Values in a region-mask PNG (``masks/<stem>.png``): one label per pixel. In a dynamic scene
+``occluded`` is static content that moving things cover part of the time (occluded by motion)
+and ``moving`` the moving things themselves; static scenes have no ``moving`` pixels."""
 
 
 @dataclass(frozen=True)
@@ -93,6 +95,8 @@ class ImageRecord:
     viewmat: np.ndarray
     depth_path: Path | None = None
     mask_path: Path | None = None
+    time: float | None = None
+    """The frame's time in [0, 1] in a dynamic scene (None: a static scene)."""
 
     @property
     def camera_center(self) -> np.ndarray:
@@ -131,6 +135,10 @@ class ParseOptions:
     cache_root: Path = field(default_factory=cache_root)
     """Root for derived images when the dataset folder is read-only, and for built-in scenes."""
     background: np.ndarray | None = None
+    frame_stride: int = 1
+    """Dynamic scenes: keep every this-many-th frame of each camera."""
+    max_frames: int | None = None
+    """Dynamic scenes: keep frames of the first this-many of each camera's clip (None: all)."""
 
 
 def camera_centers(images: list[ImageRecord]) -> np.ndarray:

@@ -76,31 +76,48 @@ def colorize_depth(
     return to_uint8(rgb)
 
 
+VIDEO_CRF = 18
+"""H.264 constant rate factor of the MP4s: visually lossless for renders (0 = lossless)."""
+
+
 def video_writer_status() -> str | None:
-    """None when MP4s can be written (imageio with imageio-ffmpeg), else why not."""
-    missing = [m for m in ("imageio", "imageio_ffmpeg") if importlib.util.find_spec(m) is None]
-    if missing:
-        return (f"no MP4 written: {' and '.join(missing)} not installed "
-                f"(pip install imageio imageio-ffmpeg); PNG frames only")
+    """None when MP4s can be written (PyAV, FFmpeg's encoders, a dependency), else why not."""
+    if importlib.util.find_spec("av") is None:
+        return "no MP4 written: PyAV is not installed (pip install av); PNG frames only"
     return None
 
 
 class _VideoSink:
-    """Appends frames to an H.264 MP4; frames are padded to even sides (yuv420p needs them)."""
+    """Appends frames to an H.264 MP4 through PyAV; frames are padded to even sides (yuv420p
+    needs them)."""
 
     def __init__(self, path: Path, fps: float) -> None:
-        import imageio.v2 as imageio
+        import av
+        from fractions import Fraction
 
         self.path = path
-        self.writer = imageio.get_writer(str(path), fps=fps, codec="libx264", quality=8,
-                                         pixelformat="yuv420p", macro_block_size=1)
+        self.container = av.open(str(path), mode="w")
+        self.stream = self.container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+        self.stream.pix_fmt = "yuv420p"
+        self.stream.options = {"crf": str(VIDEO_CRF)}
+        self._sized = False
 
     def append(self, frame: np.ndarray) -> None:
+        import av
+
         h, w = frame.shape[:2]
-        self.writer.append_data(np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+        frame = np.ascontiguousarray(np.pad(frame, ((0, h % 2), (0, w % 2), (0, 0)), mode="edge"))
+        if not self._sized:
+            self.stream.width, self.stream.height = frame.shape[1], frame.shape[0]
+            self._sized = True
+        for packet in self.stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+            self.container.mux(packet)
 
     def close(self) -> None:
-        self.writer.close()
+        if self._sized:
+            for packet in self.stream.encode():  # flush the encoder's delayed frames
+                self.container.mux(packet)
+        self.container.close()
 
 
 ViewRenderer = Callable[[Camera], tuple[np.ndarray, np.ndarray, np.ndarray]]

@@ -59,8 +59,10 @@ class GaussianModelConfig:
         self,
         points: Tensor | None,
         points_rgb: Tensor | None,
+        seed: int = 0,
     ) -> "GaussianModel":
-        """points: [P, 3] initial means; points_rgb: [P, 3] colours in [0, 1] (None: grey)."""
+        """points: [P, 3] initial means; points_rgb: [P, 3] colours in [0, 1] (None: grey);
+        ``seed``: the run's seed, for models that draw initial values (the static one draws none)."""
         if not 0 <= self.sh_degree <= 3:
             raise ValueError(f"sh_degree must be in 0..3, got {self.sh_degree}")
         if not 0.0 < self.init_opacity < 1.0:
@@ -119,6 +121,38 @@ class GaussianModel(nn.Module):
     def num_gaussians(self) -> int:
         return int(self.params["means"].shape[0])
 
+    # What a time-conditioned model (model.dynamic) adds; a static scene has none of it.
+    def params_at(self, time: float | None) -> Mapping[str, Tensor]:
+        """The raw parameters to render at ``time``: a static scene's are the same at every time."""
+        return self.params
+
+    def field_parameters(self) -> list[tuple[str, nn.Parameter]]:
+        """Named parameters trained beside the Gaussians with their own optimizer (none here)."""
+        return []
+
+    def make_field_optimizer(self, scene_extent: float, lr_scale: float = 1.0,
+                             betas: tuple[float, float] = (0.9, 0.999)) -> torch.optim.Optimizer | None:
+        """The optimizer of :meth:`field_parameters` (None: nothing to optimise)."""
+        return None
+
+    def field_lrs(self, step: int, max_steps: int, scene_extent: float, lr_scale: float = 1.0) -> dict[str, float]:
+        """Learning rate of each param group of the field optimizer, by group name, at ``step``."""
+        return {}
+
+    def field_state(self) -> dict[str, Tensor] | None:
+        """A copy of the field's parameters and buffers for a checkpoint (None: no field)."""
+        return None
+
+    def load_field_state(self, state: Mapping[str, Tensor]) -> None:
+        raise ValueError("this model has no deformation field to load")
+
+    def begin_step(self, step: int, max_steps: int) -> None:
+        """Called before each training step (a dynamic model ends its static warm-up here)."""
+
+    def regularization_loss(self) -> Tensor | None:
+        """A regulariser of the model's own (None: none)."""
+        return None
+
     def render(
         self,
         camera: Camera,
@@ -126,9 +160,10 @@ class GaussianModel(nn.Module):
         background: Tensor | None = None,
         detach_paths: tuple[PositionPath, ...] | None = None,
     ) -> tuple[Tensor, Tensor, Tensor, dict]:
-        """Render from ``camera``: image [H, W, 3], alpha [H, W, 1], depth [H, W, 1], info."""
+        """Render from ``camera`` (at its time, for a dynamic scene): image [H, W, 3], alpha
+        [H, W, 1], depth [H, W, 1], info."""
         return render_params(
-            self.params, camera, sh_degree if sh_degree is not None else self.config.sh_degree,
+            self.params_at(camera.time), camera, sh_degree if sh_degree is not None else self.config.sh_degree,
             background, self.config.detach_paths if detach_paths is None else detach_paths,
             self.config.raster,
         )

@@ -32,22 +32,93 @@ def ssim_map(img: Tensor, ref: Tensor) -> Tensor:
     """
     if img.shape != ref.shape:
         raise ValueError(f"ssim: shapes differ: {tuple(img.shape)} vs {tuple(ref.shape)}")
-    channels = img.shape[-1]
-    x = img.permute(2, 0, 1)
-    y = ref.permute(2, 0, 1)
-    maps = torch.cat([x, y, x * x, y * y, x * y], dim=0).unsqueeze(0)  # [1, 5C, H, W]
-    g = _gaussian_kernel_1d(SSIM_WINDOW, SSIM_SIGMA, img.dtype, img.device)
-    n = maps.shape[1]
-    pad = SSIM_WINDOW // 2
-    blurred = F.conv2d(maps, g.view(1, 1, 1, -1).expand(n, 1, 1, -1), padding=(0, pad), groups=n)
-    blurred = F.conv2d(blurred, g.view(1, 1, -1, 1).expand(n, 1, -1, 1), padding=(pad, 0), groups=n)
-    mu_x, mu_y, e_xx, e_yy, e_xy = blurred.squeeze(0).split(channels, dim=0)
-    sigma_xx = e_xx - mu_x * mu_x
-    sigma_yy = e_yy - mu_y * mu_y
-    sigma_xy = e_xy - mu_x * mu_y
+    mu_x, mu_y, sigma_xx, sigma_yy, sigma_xy = _local_moments(img.permute(2, 0, 1), ref.permute(2, 0, 1),
+                                                              SSIM_WINDOW // 2)
     num = (2 * mu_x * mu_y + SSIM_C1) * (2 * sigma_xy + SSIM_C2)
     den = (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * (sigma_xx + sigma_yy + SSIM_C2)
     return (num / den).permute(1, 2, 0)
+
+
+def _local_moments(x: Tensor, y: Tensor, pad: int) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """Gaussian-window means, variances and covariance of x, y [C, H, W] (zero padding ``pad``;
+    0: only windows inside the image, [C, H - 10, W - 10])."""
+    channels = x.shape[0]
+    maps = torch.cat([x, y, x * x, y * y, x * y], dim=0).unsqueeze(0)  # [1, 5C, H, W]
+    g = _gaussian_kernel_1d(SSIM_WINDOW, SSIM_SIGMA, x.dtype, x.device)
+    n = maps.shape[1]
+    blurred = F.conv2d(maps, g.view(1, 1, 1, -1).expand(n, 1, 1, -1), padding=(0, pad), groups=n)
+    blurred = F.conv2d(blurred, g.view(1, 1, -1, 1).expand(n, 1, -1, 1), padding=(pad, 0), groups=n)
+    mu_x, mu_y, e_xx, e_yy, e_xy = blurred.squeeze(0).split(channels, dim=0)
+    return mu_x, mu_y, e_xx - mu_x * mu_x, e_yy - mu_y * mu_y, e_xy - mu_x * mu_y
+
+
+MS_SSIM_WEIGHTS = (0.0448, 0.2856, 0.3001, 0.2363, 0.1333)
+"""Exponents of the five scales of MS-SSIM (Wang, Simoncelli and Bovik 2003)."""
+
+
+def ms_ssim_levels(height: int, width: int) -> int:
+    """Scales of MS-SSIM for an image: five, or as many as keep the coarsest scale at least one
+    window (11 px) wide; at least one (plain SSIM of the valid windows)."""
+    levels = 1
+    while levels < len(MS_SSIM_WEIGHTS) and min(height, width) // 2 ** levels >= SSIM_WINDOW:
+        levels += 1
+    return levels
+
+
+def ms_ssim(img: Tensor, ref: Tensor, mask: Tensor | None = None) -> float:
+    """Multi-scale SSIM of [H, W, C] images in [0, 1], with windows inside the image (as the
+    reference implementation):
+
+        MS-SSIM = SSIM_M^{w_M} prod_{j < M} cs_j^{w_j}
+
+    per channel, then averaged over the channels, where cs_j is the mean contrast-structure term
+    at scale j (2x2 average pooling between scales) and SSIM_M the mean SSIM at the coarsest. An
+    image too small for five scales uses fewer (:func:`ms_ssim_levels`) with the first weights
+    renormalised to sum to 1. Negative means are clamped to 0 (as common implementations do) so
+    that the powers stay real.
+
+    ``mask`` [H, W] bool restricts it to a region: each scale's means are weighted by the share
+    of each window centre that lies in the region (the mask average-pooled like the images). A
+    region that no window centre of a coarse scale touches (a thin band along the border) is
+    scored on the finer scales it has; NaN when it has none."""
+    if img.shape != ref.shape:
+        raise ValueError(f"ms_ssim: shapes differ: {tuple(img.shape)} vs {tuple(ref.shape)}")
+    height, width = img.shape[:2]
+    if min(height, width) < SSIM_WINDOW:
+        raise ValueError(f"ms_ssim needs images of at least {SSIM_WINDOW} px a side, got {width}x{height}")
+    x = img.detach().double().permute(2, 0, 1)
+    y = ref.detach().double().permute(2, 0, 1)
+    region = None if mask is None else mask.to(x.device, torch.float64)[None]
+    crop = SSIM_WINDOW // 2
+    cs_means: list[Tensor] = []
+    ssim_means: list[Tensor] = []  # per level: [C]
+    for level in range(ms_ssim_levels(height, width)):
+        if level:
+            x, y = F.avg_pool2d(x[None], 2)[0], F.avg_pool2d(y[None], 2)[0]
+            region = None if region is None else F.avg_pool2d(region[None], 2)[0]
+        weight = None
+        if region is not None:
+            weight = region[:, crop:region.shape[1] - crop, crop:region.shape[2] - crop]
+            if float(weight.sum()) <= 0.0:
+                break
+        mu_x, mu_y, sigma_xx, sigma_yy, sigma_xy = _local_moments(x, y, 0)
+        cs = (2 * sigma_xy + SSIM_C2) / (sigma_xx + sigma_yy + SSIM_C2)
+        lum = (2 * mu_x * mu_y + SSIM_C1) / (mu_x * mu_x + mu_y * mu_y + SSIM_C1)
+        for term, means in ((cs, cs_means), (lum * cs, ssim_means)):
+            mean = term.mean(dim=(1, 2)) if weight is None else (term * weight).sum(dim=(1, 2)) / weight.sum()
+            means.append(mean.clamp_min(0.0))
+    if not cs_means:
+        return float("nan")
+    weights = [w / sum(MS_SSIM_WEIGHTS[:len(cs_means)]) for w in MS_SSIM_WEIGHTS[:len(cs_means)]]
+    value = ssim_means[-1] ** weights[-1]
+    for cs_mean, w in zip(cs_means[:-1], weights[:-1]):
+        value = value * cs_mean ** w
+    return float(value.mean())
+
+
+def d_ssim(ms_ssim_value: float) -> float:
+    """Structural dissimilarity as the dynamic-scene papers report it (4DGS, Neu3D): (1 - MS-SSIM) / 2."""
+    return (1.0 - ms_ssim_value) / 2.0
 
 
 def ssim(img: Tensor, ref: Tensor) -> Tensor:

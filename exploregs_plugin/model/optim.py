@@ -69,9 +69,16 @@ class OptimizerConfig:
 
     def means_lr_at(self, step: int, max_steps: int, scene_extent: float) -> float:
         """Exponential decay lr(t) = lr0 (lr1 / lr0)^(t / max_steps), both scaled by the extent."""
-        t = min(max(step, 0), max_steps) / max(max_steps, 1)
-        lr0, lr1 = self.means_lr * scene_extent, self.means_lr_final * scene_extent
-        return lr0 * (lr1 / lr0) ** t
+        progress = min(max(step, 0), max_steps) / max(max_steps, 1)
+        return exponential_lr(self.means_lr * scene_extent, self.means_lr_final * scene_extent, progress)
+
+
+def exponential_lr(lr0: float, lr1: float, progress: float) -> float:
+    """lr0 (lr1 / lr0)^p for a progress p clamped to [0, 1]; lr0 when either rate is not positive."""
+    p = min(max(progress, 0.0), 1.0)
+    if lr0 <= 0.0 or lr1 <= 0.0:
+        return lr0
+    return lr0 * (lr1 / lr0) ** p
 
 
 def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:

@@ -9,8 +9,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, Mapping
 
+import torch
 from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
@@ -52,6 +53,20 @@ class RenderableScene:
     """The checkpoint's step, when the Gaussians come from a run."""
     dropped: int = 0
     """Gaussians of a PLY left out because a value was NaN or infinite."""
+    model: Any = None
+    """The run's model, when the Gaussians come from a run (a dynamic run deforms them over time)."""
+
+    @property
+    def is_dynamic(self) -> bool:
+        """The Gaussians move: a run of a dynamic (4D) method."""
+        return self.model is not None and bool(self.model.field_parameters())
+
+    def params_for(self, camera: Camera) -> Mapping[str, Tensor]:
+        """The raw parameters to render from ``camera``: a dynamic run's, deformed to its time."""
+        if self.model is None:
+            return self.params
+        with torch.no_grad():
+            return {name: value.detach() for name, value in self.model.params_at(camera.time).items()}
 
 
 def dataset_normalization(datamanager: Any) -> Any:
@@ -140,4 +155,5 @@ def load_scene(path: Path, cameras: str | Path | None = None, ply_frame: PlyFram
     source = CameraSource(dm.scene_name, list(dm.train_cameras), list(dm.test_cameras), dm.background,
                           dataset_normalization(dm), model.config.raster)
     params = {name: value.detach() for name, value in model.params.items()}
-    return RenderableScene(params, model.config.sh_degree, source, str(run.checkpoint), run.run_dir, run.step)
+    return RenderableScene(params, model.config.sh_degree, source, str(run.checkpoint), run.run_dir, run.step,
+                           model=model)

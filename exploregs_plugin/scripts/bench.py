@@ -35,9 +35,9 @@ class BenchCommand:
 
     preset: tyro.conf.Positional[Optional[PresetName]] = None
     """Start from a preset: quick (minutes), standard (built-in Blur-Trap scenes, ~2 h), real
-    (../shared/scenes), real-gpu (the paper's 30k-step recipe on them, for a GPU), branch-ablation,
-    depth-supervision, split-ablation (the paper's ablations, docs/analysis.md). Options below
-    change it."""
+    (../shared/scenes), real-gpu (the paper's 30k-step recipe on them, for a GPU), dynamic (the 4D
+    methods on the built-in dynamic scene, docs/dynamic.md), branch-ablation, depth-supervision,
+    split-ablation (the paper's ablations, docs/analysis.md). Options below change it."""
     out: Path = Path("bench-results")
     """Results folder: tables and plots here, each run in OUT/runs/<scene>/<entry>/seed<k>/."""
     spec: Optional[Path] = None

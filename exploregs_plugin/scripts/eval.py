@@ -9,6 +9,8 @@ leaving the run's own metrics.json untouched; for a PLY: NAME-eval/ beside it).
 
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -59,7 +61,8 @@ def main(args: EvalArgs) -> dict:
     metrics = evaluate(model, dm, save_dir=out if args.save_images else None)
     metrics.update({"scene": dm.scene_name, **extra})
     write_metrics_json(out / "metrics.json", metrics)
-    print(f"PSNR {metrics['psnr']:.3f} dB  SSIM {metrics['ssim']:.4f}  "
+    dssim = f"D-SSIM {metrics['dssim']:.4f}  " if math.isfinite(metrics.get("dssim", float("nan"))) else ""
+    print(f"PSNR {metrics['psnr']:.3f} dB  SSIM {metrics['ssim']:.4f}  {dssim}"
           f"{metrics['num_gaussians']} Gaussians  -> {out / 'metrics.json'}")
     return metrics
 

@@ -7,13 +7,13 @@ A PLY has no cameras of its own: ``--cameras-from`` names a run folder or a data
 from __future__ import annotations
 
 import sys
-from dataclasses import dataclass
-from functools import partial
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import torch
 import tyro
 
+from exploregs_plugin.cameras import Camera
 from exploregs_plugin.io.camera_path import CameraOrder, Trajectory, trajectory_cameras
 from exploregs_plugin.io.frames import RenderedSequence, RenderMode, render_sequence
 from exploregs_plugin.io.ply import normalization_terms
@@ -54,7 +54,7 @@ class RenderArgs:
     fps: float = 30.0
     """Frame rate of the MP4."""
     video: bool = True
-    """Also write an MP4 (needs imageio and imageio-ffmpeg; frames only otherwise)."""
+    """Also write an MP4 (H.264 through PyAV)."""
     near: float | None = None
     """Depth mode: depth shown as the first colour of the map (default: 1st percentile), dataset units."""
     far: float | None = None
@@ -63,6 +63,9 @@ class RenderArgs:
     """Depth mode: matplotlib colour map."""
     device: str = "auto"
     """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
+    time: float | None = None
+    """Dynamic runs: render every frame at this time in [0, 1]. Unset: test and train views at
+    their own frame's time (the test camera over the clip), a path sweeping the clip from 0 to 1."""
 
 
 def _default_out(args: RenderArgs, scene: RenderableScene) -> Path:
@@ -70,6 +73,21 @@ def _default_out(args: RenderArgs, scene: RenderableScene) -> Path:
     if scene.run_dir is None:  # a PLY: beside it
         return args.path.with_name(f"{args.path.stem}-render") / leaf
     return scene.run_dir / "render" / f"{leaf}-step-{scene.step:07d}"
+
+
+def frame_times(scene: RenderableScene, cameras: list[Camera], trajectory: str, time: float | None) -> list[Camera]:
+    """The cameras with the times to render them at: ``time`` for all; unset, a path through a
+    dynamic scene sweeps the clip (0 to 1) and dataset views keep their frame's time."""
+    if time is not None:
+        if not scene.is_dynamic:
+            raise ValueError(f"--time is for runs of a dynamic (4D) method; {scene.label} is static")
+        if not 0.0 <= time <= 1.0:
+            raise ValueError(f"--time must be in [0, 1], got {time}")
+        return [replace(camera, time=time) for camera in cameras]
+    if scene.is_dynamic and trajectory.startswith("path"):
+        last = max(len(cameras) - 1, 1)
+        return [replace(camera, time=i / last) for i, camera in enumerate(cameras)]
+    return cameras
 
 
 def _progress(i: int, n: int) -> None:
@@ -89,8 +107,9 @@ def main(args: RenderArgs) -> RenderedSequence:
     source = scene.cameras
     if scene.dropped:
         print(f"{scene.label}: left out {scene.dropped} Gaussians with non-finite values")
-    cameras = trajectory_cameras(source.train_cameras, source.test_cameras, args.trajectory,
-                                 args.num_frames, args.max_keys, args.order, args.loop)
+    cameras = frame_times(scene, trajectory_cameras(source.train_cameras, source.test_cameras, args.trajectory,
+                                                    args.num_frames, args.max_keys, args.order, args.loop),
+                          args.trajectory, args.time)
     if args.resolution_scale != 1.0:
         cameras = [c.scaled(args.resolution_scale) for c in cameras]
     sh_degree = scene.sh_degree if args.sh_degree is None else args.sh_degree
@@ -101,8 +120,12 @@ def main(args: RenderArgs) -> RenderedSequence:
     _, scale = normalization_terms(source.normalization)
     out = args.out or _default_out(args, scene)
     print(f"rendering {len(cameras)} {args.trajectory} frames ({args.mode}) of {scene.label} -> {out}")
+    def render(camera: Camera) -> tuple:
+        return render_camera(scene.params_for(camera), camera, sh_degree=sh_degree, background=background,
+                             settings=source.settings)
+
     result = render_sequence(
-        partial(render_camera, scene.params, sh_degree=sh_degree, background=background, settings=source.settings),
+        render,
         cameras, out, mode=args.mode, fps=args.fps, video=args.video, near=args.near, far=args.far,
         depth_scale=1.0 / scale, cmap=args.cmap,
         on_frame=_progress,

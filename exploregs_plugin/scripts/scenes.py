@@ -4,6 +4,7 @@
     eg-scenes stats scenes/default               # what docs/data.md tabulates
     eg-scenes make default --out scenes/default
     eg-scenes make farside --out /tmp/fs --width 320 --height 240 --views 48 --seed 3
+    eg-scenes make dynamic --out /tmp/dyn --cameras 8 --frames 60     # a dynamic scene (Neu3D layout)
 """
 
 from __future__ import annotations
@@ -20,14 +21,17 @@ import tyro
 from PIL import Image
 
 from exploregs_plugin.data.builtin import PRESETS, make_scene, preset_by_name
+from exploregs_plugin.data.builtin_dynamic import DYNAMIC_PRESETS, DynamicPreset
 from exploregs_plugin.data.colmap import read_colmap
+from exploregs_plugin.data.neu3d import is_neu3d, read_neu3d
 from exploregs_plugin.data.errors import DataError
 from exploregs_plugin.data.parsed import REGION_LABELS, ParseOptions
 
 
 @dataclass
 class Make:
-    """Generate a built-in scene (a COLMAP dataset with depths, region masks and a split)."""
+    """Generate a built-in scene: a COLMAP dataset with depths, region masks and a split, or for a
+    dynamic preset a Neu3D multi-view clip with the same ground truth."""
 
     name: Annotated[str, tyro.conf.Positional, tyro.conf.arg(metavar="NAME")]
     """Preset to start from (see `eg-scenes list`)."""
@@ -38,7 +42,11 @@ class Make:
     height: int | None = None
     """Image height in pixels (default: the preset's)."""
     views: int | None = None
-    """Number of views (default: the preset's)."""
+    """Number of views of a static scene (default: the preset's)."""
+    cameras: int | None = None
+    """Number of cameras of a dynamic scene (default: the preset's)."""
+    frames: int | None = None
+    """Number of frames of a dynamic scene's clip (default: the preset's)."""
     seed: int | None = None
     """Seed of the layout jitter, cameras and sparse points (default: the preset's)."""
     points: int | None = None
@@ -74,7 +82,7 @@ def scene_stats(folder: Path) -> dict[str, float | int]:
     """Split sizes, point count, share of points beyond the far radius, region shares over the
     test views, size on disk (MB)."""
     meta = json.loads((folder / "scene.json").read_text())
-    scene = read_colmap(folder, ParseOptions())
+    scene = read_neu3d(folder, ParseOptions()) if is_neu3d(folder) else read_colmap(folder, ParseOptions())
     test = set(scene.split["test"]) if scene.split else set()
     labels = [np.asarray(Image.open(im.mask_path)) for im in scene.images
               if im.name in test and im.mask_path is not None]
@@ -109,7 +117,11 @@ def main(argv: list[str]) -> int:
     command = tyro.cli(Command, args=argv, description="Built-in ExploreGS scenes with ground truth.")
     if isinstance(command, List):
         settings = {name: asdict(preset) for name, preset in PRESETS.items()}
-        print(json.dumps(settings, indent=1) if command.json else preset_table(settings))
+        dynamic = {name: asdict(preset) for name, preset in DYNAMIC_PRESETS.items()}
+        if command.json:
+            print(json.dumps({**settings, **dynamic}, indent=1))
+        else:
+            print(preset_table(settings) + "\n\ndynamic scenes:\n" + preset_table(dynamic))
         return 0
     if isinstance(command, Stats):
         try:
@@ -121,10 +133,16 @@ def main(argv: list[str]) -> int:
         return 0
     try:
         preset = preset_by_name(command.name)
-        changes = {
-            "width": command.width, "height": command.height, "n_views": command.views,
-            "seed": command.seed, "n_points": command.points,
-        }
+        dynamic = isinstance(preset, DynamicPreset)
+        if dynamic and command.views is not None:
+            raise DataError("--views", f"{command.name} is a dynamic scene: set --cameras and --frames")
+        if not dynamic and (command.cameras is not None or command.frames is not None):
+            raise DataError("--cameras/--frames", f"{command.name} is a static scene: set --views")
+        changes = {"width": command.width, "height": command.height, "seed": command.seed, "n_points": command.points}
+        if dynamic:
+            changes.update(n_cameras=command.cameras, n_frames=command.frames)
+        else:
+            changes["n_views"] = command.views
         preset = replace(preset, **{k: v for k, v in changes.items() if v is not None})
         start = time.perf_counter()
         out = make_scene(preset, command.out, overwrite=command.overwrite)
@@ -132,8 +150,10 @@ def main(argv: list[str]) -> int:
         print(f"eg-scenes: error: {err}", file=sys.stderr)
         return 2
     seconds = time.perf_counter() - start
-    print(f"wrote {command.name} ({preset.width}x{preset.height}, {preset.n_views} views, seed "
-          f"{preset.seed}) to {out} in {seconds:.1f} s")
+    views = (f"{preset.n_cameras} cameras x {preset.n_frames} frames" if isinstance(preset, DynamicPreset)
+             else f"{preset.n_views} views")
+    print(f"wrote {command.name} ({preset.width}x{preset.height}, {views}, seed {preset.seed}) to {out} "
+          f"in {seconds:.1f} s")
     return 0
 
 

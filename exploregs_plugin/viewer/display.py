@@ -7,11 +7,13 @@ the viewer and rendered videos agree; the viewer picks the depth range per frame
 from __future__ import annotations
 
 import numpy as np
+import torch
 from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.io.frames import colorize_depth, depth_range, to_uint8
 from exploregs_plugin.io.ply import sh_degree_for_rest
+from exploregs_plugin.model.dynamic import deform_params
 from exploregs_plugin.model.gaussians import render_camera
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.viewer.config import OutputKind
@@ -30,11 +32,17 @@ def render_frame(
     sh_degree: int,
     background: Tensor | None,
     settings: RasterSettings | None = None,
+    time: float = 0.0,
 ) -> np.ndarray:
     """One viewer frame: uint8 [H, W, 3] for ``camera`` (H = camera.height, W = camera.width).
-    ``sh_degree`` is clipped to what the snapshot's coefficients hold."""
+    ``sh_degree`` is clipped to what the snapshot's coefficients hold; a dynamic scene's
+    Gaussians are deformed to ``time`` once its warm-up is over."""
     degree = max(0, min(int(sh_degree), available_sh_degree(snapshot.params)))
-    image, alpha, depth = render_camera(snapshot.params, camera, degree, background, settings)
+    params = snapshot.params
+    if snapshot.field is not None and bool(snapshot.field.active):
+        with torch.no_grad():
+            params = deform_params(params, snapshot.field, time)
+    image, alpha, depth = render_camera(params, camera, degree, background, settings)
     if output == "rgb":
         return to_uint8(image)
     if output == "alpha":

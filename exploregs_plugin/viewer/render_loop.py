@@ -40,6 +40,8 @@ class ViewSettings:
     rest_resolution: int
     rest_delay: float
     max_render_share: float
+    time: float = 0.0
+    """Dynamic scenes: the time in [0, 1] to show."""
 
 
 @dataclass(frozen=True)

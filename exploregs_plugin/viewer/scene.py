@@ -41,6 +41,9 @@ class ViewerScene:
     raster_settings: RasterSettings | None = None
     name: str = "scene"
     step: int = 0
+    deformation: Callable[[], Any] | None = None
+    """A dynamic scene's deformation field, read like ``params`` (None: a static scene); the GUI
+    then has a time slider."""
 
     def __post_init__(self) -> None:
         if not 0 <= self.max_sh_degree <= 3:
@@ -77,6 +80,7 @@ class ViewerScene:
             raster_settings=pipeline.model.config.raster,
             name=str(dm.scene_name),
             step=step,
+            deformation=(lambda: pipeline.model.deformation) if pipeline.model.field_parameters() else None,
         )
 
     @classmethod

@@ -9,9 +9,11 @@ thread has asked for one, so training pays for a copy at most once per rendered 
 
 from __future__ import annotations
 
+import copy
 import threading
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import Tensor
@@ -32,6 +34,8 @@ class Snapshot:
     params: dict[str, Tensor]
     step: int
     version: int
+    field: Any = None
+    """A dynamic scene's deformation field (a copy on the host), None for a static one."""
 
     @property
     def num_gaussians(self) -> int:
@@ -76,10 +80,10 @@ class SnapshotStore:
         with self._lock:
             return self._requested
 
-    def offer(self, params: Mapping[str, Tensor], step: int, force: bool = False) -> bool:
+    def offer(self, params: Mapping[str, Tensor], step: int, force: bool = False, field: Any = None) -> bool:
         """Called by the thread that owns ``params`` at a step boundary. Copies and publishes
-        them when a snapshot was requested and ``step`` differs from the published one's (or
-        ``force``); returns whether it did."""
+        them (and a dynamic scene's deformation ``field``) when a snapshot was requested and
+        ``step`` differs from the published one's (or ``force``); returns whether it did."""
         with self._lock:
             if not force and not self._requested:
                 return False
@@ -90,9 +94,13 @@ class SnapshotStore:
         # The copy is made outside the lock: the caller owns the tensors, and the render
         # thread only ever reads published copies, so it never waits for a copy to finish.
         copied = copy_params(params)
+        field_copy = None
+        if field is not None:
+            with torch.no_grad():
+                field_copy = copy.deepcopy(field).to("cpu").requires_grad_(False)
         with self._lock:
             self._version += 1
-            self._latest = Snapshot(copied, int(step), self._version)
+            self._latest = Snapshot(copied, int(step), self._version, field_copy)
             self._requested = False
             self.copies += 1
         return True

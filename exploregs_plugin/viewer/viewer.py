@@ -74,7 +74,7 @@ class Viewer:
         self.scene = scene
         self.training = training
         self.store = SnapshotStore()
-        self.store.offer(scene.params(), scene.step, force=True)
+        self.store.offer(scene.params(), scene.step, force=True, field=self._field())
         self._step = scene.step
         self._num_gaussians = self.store.latest().num_gaussians  # type: ignore[union-attr]
         self._status = "waiting for the first step" if training else "fixed scene"
@@ -229,6 +229,10 @@ class Viewer:
             share = gui.add_slider("Max render CPU share", 0.05, 1.0, 0.05, settings.max_render_share,
                                    hint="Share of CPU time the viewer may use while training runs")
             share.on_update(lambda _: self.loop.update_settings(max_render_share=float(share.value)))
+            if self.scene.deformation is not None:  # a dynamic scene: which moment to show
+                moment = gui.add_slider("Time", 0.0, 1.0, 0.01, settings.time,
+                                        hint="Time in the clip (0 = first frame, 1 = last)")
+                moment.on_update(lambda _: self.loop.update_settings(time=float(moment.value)))
             cams = gui.add_checkbox("Show cameras", True)
             cams.on_update(lambda _: self._set_cameras_visible(bool(cams.value)))
             if self._points is not None:
@@ -278,7 +282,11 @@ class Viewer:
 
     def _render(self, snapshot: Any, camera: Camera, settings: ViewSettings) -> np.ndarray:
         return render_frame(snapshot, camera, settings.output, settings.sh_degree, self.scene.background,
-                            self.scene.raster_settings)
+                            self.scene.raster_settings, settings.time)
+
+    def _field(self) -> Any:
+        """A dynamic scene's live deformation field (None for a static one)."""
+        return self.scene.deformation() if self.scene.deformation is not None else None
 
     def _send(self, frame: Frame) -> None:
         client = self.server.get_clients().get(frame.client_id)
@@ -307,7 +315,7 @@ class Viewer:
             self._recent.append((float(seconds), psnr))
         params = self.scene.params()
         self._num_gaussians = int(params["means"].shape[0])
-        if self.store.offer(params, step):
+        if self.store.offer(params, step, field=self._field()):
             self.loop.wake()
         self._push_stats()
 
@@ -353,7 +361,7 @@ class Viewer:
             self._step = int(step)
         params = self.scene.params()
         self._num_gaussians = int(params["means"].shape[0])
-        self.store.offer(params, self._step, force=True)
+        self.store.offer(params, self._step, force=True, field=self._field())
         self.loop.wake()
         self._status = "finished"
         self._push_stats(force=True)

@@ -1,0 +1,176 @@
+"""Dynamic (4D) methods end to end on the tiny built-in dynamic scene: training, strategies on the
+canonical Gaussians, checkpoint and resume, evaluation per frame and region, rendering over time."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from exploregs_plugin.method_configs import get_method
+from exploregs_plugin.schedule import ScheduleConfig
+from exploregs_plugin.trainer import Trainer
+
+STEPS = 60  # warm-up to step 12, densify at 10, 20, 30 (interval shortened for these short runs)
+
+
+def dynamic_config(method: str, run_dir: Path, **overrides):
+    config = get_method(method).config
+    pipeline = replace(config.pipeline, datamanager=replace(config.pipeline.datamanager, data="builtin:dynamic-tiny"))
+    fields = dict(max_steps=STEPS, run_dir=run_dir, quiet=True, tensorboard=False, eval_count=1,
+                  checkpoint_every=20, save_eval_images=False, pipeline=pipeline,
+                  schedule=ScheduleConfig(min_refine_every=10, refine_every_frac=1 / 6, refine_stop_frac=0.5))
+    fields.update(overrides)
+    return replace(config, **fields)
+
+
+@pytest.fixture(scope="module")
+def split_run(tmp_path_factory, exploregs_cache):
+    run_dir = tmp_path_factory.mktemp("split-4d")
+    trainer = dynamic_config("exploregs-4d-split", run_dir).setup()
+    metrics = trainer.train()
+    return run_dir, trainer, metrics
+
+
+def test_dynamic_methods_are_registered():
+    for name in ("exploregs-4d-default", "exploregs-4d-split", "exploregs-4d-seedsplit"):
+        config = get_method(name).config
+        assert config.pipeline.datamanager.data == "builtin:dynamic"
+        assert type(config.pipeline.model).__name__ == "DynamicGaussianModelConfig"
+    assert get_method("exploregs-4d-split").config.pipeline.strategy.n_split == 5
+    assert get_method("exploregs-4d-seedsplit").config.pipeline.strategy.n_split == 5
+
+
+def test_dynamic_run_trains_deforms_and_reports_frames(split_run):
+    run_dir, trainer, metrics = split_run
+    model = trainer.pipeline.model
+    assert bool(model.deformation.active)
+    # the deformation learned something: the field's last layers left zero
+    assert float(model.deformation.decoder.position[-1].weight.detach().abs().sum()) > 0
+    assert metrics["num_test_images"] == 6
+    frames = metrics["per_image"]
+    assert [f["time"] for f in frames] == pytest.approx([0.0, 0.2, 0.4, 0.6, 0.8, 1.0])
+    for key in ("psnr", "ssim", "ms_ssim", "dssim"):
+        assert all(np.isfinite(f[key]) for f in frames), key
+    assert metrics["dssim"] == pytest.approx((1 - metrics["ms_ssim"]) / 2)
+    assert set(metrics["region_psnr"]) == {"other", "far", "occluded", "moving"}
+    for key in ("region_ssim", "region_dssim"):
+        assert set(metrics[key]) == set(metrics["region_psnr"])
+    saved = json.loads((run_dir / "metrics.json").read_text())
+    assert saved["per_image"][2]["name"] == "cam00/0002.png"
+    assert trainer.op_totals.get("random_split", 0) > 0 or any(k.startswith("random") for k in trainer.op_totals)
+
+
+def test_strategies_change_canonical_gaussians_field_keeps_its_state(tmp_path, exploregs_cache):
+    trainer = dynamic_config("exploregs-4d-split", tmp_path / "run", max_steps=40).setup()
+    pipeline = trainer.pipeline
+    field_params = [p for _, p in pipeline.model.field_parameters()]
+    shapes = [p.shape for p in field_params]
+    counts = []
+    for step in range(40):
+        before = pipeline.model.num_gaussians
+        pipeline.train_step(step)
+        counts.append((before, pipeline.model.num_gaussians))
+    assert any(after != before for before, after in counts)  # the set changed
+    # the Gaussians' Adam moments follow the rows; the field's own Adam is untouched by them
+    for name, opt in pipeline.optimizers.items():
+        state = next(iter(opt.state.values()))
+        assert state["exp_avg"].shape[0] == pipeline.model.num_gaussians, name
+    assert [p.shape for p in field_params] == shapes
+    field_state = pipeline.field_optimizer.state
+    assert all(field_state[p]["exp_avg"].shape == p.shape for p in field_params if p in field_state)
+    steps = {int(field_state[p]["step"]) for p in field_params if p in field_state}
+    # the field trains from the end of the warm-up (step 8 of 40) on every step
+    assert steps == {40 - pipeline.model.start_step(40)}
+    assert pipeline.field_optimizer not in pipeline.optimizers.values()
+
+
+def test_checkpoint_and_resume_of_a_dynamic_run_is_bit_identical(tmp_path, exploregs_cache, ctrl_c_after_step):
+    full = dynamic_config("exploregs-4d-seedsplit", tmp_path / "full").setup()
+    full.train()
+    cut = dynamic_config("exploregs-4d-seedsplit", tmp_path / "cut").setup()
+    ctrl_c_after_step.arm(25)
+    with pytest.raises(KeyboardInterrupt):
+        cut.train()
+    ctrl_c_after_step.disarm()
+    resumed = Trainer.from_run(tmp_path / "cut")
+    assert resumed.start_step == 26
+    assert bool(resumed.pipeline.model.deformation.active)
+    resumed.train()
+    for (name, a), (_, b) in zip(full.pipeline.trained_tensors(), resumed.pipeline.trained_tensors()):
+        assert torch.equal(a, b), name
+    assert json.loads((tmp_path / "full" / "metrics.json").read_text())["psnr"] == \
+        json.loads((tmp_path / "cut" / "metrics.json").read_text())["psnr"]
+
+
+def test_a_static_checkpoint_is_refused_by_a_dynamic_pipeline(tmp_path, exploregs_cache):
+    trainer = dynamic_config("exploregs-4d-default", tmp_path / "run", max_steps=4).setup()
+    state = trainer.pipeline.state_dict()
+    static_state = {k: v for k, v in state.items() if not k.startswith("field")}
+    with pytest.raises(ValueError, match="holds no deformation field"):
+        trainer.pipeline.load_state_dict(static_state)
+
+
+def test_eg_render_renders_the_test_camera_over_time(split_run, tmp_path):
+    from exploregs_plugin.scripts.render import RenderArgs, main
+
+    run_dir, _, _ = split_run
+    out = main(RenderArgs(path=run_dir, out=tmp_path / "test", video=False, device="cpu"))
+    assert len(out.frames) == 6
+    frames = [np.asarray(Image.open(p), dtype=np.float64) for p in out.frames]
+    # the clip moves: consecutive frames of the one camera differ
+    assert min(np.abs(a - b).mean() for a, b in zip(frames, frames[1:])) > 0.01
+    frozen = main(RenderArgs(path=run_dir, out=tmp_path / "frozen", video=False, device="cpu", time=0.4))
+    still = [np.asarray(Image.open(p), dtype=np.float64) for p in frozen.frames]
+    assert np.array_equal(still[0], still[-1])  # one camera, one time
+    assert np.array_equal(still[2], frames[2])  # cam00 frame 2 is at time 0.4
+    with pytest.raises(ValueError, match=r"--time must be in \[0, 1\]"):
+        main(RenderArgs(path=run_dir, out=tmp_path / "bad", video=False, device="cpu", time=1.5))
+
+
+def test_time_on_a_static_run_is_refused(tmp_path, tiny_scene_dir):
+    from exploregs_plugin.scripts.render import RenderArgs, main
+    from exploregs_plugin.trainer import TrainerConfig
+
+    TrainerConfig(data="builtin:tiny", max_steps=2, run_dir=tmp_path / "run", quiet=True, tensorboard=False,
+                  eval_count=1, save_eval_images=False).setup().train()
+    with pytest.raises(ValueError, match="--time is for runs of a dynamic"):
+        main(RenderArgs(path=tmp_path / "run", out=tmp_path / "r", video=False, device="cpu", time=0.5))
+
+
+def test_viewer_snapshot_carries_a_copy_of_the_field_and_renders_the_chosen_time(split_run):
+    from exploregs_plugin.viewer.display import render_frame
+    from exploregs_plugin.viewer.scene import ViewerScene
+    from exploregs_plugin.viewer.snapshot import SnapshotStore
+
+    _, trainer, _ = split_run
+    pipeline = trainer.pipeline
+    scene = ViewerScene.from_pipeline(pipeline)
+    assert scene.deformation is not None
+    store = SnapshotStore()
+    store.offer(scene.params(), 1, force=True, field=scene.deformation())
+    snapshot = store.latest()
+    assert snapshot.field is not pipeline.model.deformation and bool(snapshot.field.active)
+    camera = pipeline.datamanager.test_cameras[0]
+    frames = {t: render_frame(snapshot, camera, "rgb", 0, scene.background, scene.raster_settings, t)
+              for t in (0.0, 1.0)}
+    assert np.abs(frames[0.0].astype(int) - frames[1.0].astype(int)).mean() > 0.01
+    # the same frame eg-render makes for that time
+    with torch.no_grad():
+        image = pipeline.model.render(replace(camera, time=1.0), 0, scene.background)[0]
+    assert np.abs((image.clamp(0, 1).numpy() * 255 + 0.5).astype(int) - frames[1.0].astype(int)).max() <= 1
+    # a copy: training on does not change what the snapshot shows
+    saved = {k: v.clone() for k, v in pipeline.model.deformation.state_dict().items()}
+    with torch.no_grad():
+        for p in pipeline.model.deformation.parameters():
+            p.add_(1.0)
+    again = render_frame(snapshot, camera, "rgb", 0, scene.background, scene.raster_settings, 1.0)
+    pipeline.model.deformation.load_state_dict(saved)
+    assert np.array_equal(again, frames[1.0])
+    # a static scene has no field and no time
+    assert ViewerScene.from_params(scene.params()).deformation is None
