@@ -174,3 +174,21 @@ def test_viewer_snapshot_carries_a_copy_of_the_field_and_renders_the_chosen_time
     assert np.array_equal(again, frames[1.0])
     # a static scene has no field and no time
     assert ViewerScene.from_params(scene.params()).deformation is None
+
+
+def test_eg_export_writes_the_scene_at_a_time(split_run, tmp_path):
+    from exploregs_plugin.io.ply import read_ply
+    from exploregs_plugin.scripts.export import ExportArgs, main
+
+    run_dir, trainer, _ = split_run
+    model = trainer.pipeline.model
+    canonical = main(ExportArgs(path=run_dir, out=tmp_path / "c.ply", frame="normalized", device="cpu"))
+    moment = main(ExportArgs(path=run_dir, out=tmp_path / "t.ply", frame="normalized", device="cpu", time=0.8))
+    assert canonical.written == moment.written == model.num_gaussians
+    with torch.no_grad():
+        deformed = model.params_at(0.8)
+    for name, expected in (("means", deformed["means"]), ("scales", deformed["scales"])):
+        assert torch.allclose(read_ply(tmp_path / "t.ply").params[name], expected, atol=1e-5), name
+    assert torch.allclose(read_ply(tmp_path / "c.ply").params["means"], model.params["means"].detach(), atol=1e-6)
+    with pytest.raises(ValueError, match=r"--time must be in \[0, 1\]"):
+        main(ExportArgs(path=run_dir, out=tmp_path / "x.ply", device="cpu", time=2.0))

@@ -10,6 +10,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
+import torch
 import tyro
 
 from exploregs_plugin.io.ply import PlyExport, export_ply, normalization_terms
@@ -30,16 +31,28 @@ class ExportArgs:
     """Write an ASCII PLY instead of binary little-endian (larger; for inspection)."""
     device: str = "auto"
     """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
+    time: float | None = None
+    """Dynamic runs: write the Gaussians deformed to this time in [0, 1] (unset: the canonical ones)."""
 
 
 def main(args: ExportArgs) -> PlyExport:
     run = load_run(args.path, args.device)
-    out = args.out or run.run_dir / "exports" / f"scene-step-{run.step:07d}.ply"
+    model = run.pipeline.model
+    params = model.params
+    if args.time is not None:
+        if not model.field_parameters():
+            raise ValueError(f"--time is for runs of a dynamic (4D) method; {run.run_dir} is static")
+        if not 0.0 <= args.time <= 1.0:
+            raise ValueError(f"--time must be in [0, 1], got {args.time}")
+        with torch.no_grad():
+            params = {k: v.detach() for k, v in model.params_at(args.time).items()}
+    moment = "" if args.time is None else f"-time-{args.time:g}"
+    out = args.out or run.run_dir / "exports" / f"scene-step-{run.step:07d}{moment}.ply"
     normalization = dataset_normalization(run.pipeline.datamanager) if args.frame == "original" else None
     translation, scale = normalization_terms(normalization)
-    comments = [f"step {run.step}, frame {args.frame}",
+    comments = [f"step {run.step}, frame {args.frame}" + ("" if args.time is None else f", time {args.time:g}"),
                 f"normalization x_norm = (x_orig + t) * s, t = {translation.tolist()}, s = {scale!r}"]
-    result = export_ply(out, run.pipeline.model.params, normalization, text=args.ascii, comments=comments)
+    result = export_ply(out, params, normalization, text=args.ascii, comments=comments)
     print(f"wrote {result.written} Gaussians (SH degree {result.sh_degree}, {args.frame} frame) -> {result.path}")
     if result.dropped:
         print(f"left out {result.dropped} Gaussians with non-finite values")
