@@ -190,3 +190,15 @@ def test_frame_curves_average_runs_by_frame_time():
     assert frame_curves(runs) == ([0.0, 0.5], [21.0, 23.0])
     assert frame_curves(runs, "occluded") == ([0.0, 0.5], [19.0, 21.0])  # NaN frames left out
     assert frame_curves([{"per_image": [{"psnr": 1.0}]}]) == ([], [])
+
+
+def test_the_dynamic_preset_has_a_measured_estimate():
+    from exploregs_plugin.bench.estimate import RUN_OVERHEAD_SECONDS, SECONDS_PER_STEP, estimate_seconds
+    from exploregs_plugin.bench.presets import dynamic
+
+    spec = dynamic()
+    seconds, how = estimate_seconds(spec)
+    rates = SECONDS_PER_STEP["dynamic"]
+    # the control runs 4d-default's method, so it costs 4d-default's rate
+    per_seed = sum(rates[e.method] for e in spec.entries) * spec.steps + len(spec.entries) * RUN_OVERHEAD_SECONDS
+    assert seconds == pytest.approx(per_seed * len(spec.seeds)) and "assumed" not in how

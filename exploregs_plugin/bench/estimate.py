@@ -11,16 +11,18 @@ from __future__ import annotations
 
 from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec
 
-SECONDS_PER_STEP: dict[str, dict[str, float]] = {
+SECONDS_PER_STEP: dict[str, dict[str, float]] = {  # per scene, Default's rate first
     "tiny": {"exploregs-default": 0.277, "exploregs-seed": 0.273, "exploregs-split": 0.470},
     "default": {"exploregs-default": 0.106, "exploregs-seed": 0.114, "exploregs-split": 0.116,
                 "exploregs-seedsplit": 0.127, "exploregs-ray": 0.101, "exploregs-mcmc": 0.062},
+    "dynamic": {"exploregs-4d-default": 0.088, "exploregs-4d-split": 0.122, "exploregs-4d-seedsplit": 0.116},
 }
 """Scene -> method -> training seconds per step. ``default``: the mean over the three seeds of
 ``builtin:combined`` (its size) in the 1000-step ``standard`` bench, run with ``--jobs 2`` (one
 thread per run, one run per core) with nothing else on the machine (docs/results.md). ``tiny``:
-300-step runs at load 4-11 (docs/bench.md), so an upper bound. Growth is included, so a
-shorter run costs less per step than these."""
+300-step runs at load 4-11 (docs/bench.md), so an upper bound. ``dynamic``: seed 2 of the
+2000-step ``dynamic`` bench, ``--jobs 2``, the machine least shared (docs/results.md). Growth is
+included, so a shorter run costs less per step than these."""
 SAME_SIZE = {"farside": "default", "nearside": "default", "combined": "default"}
 RUN_OVERHEAD_SECONDS = 19.0
 """Per run: process start-up, loading the scene, periodic evaluations, final checkpoint
@@ -59,7 +61,8 @@ def estimate_seconds(spec: BenchSpec, runs: list[tuple[BenchScene, BenchEntry, i
             assumed.add(entry.method)
         if ratio != 1.0:
             extrapolated.add(scene.name)
-        total += RUN_OVERHEAD_SECONDS + spec.steps * rates.get(entry.method, rates["exploregs-default"]) * ratio
+        baseline = next(iter(rates.values()))  # each scene's first rate is its Default's
+        total += RUN_OVERHEAD_SECONDS + spec.steps * rates.get(entry.method, baseline) * ratio
     if unknown:
         return None, (f"no measured rate for scene(s) {', '.join(sorted(unknown))}; the progress lines "
                       f"estimate the rest after each run")
