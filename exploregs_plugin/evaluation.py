@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from exploregs_plugin.model.losses import MSE_FLOOR, SSIM_WINDOW, d_ssim, ms_ssim, psnr, ssim_map
+from exploregs_plugin.model.losses import MSE_FLOOR, SSIM_WINDOW, d_ssim, ms_ssim_many, psnr, ssim_map
 from exploregs_plugin.model import GaussianModel
 from exploregs_plugin.io.atomic import atomic_write_text
 
@@ -89,12 +89,15 @@ def evaluate_views(
             "psnr": psnr(image, target),
             "ssim": float(ssim_pixels.mean()),
         }
-        if min(image.shape[:2]) >= SSIM_WINDOW:
-            entry["ms_ssim"] = ms_ssim(image, target)
-            entry["dssim"] = d_ssim(entry["ms_ssim"])
+        masks = extras.get("masks", {}) if isinstance(extras, dict) else {}
+        region_ms_ssim: dict[str, float] = {}
+        if min(image.shape[:2]) >= SSIM_WINDOW:  # the whole image and every region in one pass
+            values = ms_ssim_many(image, target, [None, *(m.to(device) for m in masks.values())])
+            entry["ms_ssim"] = values[0]
+            entry["dssim"] = d_ssim(values[0])
+            region_ms_ssim = dict(zip(masks, values[1:]))
         if camera.time is not None:
             entry["time"] = camera.time
-        masks = extras.get("masks", {}) if isinstance(extras, dict) else {}
         if masks:
             entry["region_psnr"], entry["region_ssim"], entry["region_ms_ssim"] = {}, {}, {}
             sq = ((image.double() - target.double()) ** 2).mean(dim=-1)
@@ -103,8 +106,8 @@ def evaluate_views(
                 entry["region_psnr"][region] = psnr(image, target, mask)
                 count = int(mask.sum())
                 entry["region_ssim"][region] = float(ssim_pixels[mask].mean()) if count else float("nan")
-                if "ms_ssim" in entry:
-                    entry["region_ms_ssim"][region] = ms_ssim(image, target, mask)
+                if region in region_ms_ssim:
+                    entry["region_ms_ssim"][region] = region_ms_ssim[region]
                 region_sq[region] = region_sq.get(region, 0.0) + float(sq[mask].sum())
                 region_ssim[region] = region_ssim.get(region, 0.0) + float(ssim_pixels[mask].double().sum())
                 region_n[region] = region_n.get(region, 0) + count

@@ -134,3 +134,20 @@ def test_ms_ssim_values():
     assert ms_ssim(a, spoiled, half) > ms_ssim(a, spoiled, ~half)
     with pytest.raises(ValueError, match="at least 11 px"):
         ms_ssim(a[:8], b[:8])
+
+
+def test_ms_ssim_of_several_regions_in_one_pass_equals_one_by_one():
+    from exploregs_plugin.model.losses import ms_ssim, ms_ssim_many
+
+    gen = torch.Generator().manual_seed(2)
+    a = torch.rand(64, 80, 3, generator=gen, dtype=torch.float64)
+    b = (a + 0.1 * torch.randn(a.shape, generator=gen, dtype=torch.float64)).clamp(0, 1)
+    top = torch.zeros(64, 80, dtype=torch.bool)
+    top[:6] = True  # a band along the border: fewer scales than the image
+    blob = torch.zeros(64, 80, dtype=torch.bool)
+    blob[20:45, 30:70] = True
+    masks = [None, top, blob, torch.zeros(64, 80, dtype=torch.bool)]
+    many = ms_ssim_many(a, b, masks)
+    for mask, value in zip(masks[:3], many):
+        assert value == ms_ssim(a, b, mask)
+    assert math.isnan(many[3])

@@ -132,11 +132,11 @@ class DataManager:
         background = options.background
         self._train = [self._load(self.parsed.images[i], background) for i in train_ids]
         self._test = [self._load(self.parsed.images[i], background) for i in test_ids]
-        # Region masks: the labels every dataset has, and "moving" where a dynamic one marks it.
-        present = set().union(*(set(np.unique(it.labels.numpy()).tolist()) for it in self._train + self._test
-                                if it.labels is not None))
-        self.regions = {name: value for name, value in REGION_LABELS.items()
-                        if name != "moving" or value in present}
+        # Region masks: the labels every dataset has, and "moving" where a dynamic one marks it
+        # (the scan stops at the first image that has a moving pixel).
+        moving = REGION_LABELS["moving"]
+        has_moving = any(bool((it.labels == moving).any()) for it in self._train + self._test if it.labels is not None)
+        self.regions = {name: value for name, value in REGION_LABELS.items() if name != "moving" or has_moving}
         self.train_cameras: list[Camera] = [it.camera for it in self._train]
         self.test_cameras: list[Camera] = [it.camera for it in self._test]
         points, points_rgb = self.parsed.points, self.parsed.points_rgb

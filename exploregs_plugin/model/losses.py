@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from typing import Literal
+from typing import Literal, Sequence
 
 import torch
 import torch.nn.functional as F
@@ -81,6 +81,12 @@ def ms_ssim(img: Tensor, ref: Tensor, mask: Tensor | None = None) -> float:
     of each window centre that lies in the region (the mask average-pooled like the images). A
     region that no window centre of a coarse scale touches (a thin band along the border) is
     scored on the finer scales it has; NaN when it has none."""
+    return ms_ssim_many(img, ref, [mask])[0]
+
+
+def ms_ssim_many(img: Tensor, ref: Tensor, masks: Sequence[Tensor | None]) -> list[float]:
+    """:func:`ms_ssim` for several masks (None: the whole image) from one pass over the scales:
+    the local moments are computed once and pooled per mask."""
     if img.shape != ref.shape:
         raise ValueError(f"ms_ssim: shapes differ: {tuple(img.shape)} vs {tuple(ref.shape)}")
     height, width = img.shape[:2]
@@ -88,25 +94,37 @@ def ms_ssim(img: Tensor, ref: Tensor, mask: Tensor | None = None) -> float:
         raise ValueError(f"ms_ssim needs images of at least {SSIM_WINDOW} px a side, got {width}x{height}")
     x = img.detach().double().permute(2, 0, 1)
     y = ref.detach().double().permute(2, 0, 1)
-    region = None if mask is None else mask.to(x.device, torch.float64)[None]
+    regions = [None if m is None else m.to(x.device, torch.float64)[None] for m in masks]
     crop = SSIM_WINDOW // 2
-    cs_means: list[Tensor] = []
-    ssim_means: list[Tensor] = []  # per level: [C]
+    cs_means: list[list[Tensor]] = [[] for _ in masks]  # per mask, per level: [C]
+    ssim_means: list[list[Tensor]] = [[] for _ in masks]
+    open_masks = set(range(len(masks)))  # masks that still have a window centre at this scale
     for level in range(ms_ssim_levels(height, width)):
         if level:
             x, y = F.avg_pool2d(x[None], 2)[0], F.avg_pool2d(y[None], 2)[0]
-            region = None if region is None else F.avg_pool2d(region[None], 2)[0]
-        weight = None
-        if region is not None:
-            weight = region[:, crop:region.shape[1] - crop, crop:region.shape[2] - crop]
-            if float(weight.sum()) <= 0.0:
-                break
+            regions = [None if r is None else F.avg_pool2d(r[None], 2)[0] for r in regions]
+        weights: dict[int, Tensor | None] = {}
+        for k in sorted(open_masks):
+            region = regions[k]
+            weight = None if region is None else region[:, crop:region.shape[1] - crop, crop:region.shape[2] - crop]
+            if weight is not None and float(weight.sum()) <= 0.0:
+                open_masks.discard(k)  # scored on the finer scales only
+                continue
+            weights[k] = weight
+        if not weights:
+            break
         mu_x, mu_y, sigma_xx, sigma_yy, sigma_xy = _local_moments(x, y, 0)
         cs = (2 * sigma_xy + SSIM_C2) / (sigma_xx + sigma_yy + SSIM_C2)
-        lum = (2 * mu_x * mu_y + SSIM_C1) / (mu_x * mu_x + mu_y * mu_y + SSIM_C1)
-        for term, means in ((cs, cs_means), (lum * cs, ssim_means)):
-            mean = term.mean(dim=(1, 2)) if weight is None else (term * weight).sum(dim=(1, 2)) / weight.sum()
-            means.append(mean.clamp_min(0.0))
+        full = (2 * mu_x * mu_y + SSIM_C1) / (mu_x * mu_x + mu_y * mu_y + SSIM_C1) * cs
+        for k, weight in weights.items():
+            for term, means in ((cs, cs_means[k]), (full, ssim_means[k])):
+                mean = term.mean(dim=(1, 2)) if weight is None else (term * weight).sum(dim=(1, 2)) / weight.sum()
+                means.append(mean.clamp_min(0.0))
+    return [_combine_scales(cs, full) for cs, full in zip(cs_means, ssim_means)]
+
+
+def _combine_scales(cs_means: list[Tensor], ssim_means: list[Tensor]) -> float:
+    """SSIM_M^{w_M} prod_{j < M} cs_j^{w_j} over the scales measured, averaged over channels."""
     if not cs_means:
         return float("nan")
     weights = [w / sum(MS_SSIM_WEIGHTS[:len(cs_means)]) for w in MS_SSIM_WEIGHTS[:len(cs_means)]]
