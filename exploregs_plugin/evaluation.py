@@ -105,11 +105,12 @@ def evaluate_views(
                 mask = mask.to(device)
                 entry["region_psnr"][region] = psnr(image, target, mask)
                 count = int(mask.sum())
-                entry["region_ssim"][region] = float(ssim_pixels[mask].mean()) if count else float("nan")
+                ssim_sum = float(ssim_pixels[mask].double().sum())
+                entry["region_ssim"][region] = ssim_sum / count if count else float("nan")
                 if region in region_ms_ssim:
                     entry["region_ms_ssim"][region] = region_ms_ssim[region]
                 region_sq[region] = region_sq.get(region, 0.0) + float(sq[mask].sum())
-                region_ssim[region] = region_ssim.get(region, 0.0) + float(ssim_pixels[mask].double().sum())
+                region_ssim[region] = region_ssim.get(region, 0.0) + ssim_sum
                 region_n[region] = region_n.get(region, 0) + count
         per_image.append(entry)
         if on_image is not None:

@@ -131,7 +131,7 @@ class HexPlaneField(nn.Module):
 def _linear(n_in: int, n_out: int, generator: torch.Generator | None) -> nn.Linear:
     """A linear layer with PyTorch's default initialisation, U(-1/sqrt(n_in), 1/sqrt(n_in)) for
     weights and biases, drawn from ``generator`` so that a run's seed decides it."""
-    layer = nn.Linear(n_in, n_out)
+    layer = nn.utils.skip_init(nn.Linear, n_in, n_out)  # no draw from the global generator
     bound = 1.0 / math.sqrt(n_in)
     with torch.no_grad():
         for p in (layer.weight, layer.bias):
@@ -140,10 +140,10 @@ def _linear(n_in: int, n_out: int, generator: torch.Generator | None) -> nn.Line
 
 
 def _head(width: int, out: int, generator: torch.Generator | None) -> nn.Sequential:
-    head = nn.Sequential(nn.ReLU(), _linear(width, width, generator), nn.ReLU(), nn.Linear(width, out))
-    nn.init.zeros_(head[-1].weight)  # the deformation starts as the identity (see the module doc)
-    nn.init.zeros_(head[-1].bias)
-    return head
+    last = nn.utils.skip_init(nn.Linear, width, out)
+    nn.init.zeros_(last.weight)  # the deformation starts as the identity (see the module doc)
+    nn.init.zeros_(last.bias)
+    return nn.Sequential(nn.ReLU(), _linear(width, width, generator), nn.ReLU(), last)
 
 
 class DeformationDecoder(nn.Module):

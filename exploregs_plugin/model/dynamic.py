@@ -25,10 +25,6 @@ from exploregs_plugin.model.deformation import (SPACE_PLANES, TIME_PLANES, Defor
 from exploregs_plugin.model.gaussians import GaussianModel, GaussianModelConfig
 from exploregs_plugin.model.optim import ADAM_EPS, exponential_lr
 
-FIELD_GROUPS = ("grid", "mlp")
-"""Param groups of the field optimizer: the planes, and the decoder."""
-
-
 def deform_params(params: Mapping[str, Tensor], field: DeformationField, time: float) -> dict[str, Tensor]:
     """The raw parameters at ``time`` in [0, 1]: canonical means, quaternions and log-scales plus
     the field's offsets; opacity and colour stay canonical (4DGS)."""
@@ -38,6 +34,14 @@ def deform_params(params: Mapping[str, Tensor], field: DeformationField, time: f
     out["quats"] = params["quats"] + dq
     out["scales"] = params["scales"] + ds
     return out
+
+
+def params_at_time(params: Mapping[str, Tensor], field: DeformationField, time: float | None) -> Mapping[str, Tensor]:
+    """What to render at ``time``: the canonical parameters during the static warm-up (the field
+    not yet active), then :func:`deform_params` at ``time`` (None: 0, the first frame)."""
+    if not bool(field.active):
+        return params
+    return deform_params(params, field, 0.0 if time is None else time)
 
 
 @dataclass
@@ -122,11 +126,8 @@ class DynamicGaussianModel(GaussianModel):
         return deform_params(self.params, self.deformation, time)
 
     def params_at(self, time: float | None) -> Mapping[str, Tensor]:
-        """Canonical parameters during the warm-up; the deformed ones at ``time`` (None: 0, the
-        first frame) afterwards."""
-        if not bool(self.deformation.active):
-            return self.params
-        return self.deformed_params(0.0 if time is None else time)
+        """:func:`params_at_time` of this model's Gaussians and field."""
+        return params_at_time(self.params, self.deformation, time)
 
     def field_parameters(self) -> list[tuple[str, nn.Parameter]]:
         return [(f"deformation.{name}", p) for name, p in self.deformation.named_parameters()]

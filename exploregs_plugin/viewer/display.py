@@ -13,7 +13,7 @@ from torch import Tensor
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.io.frames import colorize_depth, depth_range, to_uint8
 from exploregs_plugin.io.ply import sh_degree_for_rest
-from exploregs_plugin.model.dynamic import deform_params
+from exploregs_plugin.model.dynamic import params_at_time
 from exploregs_plugin.model.gaussians import render_camera
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.viewer.config import OutputKind
@@ -39,9 +39,9 @@ def render_frame(
     Gaussians are deformed to ``time`` once its warm-up is over."""
     degree = max(0, min(int(sh_degree), available_sh_degree(snapshot.params)))
     params = snapshot.params
-    if snapshot.field is not None and bool(snapshot.field.active):
+    if snapshot.field is not None:
         with torch.no_grad():
-            params = deform_params(params, snapshot.field, time)
+            params = params_at_time(params, snapshot.field, time)
     image, alpha, depth = render_camera(params, camera, degree, background, settings)
     if output == "rgb":
         return to_uint8(image)
