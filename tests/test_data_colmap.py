@@ -55,7 +55,7 @@ def test_model_directly_in_sparse_folder(scene_copy: Path) -> None:
     assert len(read_colmap(scene_copy, ParseOptions()).images) == 10
 
 
-def test_distorted_model_is_refused_or_undistorted_into_a_cache(scene_copy: Path) -> None:
+def test_distorted_model_is_refused_or_undistorted_into_a_cache(scene_copy: Path, tmp_path: Path) -> None:
     def make_radial(rec: pycolmap.Reconstruction) -> None:
         for cam in rec.cameras.values():
             fx, _fy, cx, cy = cam.params
@@ -65,17 +65,26 @@ def test_distorted_model_is_refused_or_undistorted_into_a_cache(scene_copy: Path
     _rewrite_model(scene_copy, make_radial)
     with pytest.raises(DataError, match="SIMPLE_RADIAL has lens distortion.*image_undistorter"):
         read_colmap(scene_copy, ParseOptions(undistort=False))
-    scene = read_colmap(scene_copy, ParseOptions(undistort=True))
+    cache = tmp_path / "cache"
+    scene = read_colmap(scene_copy, ParseOptions(undistort=True, cache_root=cache))
     im = scene.images[0]
-    assert im.path.parent == scene_copy / ".exploregs" / "undistorted_f1"
+    assert im.path.parent.name == "undistorted_f1" and cache / "derived" in im.path.parents
+    assert not (scene_copy / ".exploregs").exists()  # the dataset folder is never written to
     with Image.open(im.path) as pic:
         assert pic.size == (im.width, im.height)
     assert im.K[0, 1] == 0 and im.K[0, 0] > 0 and im.K[1, 1] > 0
     assert 0 < im.width <= 2 * 64 and 0 < im.height <= 2 * 48
     stamp = im.path.stat().st_mtime_ns
-    again = read_colmap(scene_copy, ParseOptions(undistort=True))
+    again = read_colmap(scene_copy, ParseOptions(undistort=True, cache_root=cache))
     assert again.images[0].path == im.path and im.path.stat().st_mtime_ns == stamp
     np.testing.assert_array_equal(again.images[0].K, im.K)
+    # a changed source image is undistorted again, never served stale from the cache
+    source = scene_copy / "images" / im.name
+    Image.new("RGB", (64, 48), (200, 10, 10)).save(source)
+    changed = read_colmap(scene_copy, ParseOptions(undistort=True, cache_root=cache)).images[0]
+    assert changed.path != im.path and changed.path.is_file()
+    with Image.open(changed.path) as pic:
+        assert np.asarray(pic)[im.height // 2, im.width // 2, 0] == 200
 
 
 def test_data_factor_resizes_once_and_scales_K(scene_copy: Path) -> None:
@@ -83,11 +92,24 @@ def test_data_factor_resizes_once_and_scales_K(scene_copy: Path) -> None:
     half = read_colmap(scene_copy, ParseOptions(data_factor=2))
     im, im2 = full.images[1], half.images[1]
     assert (im2.width, im2.height) == (32, 24)
-    assert im2.path == scene_copy / ".exploregs" / "resized_2" / "images" / im.name
+    assert im2.path.parent.parent.name == "resized_2" and im2.path.name.startswith(Path(im.name).stem + "-")
     np.testing.assert_allclose(im2.K[:2], im.K[:2] * 0.5)
     stamp = im2.path.stat().st_mtime_ns
     read_colmap(scene_copy, ParseOptions(data_factor=2))
     assert im2.path.stat().st_mtime_ns == stamp
+
+
+def test_caches_beside_the_data_only_when_asked(scene_copy: Path, tmp_path: Path) -> None:
+    cache = tmp_path / "cache"
+    elsewhere = read_colmap(scene_copy, ParseOptions(data_factor=2, cache_root=cache)).images[1]
+    assert cache / "derived" in elsewhere.path.parents and not (scene_copy / ".exploregs").exists()
+    beside = read_colmap(scene_copy, ParseOptions(data_factor=2, cache_root=cache, cache_beside_data=True)).images[1]
+    assert beside.path.parent == scene_copy / ".exploregs" / "resized_2" / "images"
+    # another copy of the same dataset has its own cache folder (keyed by the absolute path)
+    other = Path(shutil.copytree(scene_copy / "images", tmp_path / "other" / "images")).parent
+    shutil.copytree(scene_copy / "sparse", other / "sparse")
+    assert read_colmap(other, ParseOptions(data_factor=2, cache_root=cache)).images[1].path.parents[2] != \
+        elsewhere.path.parents[2]
 
 
 def test_data_factor_prefers_images_n_folder(scene_copy: Path) -> None:
@@ -215,3 +237,32 @@ def test_images_on_disk_missing_from_the_model_are_counted(scene_copy: Path) -> 
                                          r"\(e\.g\. 0003\.png, 0004\.png, 0005\.png\)"):
         scene = read_colmap(scene_copy, ParseOptions())
     assert [im.name for im in scene.images] == ["0000.png", "0001.png", "0002.png"]
+
+
+def _tree(root: Path) -> dict[str, tuple[int, int, bytes]]:
+    """Every file and folder under ``root``: (size, mtime_ns, content) by relative path."""
+    out = {}
+    for path in sorted(root.rglob("*")):
+        info = path.lstat()
+        content = path.read_bytes() if path.is_file() else b""
+        out[path.relative_to(root).as_posix()] = (info.st_size, info.st_mtime_ns, content)
+    return out
+
+
+def test_a_training_run_leaves_the_dataset_folder_unchanged(scene_copy: Path, tmp_path: Path) -> None:
+    """Undistortion and resizing caches go to the cache root, never into the user's dataset."""
+    from exploregs_plugin.trainer import TrainerConfig
+
+    def make_radial(rec: pycolmap.Reconstruction) -> None:
+        for cam in rec.cameras.values():
+            fx, _fy, cx, cy = cam.params
+            cam.model = pycolmap.CameraModelId.SIMPLE_RADIAL
+            cam.params = [fx, cx, cy, 0.05]
+
+    _rewrite_model(scene_copy, make_radial)
+    before, folder_stamp = _tree(scene_copy), scene_copy.stat().st_mtime_ns
+    config = TrainerConfig(data=str(scene_copy), data_factor=2, max_steps=2, run_dir=tmp_path / "run", quiet=True,
+                           tensorboard=False, eval_count=1, save_eval_images=False)
+    config.setup().train()
+    assert _tree(scene_copy) == before and scene_copy.stat().st_mtime_ns == folder_stamp
+    assert list((tmp_path / "run").iterdir())  # the run did write, elsewhere

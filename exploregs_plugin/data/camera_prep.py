@@ -17,7 +17,9 @@ import pycolmap
 from PIL import Image
 
 from .errors import DataError
-from .images import cache_file_name, derived_cache_dir, image_size, read_image, resize_to_cache, resized_size
+from .images import (
+    cache_file_name, derived_cache_dir, image_size, read_image, resize_to_cache, resized_size, source_stamp,
+)
 from .parsed import ImageRecord, ParseOptions
 
 PINHOLE_MODELS = ("SIMPLE_PINHOLE", "PINHOLE")
@@ -66,7 +68,8 @@ def source_image(root: Path, rel: str, factor: int, options: ParseOptions) -> Pa
     """The file to read for image ``rel`` (relative to ``root``) at ``factor``.
 
     factor 1: ``root/rel``. Otherwise ``root/<dir>_<factor>/<file>`` when present (the 3DGS
-    ``images_4/`` convention), else a resized copy cached next to the data (made once).
+    ``images_4/`` convention), else a resized copy in the cache (made once per version of the
+    source file; see :func:`derived_cache_dir`).
     """
     full = root / rel
     if factor == 1:
@@ -77,8 +80,9 @@ def source_image(root: Path, rel: str, factor: int, options: ParseOptions) -> Pa
         if prescaled.is_file():
             return prescaled
     width, height = image_size(full)
-    cache = derived_cache_dir(root, f"resized_{factor}", options.cache_root.expanduser())
-    return resize_to_cache(full, cache / cache_file_name(rel, ".png"), resized_size(width, height, factor))
+    cache = derived_cache_dir(root, f"resized_{factor}", options.cache_root.expanduser(), options.cache_beside_data)
+    name = cache_file_name(rel, ".png", tag=f"-{source_stamp(full)}")
+    return resize_to_cache(full, cache / name, resized_size(width, height, factor))
 
 
 def prepare_image(
@@ -119,14 +123,15 @@ def prepare_image(
 def _undistorted(
     root: Path, name: str, path: Path, cam: pycolmap.Camera, viewmat: np.ndarray, options: ParseOptions
 ) -> ImageRecord:
-    """Undistort one image with pycolmap into the dataset cache (once) -> pinhole record."""
+    """Undistort one image with pycolmap into the cache (once per camera and source file) -> pinhole record."""
     und_options = pycolmap.UndistortCameraOptions()
     try:
         pinhole = pycolmap.undistort_camera(und_options, cam)
     except Exception as err:  # pycolmap raises plain RuntimeErrors for unsupported models
         raise DataError(path, f"cannot undistort camera model {cam.model_name} ({err}); {UNDISTORT_HINT}") from err
-    cache = derived_cache_dir(root, f"undistorted_f{options.data_factor}", options.cache_root.expanduser())
-    out = cache / cache_file_name(name, ".png", tag=f"-{_camera_key(cam)}")
+    what = f"undistorted_f{options.data_factor}"
+    cache = derived_cache_dir(root, what, options.cache_root.expanduser(), options.cache_beside_data)
+    out = cache / cache_file_name(name, ".png", tag=f"-{_camera_key(cam)}-{source_stamp(path)}")
     if not out.is_file():
         pixels = read_image(path, options.background)
         bitmap, pinhole = pycolmap.undistort_image(und_options, pycolmap.Bitmap.from_array(pixels), cam)

@@ -63,6 +63,9 @@ class DataManagerConfig:
     """Dynamic scenes: use the first this-many frames of each camera's clip (unset: all)."""
     cache_dir: str | None = None
     """Cache root for built-in scenes and derived images (default: $EXPLOREGS_CACHE or ~/.cache/exploregs)."""
+    cache_beside_data: bool = False
+    """Keep derived images (resized, undistorted) in DATASET/.exploregs/ instead of the cache root
+    (only when the dataset folder is writable; by default a dataset folder is never written to)."""
 
     def setup(self) -> "DataManager":
         return DataManager(self)
@@ -88,6 +91,7 @@ class DataManagerConfig:
             data_factor=self.data_factor,
             undistort=self.undistort,
             cache_root=root,
+            cache_beside_data=self.cache_beside_data,
             background=np.asarray(self.background, dtype=np.float64),
             frame_stride=self.frame_stride,
             max_frames=self.max_frames,

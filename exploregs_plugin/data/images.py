@@ -100,14 +100,24 @@ def cache_file_name(rel: str, suffix: str, tag: str = "") -> Path:
     return stem.with_name(f"{stem.name}{tag}{suffix}")
 
 
-def derived_cache_dir(root: Path, what: str, cache_root: Path) -> Path:
-    """Where derived images (resized, undistorted) of dataset ``root`` go.
+def source_stamp(path: Path) -> str:
+    """A short key of ``path``'s size and modification time: a derived file named with it is
+    made again when its source changes (an edited or replaced image is never served stale)."""
+    try:
+        info = path.stat()
+    except OSError as err:
+        raise DataError(path, f"image file is unreadable ({err})") from err
+    return hashlib.sha1(f"{info.st_size} {info.st_mtime_ns}".encode()).hexdigest()[:8]
 
-    ``root/.exploregs/<what>`` when the dataset folder is writable, otherwise
-    ``cache_root/derived/<hash of root>/<what>`` (read-only datasets stay untouched).
+
+def derived_cache_dir(root: Path, what: str, cache_root: Path, beside_data: bool = False) -> Path:
+    """Where derived images (resized, undistorted, decoded frames) of dataset ``root`` go.
+
+    By default ``cache_root/derived/<name>-<hash of root's absolute path>/<what>``: a dataset
+    folder is never written to. With ``beside_data`` (``--datamanager.cache-beside-data``),
+    ``root/.exploregs/<what>`` when the dataset folder is writable, else the default.
     """
-    local = root / ".exploregs"
-    if _writable(root):
-        return local / what
+    if beside_data and _writable(root):
+        return root / ".exploregs" / what
     digest = hashlib.sha1(str(root.resolve()).encode()).hexdigest()[:16]
     return cache_root / "derived" / f"{root.name}-{digest}" / what

@@ -143,8 +143,9 @@ def decode_video(video: Path, out_dir: Path, stride: int, limit: int | None, fac
 def _camera_frames(root: Path, name: str, source: Path, options: ParseOptions) -> tuple[list[int], list[Path]]:
     """(source frame indices, image paths at the requested scale) of one camera."""
     stride, limit, factor = options.frame_stride, options.max_frames, options.data_factor
+    beside = options.cache_beside_data
     if source.is_file():
-        paths = decode_video(source, derived_cache_dir(root, f"frames_{factor}", options.cache_root) / name,
+        paths = decode_video(source, derived_cache_dir(root, f"frames_{factor}", options.cache_root, beside) / name,
                              stride, limit, factor)
         return [int(p.stem) for p in paths], paths
     files = frame_files(source)
@@ -155,7 +156,7 @@ def _camera_frames(root: Path, name: str, source: Path, options: ParseOptions) -
     for i in indices:
         path = files[i]
         if factor > 1:
-            cache = derived_cache_dir(root, f"images_{factor}", options.cache_root) / name / f"{path.stem}.png"
+            cache = derived_cache_dir(root, f"images_{factor}", options.cache_root, beside) / name / f"{path.stem}.png"
             path = resize_to_cache(path, cache, resized_size(*image_size(path), factor))
         paths.append(path)
     return indices, paths

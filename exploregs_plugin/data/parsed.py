@@ -133,7 +133,9 @@ class ParseOptions:
     data_factor: int = 1
     undistort: bool = True
     cache_root: Path = field(default_factory=cache_root)
-    """Root for derived images when the dataset folder is read-only, and for built-in scenes."""
+    """Root of the cache: derived images (resized, undistorted, decoded frames) and built-in scenes."""
+    cache_beside_data: bool = False
+    """Keep derived images in the dataset's own ``.exploregs/`` folder (when writable) instead."""
     background: np.ndarray | None = None
     frame_stride: int = 1
     """Dynamic scenes: keep every this-many-th frame of each camera."""
