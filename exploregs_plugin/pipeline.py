@@ -155,6 +155,11 @@ class Pipeline:
             scene_scale=self.scene_extent, scene_center=centers.mean(dim=0)), device)
         if config.random_background and not dm.has_alpha:
             raise ValueError("random_background needs a dataset whose images have an alpha channel")
+        # --datamanager.background random asks for the same as random_background
+        self.random_background = config.random_background or dm.random_background
+        if dm.is_dynamic and not self.model.field_parameters() and world.is_main:
+            print(f"note: {dm.scene_name}: the frames carry times (a dynamic scene), which this static method "
+                  "ignores: it trains every frame as one still scene (the exploregs-4d-* methods use them)", flush=True)
 
     def _make_optimizers(self) -> dict[str, torch.optim.Adam]:
         return self.config.optim.setup(self.params, self.scene_extent, self.batch_size, self.config.batch_rule)
@@ -203,7 +208,7 @@ class Pipeline:
             camera, target, extras = self.datamanager.train_item(index)
             target = target.to(self.device, non_blocking=True)
             background = backgrounds[position]
-            if self.config.random_background:
+            if self.random_background:
                 # The target was composited on the dataset background b0 with alpha a:
                 # t = c a + b0 (1 - a), so on a new background b it is t + (b - b0)(1 - a).
                 target = target + (background - self.background) * (1.0 - extras["alpha"].to(self.device))
@@ -273,7 +278,7 @@ class Pipeline:
         }
 
     def _step_background(self) -> Tensor:
-        if not self.config.random_background:
+        if not self.random_background:
             return self.background
         return torch.rand(3, generator=self.generator, device=self.device)
 

@@ -177,7 +177,7 @@ def test_non_finite_transform(exported: Path) -> None:
 
 def test_missing_image_file(exported: Path) -> None:
     _edit(exported, lambda m: m["frames"][0].__setitem__("file_path", "nowhere/x.png"))
-    with pytest.raises(DataError, match=r"x\.png: image file is missing"):
+    with pytest.raises(DataError, match=r"frame 0\): file_path 'nowhere/x\.png' names no image: .*x\.png does not exist$"):
         read_transforms(exported, ParseOptions())
 
 

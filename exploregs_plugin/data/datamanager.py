@@ -14,12 +14,16 @@ from PIL import Image
 from torch import Tensor
 
 from ..cameras import Camera
+from .backgrounds import NAMED, default_background, evident_background
 from .cache import cache_root
 from .errors import DataError
 from .images import read_image_alpha
 from .parsed import REGION_LABELS, ImageRecord, ParsedScene, ParseOptions
 from .dataparser import parse_dataset
-from .random_init import box_points, frustum_points
+from .random_init import box_points, cube_points, frustum_points
+from .transforms_json import BLENDER_LAYOUT
+
+Background = Literal["white", "black", "random"] | tuple[float, float, float] | None
 
 
 @dataclass
@@ -37,6 +41,9 @@ class DataManagerConfig:
     dataset has its own split and use_dataset_split is set."""
     use_dataset_split: bool = True
     """Use the dataset's own train/test lists (split.json, train_filenames, Blender files)."""
+    eval_split: Literal["test", "val"] = "test"
+    """Blender / D-NeRF folder: evaluate on transforms_test.json or transforms_val.json (training
+    always uses transforms_train.json)."""
     seed: tyro.conf.Suppress[int] = 0
     """Seed of the training camera order and of random initial points. Not a flag: the pipeline
     sets it from the run's --seed, so one seed drives every random choice of a run."""
@@ -44,17 +51,23 @@ class DataManagerConfig:
     """Translate and uniformly scale the scene so camera centres have mean 0 and max radius 1."""
     undistort: bool = True
     """Undistort images of distorted camera models with pycolmap into a cache (False: refuse them)."""
-    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
-    """RGB in [0, 1] that transparent images are composited on; also the render background."""
+    background: Background = None
+    """What transparent images are composited on and renders drawn over: white, black, three
+    values in [0, 1], or random (a random colour behind each training view, the layout's colour
+    for evaluation; needs images with alpha). Unset: the layout's convention, white for a
+    Blender / D-NeRF folder, black otherwise; a Blender folder without alpha renders on the
+    colour its images' borders evidently have."""
     n_random_points: int = 10_000
     """Random initial points when the dataset has no point cloud (or with random_init)."""
     random_init: bool = False
     """Ignore the dataset's points and start from random ones, as for a dataset without points
     (3DGS-MCMC's random-initialisation option)."""
-    random_init_mode: Literal["frusta", "box"] = "frusta"
+    random_init_mode: Literal["frusta", "box", "cube"] | None = None
     """Where random initial points go: 'frusta', along the rays of random training pixels at
-    log-uniform depths in random_init_depth, coloured by those pixels; or 'box', uniform in the box
-    of the camera centres and their focus point, with random colours (docs/data.md compares them)."""
+    log-uniform depths in random_init_depth, coloured by those pixels; 'box', uniform in the box
+    of the camera centres and their focus point; 'cube', uniform in a cube around the focus point
+    that every view sees (3DGS's synthetic recipe); both with random colours. Unset: cube for a
+    Blender / D-NeRF folder, frusta otherwise (docs/data.md compares them)."""
     random_init_depth: tuple[float, float] = (0.1, 10.0)
     """Near and far depth of 'frusta' points, in units of the scene extent (camera spread)."""
     frame_stride: int = 1
@@ -75,8 +88,15 @@ class DataManagerConfig:
             raise DataError("--data-factor", f"must be an integer >= 1, got {self.data_factor}")
         if self.test_every < 0:
             raise DataError("--test-every", f"must be >= 0, got {self.test_every}")
-        if len(self.background) != 3 or not all(0.0 <= c <= 1.0 for c in self.background):
+        if isinstance(self.background, str):
+            if self.background not in (*NAMED, "random"):
+                raise DataError("--background", f"must be white, black, random or three values in [0, 1], "
+                                f"got {self.background!r}")
+        elif self.background is not None and (
+                len(self.background) != 3 or not all(0.0 <= c <= 1.0 for c in self.background)):
             raise DataError("--background", f"must be three values in [0, 1], got {self.background}")
+        if self.eval_split not in ("test", "val"):
+            raise DataError("--eval-split", f"must be test or val, got {self.eval_split!r}")
         if self.n_random_points < 1:
             raise DataError("--n-random-points", f"must be >= 1, got {self.n_random_points}")
         if self.frame_stride < 1:
@@ -92,10 +112,18 @@ class DataManagerConfig:
             undistort=self.undistort,
             cache_root=root,
             cache_beside_data=self.cache_beside_data,
-            background=np.asarray(self.background, dtype=np.float64),
+            background=self.background_colour(),
             frame_stride=self.frame_stride,
             max_frames=self.max_frames,
+            eval_split=self.eval_split,
         )
+
+    def background_colour(self) -> np.ndarray | None:
+        """[3] float64 colour the option names, or None (unset or random: the layout's colour)."""
+        if self.background is None or self.background == "random":
+            return None
+        colour = NAMED[self.background] if isinstance(self.background, str) else self.background
+        return np.asarray(colour, dtype=np.float64)
 
 
 def split_indices(names: list[str], test_every: int, split: dict[str, list[str]] | None) -> tuple[list[int], list[int]]:
@@ -133,7 +161,14 @@ class DataManager:
         train_ids, test_ids = split_indices(names, config.test_every, split)
         if not train_ids:
             raise DataError(f"--data {config.data}", "no training images after the train/test split")
-        background = options.background
+        if config.eval_split != "test" and self.parsed.layout != BLENDER_LAYOUT:
+            raise DataError("--datamanager.eval-split", f"{config.eval_split} needs a Blender folder "
+                            f"(transforms_train.json, transforms_{config.eval_split}.json); --data {config.data} is not one")
+        # Transparent pixels go on the option's colour, else on the one the parser chose for the layout.
+        background = options.background if options.background is not None else self.parsed.background
+        if background is None:
+            background = np.asarray(NAMED[default_background(self.parsed.layout)], dtype=np.float64)
+        self._train_ids = train_ids
         self._train = [self._load(self.parsed.images[i], background) for i in train_ids]
         self._test = [self._load(self.parsed.images[i], background) for i in test_ids]
         # Region masks: the labels every dataset has, and "moving" where a dynamic one marks it
@@ -152,17 +187,51 @@ class DataManager:
         norm = self.parsed.normalization
         self.normalization: tuple[Tensor, float] = (
             torch.tensor(norm.translation, dtype=torch.float32), float(norm.scale))
-        self.background: Tensor = torch.tensor(config.background, dtype=torch.float32)
+        self.random_background: bool = config.background == "random"
+        """Training views go on a random colour each step (the pipeline draws it); evaluation on ``background``."""
+        self.background: Tensor = torch.tensor(self._render_background(background), dtype=torch.float32)
         self._generator = torch.Generator().manual_seed(config.seed)
         self._order: Tensor = torch.randperm(len(self._train), generator=self._generator, device="cpu")
         self._position = 0
         self._epoch = 0
 
+    def _render_background(self, composited: np.ndarray) -> np.ndarray:
+        """The colour renders are drawn over: the one transparent pixels were composited on, unless
+        the images have no alpha. Then they are used as they are, and a Blender folder's images
+        say by their borders which background they were flattened on: with the option unset,
+        renders use that one (one line says so)."""
+        if self.has_alpha:
+            return composited
+        if self.config.background == "random":
+            path = next(self.parsed.images[i].path for i, it in zip(self._train_ids, self._train) if it.alpha is None)
+            raise DataError(path, "--datamanager.background random needs images with an alpha channel, "
+                            "and this one has none")
+        if self.parsed.layout != BLENDER_LAYOUT:
+            return composited
+        evident, shares = evident_background([it.image.numpy() for it in self._train])
+        listed = ", ".join(f"{name} {100 * share:.1f}%" for name, share in shares.items())
+        if evident is None:
+            seen = f"their borders have no one colour ({listed} of the border pixels)"
+        else:
+            seen = f"their background is evidently {evident} ({listed} of the border pixels)"
+        if self.config.background is None and evident is not None:
+            chosen, why = np.asarray(NAMED[evident], dtype=np.float64), f", so renders use {evident}"
+        else:
+            chosen = composited
+            why = ("; renders use " + " ".join(f"{c:g}" for c in composited) +
+                   (" as --datamanager.background says" if self.config.background is not None else ", the layout's"))
+        print(f"note: {self.parsed.root}: the images have no alpha channel and are used as they are; "
+              f"{seen}{why}", flush=True)
+        return chosen
+
     def _random_points(self) -> tuple[np.ndarray, np.ndarray]:
         """Initial points for a dataset without them (or with random_init), seeded by the run."""
         config = self.config
-        if config.random_init_mode == "box":
+        mode = config.random_init_mode or ("cube" if self.parsed.layout == BLENDER_LAYOUT else "frusta")
+        if mode == "box":
             return box_points(self.parsed.images, config.n_random_points, config.seed)
+        if mode == "cube":
+            return cube_points([self.parsed.images[i] for i in self._train_ids], config.n_random_points, config.seed)
         near, far = (d * self.parsed.scene_extent for d in config.random_init_depth)
         views = [(it.camera.viewmat.numpy(), it.camera.K.numpy(), it.image.numpy()) for it in self._train]
         return frustum_points(views, config.n_random_points, near, far, config.seed)

@@ -110,7 +110,8 @@ class ParsedScene:
 
     points: [P, 3] float64 or None; points_rgb: [P, 3] float64 in [0, 1] or None.
     split: the dataset's own ``{"train": [names], "test": [names]}`` when it has one.
-    background: [3] colour that transparent images were composited on, when any.
+    background: [3] colour the parser chose for transparent pixels (the option's, or its layout's
+    convention); None: the datamanager's option, else black.
     """
 
     name: str
@@ -124,6 +125,9 @@ class ParsedScene:
     background: np.ndarray | None = None
     depth_scale: float = 1.0
     """Multiply stored depth values by this to get normalised depths (= normalisation scale)."""
+    layout: str | None = None
+    """A layout whose conventions the datamanager follows: ``"blender"`` (NeRF-synthetic, D-NeRF:
+    a white background, random initial points in a cube around the object); None: none."""
 
 
 @dataclass(frozen=True)
@@ -141,6 +145,8 @@ class ParseOptions:
     """Dynamic scenes: keep every this-many-th frame of each camera."""
     max_frames: int | None = None
     """Dynamic scenes: keep frames of the first this-many of each camera's clip (None: all)."""
+    eval_split: str = "test"
+    """Blender layout: the evaluated split's file, ``transforms_test.json`` or ``transforms_val.json``."""
 
 
 def camera_centers(images: list[ImageRecord]) -> np.ndarray:

@@ -8,10 +8,13 @@ Read:
   OPENCV_FISHEYE`` with ``k1..k4``): undistorted with pycolmap into a cache, or refused;
 * ``transform_matrix``: camera-to-world in OpenGL axes (x right, y up, z back), turned into
   OpenCV axes by negating the camera y and z columns: ``c2w_cv = c2w_gl @ diag(1, -1, -1, 1)``;
-* RGBA images composited over the configured background;
-* ``ply_file_path`` points (x y z, red green blue), else random points in the camera bounds;
+* RGBA images composited over the configured background (a Blender folder's default: white);
+* ``ply_file_path`` points (x y z, red green blue), else random points (the datamanager's);
 * splits: ``train_filenames``/``test_filenames`` (nerfstudio), or a folder of
-  ``transforms_train.json`` / ``transforms_test.json`` (Blender; ``_val`` is ignored).
+  ``transforms_train.json`` with ``transforms_test.json`` or ``transforms_val.json`` as the
+  evaluated split (Blender / NeRF-synthetic, D-NeRF; ``ParseOptions.eval_split``);
+* a frame's ``time`` in [0, 1] (D-NeRF: a monocular video, one pose per moment): every frame
+  of the dataset has one, or none has.
 
 Write: :func:`write_transforms` exports a parsed scene (file units, OpenGL axes, per-frame
 pinhole intrinsics, points as PLY) that this reader loads back to the same cameras.
@@ -23,12 +26,14 @@ import json
 import math
 import os
 import warnings
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import pycolmap
 
+from .backgrounds import NAMED, default_background
 from .camera_prep import check_camera, check_pose, prepare_image, source_image
 from .colmap import attach_extras
 from .errors import DataError
@@ -40,6 +45,9 @@ GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
                   "k1", "k2", "k3", "k4", "p1", "p2", "camera_model")
+
+BLENDER_LAYOUT = "blender"
+"""``ParsedScene.layout`` of a folder of ``transforms_{train,val,test}.json`` (NeRF-synthetic, D-NeRF)."""
 
 
 def _load_json(path: Path) -> dict[str, Any]:
@@ -59,14 +67,17 @@ def _load_json(path: Path) -> dict[str, Any]:
 
 
 def _resolve_image(base: Path, file_path: str, where: str) -> str:
-    """The image path relative to ``base`` (Blender omits the extension: try the usual ones)."""
+    """The image path relative to ``base``: ``file_path`` itself, or (Blender omits the
+    extension) ``file_path`` plus one of the usual image suffixes. DataError when neither exists."""
     rel = Path(file_path)
-    if (base / rel).is_file() or rel.suffix:
+    if (base / rel).is_file():
         return os.path.normpath(rel.as_posix())
+    # Appended, not with_suffix: "r_0.5" or "frame.001" keep their dots.
     for suffix in IMAGE_SUFFIXES:
-        if (base / rel.with_suffix(suffix)).is_file():
-            return os.path.normpath(rel.with_suffix(suffix).as_posix())
-    return os.path.normpath(rel.as_posix())
+        if (base / f"{rel.as_posix()}{suffix}").is_file():
+            return os.path.normpath(f"{rel.as_posix()}{suffix}")
+    tried = "" if rel.suffix.lower() in IMAGE_SUFFIXES else " nor with .png (or .jpg)"
+    raise DataError(where, f"file_path {file_path!r} names no image: {base / rel} does not exist{tried}")
 
 
 def _frame_camera(meta: dict[str, Any], frame: dict[str, Any], image_path: Path, where: str) -> pycolmap.Camera:
@@ -166,46 +177,95 @@ def write_ply_points(path: Path, xyz: np.ndarray, rgb: np.ndarray) -> None:
     PlyData([PlyElement.describe(data, "vertex")]).write(str(path))
 
 
-def _frames_and_split(path: Path) -> tuple[Path, dict[str, Any], list[dict[str, Any]], dict[str, list[str]] | None]:
-    """(json path for messages, top-level meta, frames, split by file path or None)."""
+@dataclass(frozen=True)
+class _Frame:
+    """One frame and where it came from: ``where`` names the json file and the frame's index in
+    it; ``entry`` is the frame with its file's top-level intrinsics filled in."""
+
+    where: str
+    entry: dict[str, Any]
+    split: str | None
+
+
+def _frames_and_split(path: Path, eval_split: str) -> tuple[Path, dict[str, Any], list[_Frame], dict[str, list[str]] | None]:
+    """(json path for messages, top-level meta, frames, split by file path or None).
+
+    A Blender folder contributes ``transforms_train.json`` (training) and
+    ``transforms_{eval_split}.json`` (the evaluated split, under the key "test"); both must exist."""
     if path.is_dir():
-        parts = {s: path / f"transforms_{s}.json" for s in ("train", "test")}
-        if not parts["train"].is_file():
-            raise DataError(path, "no transforms.json or transforms_train.json in this folder")
-        metas = {s: _load_json(p) for s, p in parts.items() if p.is_file()}
+        parts = {"train": path / "transforms_train.json", "test": path / f"transforms_{eval_split}.json"}
+        for key, part in parts.items():
+            if not part.is_file():
+                use = "training" if key == "train" else f"evaluation (--datamanager.eval-split {eval_split})"
+                raise DataError(part, f"split file does not exist; a Blender folder needs it for {use}")
         frames, split = [], {"train": [], "test": []}
-        for s, meta in metas.items():
-            for frame in meta["frames"]:
-                frames.append({**{k: meta[k] for k in INTRINSIC_KEYS if k in meta}, **frame})
-                split[s].append(str(frame.get("file_path", "")))
-        return parts["train"], metas["train"], frames, split
+        for key, part in parts.items():
+            meta = _load_json(part)
+            for index, frame in enumerate(meta["frames"]):
+                entry = {**{k: meta[k] for k in INTRINSIC_KEYS if k in meta}, **frame} if isinstance(frame, dict) else frame
+                frames.append(_Frame(f"{part} (frame {index})", entry, key))
+                split[key].append(str(frame.get("file_path", "")) if isinstance(frame, dict) else "")
+        return parts["train"], _load_json(parts["train"]), frames, split
     meta = _load_json(path)
     split = None
     if "train_filenames" in meta or "test_filenames" in meta:
         split = {"train": list(meta.get("train_filenames", [])), "test": list(meta.get("test_filenames", []))}
-    return path, meta, meta["frames"], split
+    return path, meta, [_Frame(f"{path} (frame {i})", f, None) for i, f in enumerate(meta["frames"])], split
+
+
+def _frame_times(frames: list[_Frame]) -> list[float | None]:
+    """Each frame's ``time`` (all None when no frame has one). DataError, naming the frame's
+    file, when some frames have a time and this one has none, or a time outside [0, 1]."""
+    timed = [f for f in frames if isinstance(f.entry, dict) and "time" in f.entry]
+    if not timed:
+        return [None] * len(frames)
+    times = []
+    for frame in frames:
+        if not isinstance(frame.entry, dict) or "time" not in frame.entry:
+            raise DataError(frame.where, f"has no 'time', though other frames have one ({timed[0].where}): "
+                            "a dynamic (D-NeRF) dataset needs the time of every frame")
+        try:
+            time = float(frame.entry["time"])
+        except (TypeError, ValueError) as err:
+            raise DataError(frame.where, f"'time' must be a number in [0, 1], got {frame.entry['time']!r}") from err
+        if not 0.0 <= time <= 1.0:  # also refuses NaN
+            raise DataError(frame.where, f"'time' must be in [0, 1] (0 = first moment, 1 = last), got {time}")
+        times.append(time)
+    return times
 
 
 def read_transforms(path: Path, options: ParseOptions) -> ParsedScene:
-    """Parse a transforms.json file (or a Blender folder of transforms_{train,test}.json)."""
+    """Parse a transforms.json file (or a Blender folder of transforms_{train,val,test}.json)."""
     path = Path(path)
-    json_path, meta, frames, split = _frames_and_split(path)
+    json_path, meta, frames, split = _frames_and_split(path, options.eval_split)
     base = json_path.parent
     if not frames:
         raise DataError(json_path, "'frames' is empty: zero images")
-    records, by_file = [], {}
-    for index, frame in enumerate(frames):
-        where = f"{json_path} (frame {index})"
-        if not isinstance(frame, dict) or "file_path" not in frame:
+    layout = BLENDER_LAYOUT if path.is_dir() else None
+    if options.background is None:  # the layout's convention (white for Blender, else black)
+        options = replace(options, background=np.asarray(NAMED[default_background(layout)], dtype=np.float64))
+    times = _frame_times(frames)
+    records, by_file, first_size = [], {}, None
+    for frame, time in zip(frames, times):
+        where, entry = frame.where, frame.entry
+        if not isinstance(entry, dict) or "file_path" not in entry:
             raise DataError(where, "missing required key 'file_path'")
-        rel = _resolve_image(base, str(frame["file_path"]), where)
-        viewmat = _frame_viewmat(frame, where)
+        rel = _resolve_image(base, str(entry["file_path"]), where)
+        viewmat = _frame_viewmat(entry, where)
         full = base / rel
-        camera = _frame_camera(meta, frame, full, where)
+        if layout == BLENDER_LAYOUT:
+            # One camera_angle_x serves every frame of a Blender folder: one image size.
+            size = image_size(full)
+            first_size = first_size or (size, full)
+            if size != first_size[0]:
+                raise DataError(full, f"image is {size[0]}x{size[1]} but {first_size[1]} is "
+                                f"{first_size[0][0]}x{first_size[0][1]}: the frames of a Blender dataset "
+                                "share one camera, so their images must have one size")
+        camera = _frame_camera(meta, entry, full, where)
         src = source_image(base, rel, options.data_factor, options)
         record = prepare_image(base, rel, src, camera, viewmat, options, expect_size=None)
-        records.append(attach_extras(base, record))
-        by_file[os.path.normpath(str(frame["file_path"]))] = rel
+        records.append(replace(attach_extras(base, record), time=time))
+        by_file[os.path.normpath(str(entry["file_path"]))] = rel
     names = [r.name for r in records]
     if len(set(names)) != len(names):
         raise DataError(json_path, "two frames use the same image file")
@@ -226,6 +286,7 @@ def read_transforms(path: Path, options: ParseOptions) -> ParsedScene:
         points_rgb=rgb,
         split=_map_split(split, by_file, json_path),
         background=options.background,
+        layout=layout,
     )
 
 
@@ -251,7 +312,8 @@ def write_transforms(scene: ParsedScene, out_path: Path, write_points: bool = Tr
     """Export ``scene`` as a transforms.json at ``out_path`` (in the scene's file units).
 
     Per-frame pinhole intrinsics, OpenGL camera-to-world poses, image paths relative to the
-    json's folder, points (if any) as ``points3D.ply`` beside it, and the split if known.
+    json's folder, each frame's time in a dynamic scene, points (if any) as ``points3D.ply``
+    beside it, and the split if known.
     """
     out_path = Path(out_path)
     out_path.parent.mkdir(parents=True, exist_ok=True)
@@ -266,6 +328,7 @@ def write_transforms(scene: ParsedScene, out_path: Path, write_points: bool = Tr
             "fl_x": float(im.K[0, 0]), "fl_y": float(im.K[1, 1]),
             "cx": float(im.K[0, 2]), "cy": float(im.K[1, 2]),
             "w": int(im.width), "h": int(im.height),
+            **({} if im.time is None else {"time": float(im.time)}),
         })
     meta: dict[str, Any] = {"frames": frames}
     if scene.points is not None and write_points:
