@@ -351,3 +351,24 @@ def test_images_of_different_sizes(tmp_path: Path) -> None:
     assert str(err.value) == (f"{root / 'test' / 'r_001.png'}: image is 20x16 but {root / 'train' / 'r_000.png'} "
                               "is 10x8: the frames of a Blender dataset share one camera, so their images must have "
                               "one size")
+
+
+def test_generated_rgba_objects_scene_loads_with_soft_alpha(tmp_path: Path) -> None:
+    from exploregs_plugin.data.blender_objects import write_blender_objects
+
+    root = write_blender_objects(tmp_path / "objects", size=24, seed=0, splits=(("train", 3), ("test", 2)))
+    dm = _dm(root, tmp_path)
+    assert (len(dm.train_cameras), len(dm.test_cameras)) == (3, 2) and dm.has_alpha
+    assert dm.train_cameras[0].K[0, 0].item() == pytest.approx(12 / math.tan(math.radians(39.6) / 2), rel=1e-6)
+    alphas = torch.stack([dm.train_item(i)[2]["alpha"] for i in range(3)])
+    assert float(alphas.max()) == 1.0 and float(alphas.min()) == 0.0
+    assert bool(((alphas > 0) & (alphas < 1)).any())  # anti-aliased silhouettes: coverage of the sub-samples
+    _, image, extras = dm.train_item(0)
+    clear = extras["alpha"][..., 0] == 0
+    assert torch.equal(image[clear], torch.ones(int(clear.sum()), 3))  # empty pixels on white
+    scene = read_transforms(root, ParseOptions())  # file units: every camera 4 from the objects' centre
+    for im in scene.images:
+        assert np.linalg.norm(im.camera_center - [0.0, 0.0, 0.4]) == pytest.approx(4.0, abs=1e-9)
+        forward = im.viewmat[2, :3]  # looking at it
+        to_centre = np.array([0.0, 0.0, 0.4]) - im.camera_center
+        np.testing.assert_allclose(forward, to_centre / 4.0, atol=1e-9)

@@ -200,7 +200,7 @@ DNERF_ENTRIES = ("4d-default", "4d-split", "4d-seedsplit", "default", "seedsplit
 DNERF_STEPS = 600
 """Under a third of the dynamic methods' 2000 steps, so that the 15 runs fit in about 40 minutes
 with --jobs 2 on the shared 2-core machine (measured: docs/results.md); the schedule's fractions
-keep its shape (a 60-step warm-up, densifications at 100, 200 and 300)."""
+keep its shape (a 60-step warm-up, densifications at steps 100 and 200)."""
 
 
 def dnerf(root: Path | None = None) -> BenchSpec:
