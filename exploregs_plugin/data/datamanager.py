@@ -219,7 +219,7 @@ class DataManager:
         else:
             chosen = composited
             why = ("; renders use " + " ".join(f"{c:g}" for c in composited) +
-                   (" as --datamanager.background says" if self.config.background is not None else ", the layout's"))
+                   (" as --datamanager.background says" if self.config.background is not None else ", the layout's default"))
         print(f"note: {self.parsed.root}: the images have no alpha channel and are used as they are; "
               f"{seen}{why}", flush=True)
         return chosen

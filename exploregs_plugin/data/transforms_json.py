@@ -184,7 +184,6 @@ class _Frame:
 
     where: str
     entry: dict[str, Any]
-    split: str | None
 
 
 def _frames_and_split(path: Path, eval_split: str) -> tuple[Path, dict[str, Any], list[_Frame], dict[str, list[str]] | None]:
@@ -198,19 +197,19 @@ def _frames_and_split(path: Path, eval_split: str) -> tuple[Path, dict[str, Any]
             if not part.is_file():
                 use = "training" if key == "train" else f"evaluation (--datamanager.eval-split {eval_split})"
                 raise DataError(part, f"split file does not exist; a Blender folder needs it for {use}")
+        metas = {key: _load_json(part) for key, part in parts.items()}
         frames, split = [], {"train": [], "test": []}
-        for key, part in parts.items():
-            meta = _load_json(part)
+        for key, meta in metas.items():
             for index, frame in enumerate(meta["frames"]):
                 entry = {**{k: meta[k] for k in INTRINSIC_KEYS if k in meta}, **frame} if isinstance(frame, dict) else frame
-                frames.append(_Frame(f"{part} (frame {index})", entry, key))
+                frames.append(_Frame(f"{parts[key]} (frame {index})", entry))
                 split[key].append(str(frame.get("file_path", "")) if isinstance(frame, dict) else "")
-        return parts["train"], _load_json(parts["train"]), frames, split
+        return parts["train"], metas["train"], frames, split
     meta = _load_json(path)
     split = None
     if "train_filenames" in meta or "test_filenames" in meta:
         split = {"train": list(meta.get("train_filenames", [])), "test": list(meta.get("test_filenames", []))}
-    return path, meta, [_Frame(f"{path} (frame {i})", f, None) for i, f in enumerate(meta["frames"])], split
+    return path, meta, [_Frame(f"{path} (frame {i})", f) for i, f in enumerate(meta["frames"])], split
 
 
 def _frame_times(frames: list[_Frame]) -> list[float | None]:
