@@ -222,6 +222,59 @@ def test_truncated_cameras_txt_names_the_image_and_camera(scene_copy: Path) -> N
         read_colmap(scene_copy, ParseOptions())
 
 
+def _edit_first_data_line(path: Path, column: int, value: str) -> int:
+    """Set field ``column`` of the first data line of a COLMAP text file; returns its line number."""
+    lines = path.read_text().splitlines()
+    index = next(i for i, ln in enumerate(lines) if ln and not ln.startswith("#"))
+    fields = lines[index].split()
+    fields[column] = value
+    lines[index] = " ".join(fields)
+    path.write_text("\n".join(lines) + "\n")
+    return index + 1
+
+
+@pytest.mark.parametrize("value, problem", [("nan", "is not a finite number"), ("inf", "is not a finite number"),
+                                            ("1.0x", "is not a number")])
+def test_bad_number_in_points3d_txt_names_the_file_and_line(scene_copy: Path, value: str, problem: str) -> None:
+    path = scene_copy / "sparse" / "0" / "points3D.txt"
+    line = _edit_first_data_line(path, 2, value)
+    with pytest.raises(DataError) as info:
+        read_colmap(scene_copy, ParseOptions())
+    message = str(info.value)
+    assert message.startswith(f"{path}: line {line} (point ") and f"{value!r} {problem}" in message
+    assert "\n" not in message and "Check failed" not in message  # not pycolmap's internal check
+
+
+def test_nan_point_in_points3d_bin_is_left_out_with_the_file_named(scene_copy: Path) -> None:
+    def nan_point(rec: pycolmap.Reconstruction) -> None:
+        rec.points3D[min(rec.point3D_ids())].xyz = np.array([np.nan, 0.0, 0.0])
+
+    _rewrite_model(scene_copy, nan_point, binary=True)
+    path = scene_copy / "sparse" / "0" / "points3D.bin"
+    with pytest.warns(UserWarning, match=rf"{path}: left out 1 of 400 points with non-finite coordinates"):
+        scene = read_colmap(scene_copy, ParseOptions())
+    assert scene.points.shape == (399, 3) and np.isfinite(scene.points).all()
+
+
+@pytest.mark.parametrize("name", ["cameras", "images", "points3D"])
+def test_truncated_bin_file_names_the_file_and_the_record(scene_copy: Path, name: str) -> None:
+    _rewrite_model(scene_copy, lambda rec: None, binary=True)
+    path = scene_copy / "sparse" / "0" / f"{name}.bin"
+    data = path.read_bytes()
+    what = {"cameras": "camera", "images": "image", "points3D": "point"}[name]
+    for cut in (len(data) // 2, len(data) - 1):
+        path.write_bytes(data[:cut])
+        with pytest.raises(DataError, match=rf"^{path}: truncated: the file \({cut} bytes\) ends inside {what} "
+                                            rf"\d+ of the \d+ its header announces$"):
+            read_colmap(scene_copy, ParseOptions())
+    path.write_bytes(data[:3])
+    with pytest.raises(DataError, match=rf"^{path}: truncated: 3 bytes, too short for the record count$"):
+        read_colmap(scene_copy, ParseOptions())
+    path.write_bytes(data + b"junk")
+    with pytest.raises(DataError, match=rf"^{path}: 4 bytes follow the last of its \d+ {what}s"):
+        read_colmap(scene_copy, ParseOptions())
+
+
 def test_images_on_disk_missing_from_the_model_are_counted(scene_copy: Path) -> None:
     path = scene_copy / "sparse" / "0" / "images.txt"
     lines = path.read_text().splitlines()

@@ -7,7 +7,10 @@ camera-space z in the model's units), ``masks/<stem>.png`` (region labels) and
 
 from __future__ import annotations
 
+import functools
 import json
+import math
+import struct
 import warnings
 from pathlib import Path
 
@@ -104,13 +107,136 @@ def _check_text_references(sparse: Path) -> None:
                                                f"defined ({defined}; is it truncated?)")
 
 
+class _Truncated(Exception):
+    """A binary model file ends inside a record."""
+
+
+class _BinaryReader:
+    """Walks a COLMAP ``.bin`` file record by record (little-endian), to say where it breaks."""
+
+    def __init__(self, data: bytes) -> None:
+        self.data, self.pos = data, 0
+
+    def take(self, layout: struct.Struct) -> tuple:
+        if self.pos + layout.size > len(self.data):
+            raise _Truncated
+        values = layout.unpack_from(self.data, self.pos)
+        self.pos += layout.size
+        return values
+
+    def skip(self, count: int, record_size: int) -> None:
+        if self.pos + count * record_size > len(self.data):
+            raise _Truncated
+        self.pos += count * record_size
+
+    def name(self) -> None:
+        end = self.data.find(b"\0", self.pos)
+        if end < 0:
+            raise _Truncated
+        self.pos = end + 1
+
+
+_COUNT, _CAMERA, _IMAGE, _POINT = (struct.Struct(f) for f in ("<Q", "<IiQQ", "<I7dI", "<Q3d3BdQ"))
+
+
+@functools.lru_cache(maxsize=None)
+def _camera_param_count(model_id: int) -> int | None:
+    try:
+        model = pycolmap.CameraModelId(model_id)
+        return len(pycolmap.Camera.create_from_model_id(0, model, 1.0, 1, 1).params) if model_id >= 0 else None
+    except (ValueError, TypeError, RuntimeError):
+        return None
+
+
+def _binary_problem(path: Path) -> str | None:
+    """What is wrong with binary model file ``path`` (cameras, images or points3D), or None when
+    every record it announces is complete and nothing follows them."""
+    data = path.read_bytes()
+    reader, kind = _BinaryReader(data), path.stem
+    what = {"cameras": "camera", "images": "image", "points3D": "point"}[kind]
+    try:
+        (count,) = reader.take(_COUNT)
+    except _Truncated:
+        return f"truncated: {len(data)} bytes, too short for the record count"
+    index = 0
+    try:
+        for index in range(count):
+            if kind == "cameras":
+                _camera_id, model_id, _width, _height = reader.take(_CAMERA)
+                n_params = _camera_param_count(model_id)
+                if n_params is None:
+                    return f"camera {index + 1} of {count} has unknown camera model id {model_id}"
+                reader.skip(n_params, 8)
+            elif kind == "images":
+                reader.take(_IMAGE)
+                reader.name()
+                (n_points2d,) = reader.take(_COUNT)
+                reader.skip(n_points2d, 24)
+            else:
+                *_point, track_length = reader.take(_POINT)
+                reader.skip(track_length, 8)
+    except _Truncated:
+        return (f"truncated: the file ({len(data)} bytes) ends inside {what} {index + 1} of the {count} "
+                f"its header announces")
+    if reader.pos != len(data):
+        return f"{len(data) - reader.pos} bytes follow the last of its {count} {what}s (a corrupt file?)"
+    return None
+
+
+def _text_problem(path: Path) -> str | None:
+    """The first line of text model file ``path`` with a value pycolmap cannot take (not a
+    number, or a non-finite number), or None."""
+    kind = path.stem
+    if kind == "images":  # a pose line, then a line of 2D points (X Y POINT3D_ID ...), maybe empty
+        lines = [(n, line.split()) for n, line in enumerate(path.read_text().splitlines(), 1)
+                 if not line.lstrip().startswith("#")]
+        entries = [(n, fields, f"image {lines[i - 1][1][-1] if i % 2 else fields[-1]!r}",
+                    fields if i % 2 else fields[1:8]) for i, (n, fields) in enumerate(lines) if fields]
+    elif kind == "cameras":
+        entries = [(n, fields, f"camera {fields[0]}", fields[2:]) for n, fields in _data_lines(path)]
+    else:
+        entries = [(n, fields, f"point {fields[0]}", fields[1:]) for n, fields in _data_lines(path)]
+    for line_no, fields, entry, numbers in entries:
+        if kind == "points3D" and len(fields) < 8:
+            return f"line {line_no}: expected POINT3D_ID X Y Z R G B ERROR TRACK[], got {len(fields)} fields"
+        for value in numbers:
+            try:
+                number = float(value)
+            except ValueError:
+                return f"line {line_no} ({entry}): {value!r} is not a number"
+            if not math.isfinite(number):
+                return f"line {line_no} ({entry}): {value!r} is not a finite number"
+    return None
+
+
+def _text_problem_in(sparse: Path) -> tuple[Path, str] | None:
+    """(file, what is wrong) for the first text model file with a value pycolmap cannot take."""
+    for name in MODEL_FILES:
+        problem = _text_problem(sparse / f"{name}.txt")
+        if problem is not None:
+            return sparse / f"{name}.txt", problem
+    return None
+
+
 def read_reconstruction(sparse: Path) -> pycolmap.Reconstruction:
     if _model_format(sparse) == "txt":
         _check_text_camera_models(sparse)
         _check_text_references(sparse)
+    else:
+        # walked before pycolmap reads them: on a truncated file pycolmap takes garbage for a
+        # count and can allocate gigabytes before it fails (0.1 s per 100k points)
+        for name in MODEL_FILES:
+            problem = _binary_problem(sparse / f"{name}.bin")
+            if problem is not None:
+                raise DataError(sparse / f"{name}.bin", problem)
     try:
         return pycolmap.Reconstruction(str(sparse))
-    except Exception as err:  # pycolmap raises RuntimeError/ValueError subclasses
+    except Exception as err:  # pycolmap raises RuntimeError/ValueError/MemoryError subclasses
+        # pycolmap's own message is an internal check of its reader: find the text file and line
+        # that it could not take (only on failure, so a good model is read once)
+        broken = _text_problem_in(sparse) if _model_format(sparse) == "txt" else None
+        if broken is not None:
+            raise DataError(broken[0], broken[1]) from err
         raise DataError(sparse, f"cannot read the COLMAP model ({err})") from err
 
 
@@ -175,7 +301,7 @@ def read_colmap(root: Path, options: ParseOptions) -> ParsedScene:
         record = prepare_image(root, im.name, path, camera, viewmat, options, expect_size=expect)
         records.append(attach_extras(root, record))
     _warn_unused_images(root / "images", {im.name for im in images})
-    points, rgb = _points(rec)
+    points, rgb = _points(rec, sparse)
     if points is None:
         warnings.warn(f"{sparse}: the COLMAP model has no 3D points; using random initialisation",
                       stacklevel=2)
@@ -189,7 +315,7 @@ def read_colmap(root: Path, options: ParseOptions) -> ParsedScene:
     )
 
 
-def _points(rec: pycolmap.Reconstruction) -> tuple[np.ndarray | None, np.ndarray | None]:
+def _points(rec: pycolmap.Reconstruction, sparse: Path) -> tuple[np.ndarray | None, np.ndarray | None]:
     if rec.num_points3D() == 0:
         return None, None
     ids = sorted(rec.points3D.keys())
@@ -197,5 +323,7 @@ def _points(rec: pycolmap.Reconstruction) -> tuple[np.ndarray | None, np.ndarray
     rgb = np.array([rec.points3D[i].color for i in ids], dtype=np.float64) / 255.0
     finite = np.all(np.isfinite(xyz), axis=1)
     if not finite.all():
-        warnings.warn(f"dropping {int((~finite).sum())} non-finite COLMAP points", stacklevel=3)
+        where = sparse / f"points3D.{_model_format(sparse)}"
+        warnings.warn(f"{where}: left out {int((~finite).sum())} of {len(xyz)} points with non-finite "
+                      f"coordinates", stacklevel=3)
     return xyz[finite], rgb[finite]
