@@ -43,3 +43,34 @@ def test_smooth_field_has_unit_rms_and_bad_configs_fail():
         DepthSupervisionConfig(bias_wavelength=0.0)
     with pytest.raises(ValueError, match=r"\[H, W, 1\]"):
         degrade_depth(torch.ones(4, 4), 0, DepthSupervisionConfig(noise_std=0.1))
+
+
+def test_non_finite_depth_is_masked_as_no_depth_and_counted(tiny_scene_dir, tmp_path):
+    """Sky stored as inf (and holes as NaN) mean "no depth here": masked, counted in one warning."""
+    import shutil
+
+    import numpy as np
+
+    from exploregs_plugin.data import DataManagerConfig
+    from exploregs_plugin.model.losses import depth_l1
+
+    root = shutil.copytree(tiny_scene_dir, tmp_path / "scene")
+    path = root / "depths" / "0001.npy"
+    depth = np.load(path)
+    depth[:5, :] = np.inf  # the top rows are sky
+    depth[10, 10] = np.nan
+    np.save(path, depth)
+    n_masked = 5 * depth.shape[1] + 1
+    n_maps = len(list((root / "depths").glob("*.npy")))
+    with pytest.warns(UserWarning, match=rf"depths: {n_masked} of {n_maps * depth.size} depth pixels .* in 1 of "
+                                         rf"{n_maps} depth maps are not finite .* masked as no depth \(e\.g\. 0001\.npy\)"):
+        dm = DataManagerConfig(data=str(root), test_every=0, use_dataset_split=False,
+                               cache_dir=str(tmp_path / "cache")).setup()
+    index = [c.name for c in dm.train_cameras].index("0001.png")
+    loaded = dm.train_item(index)[2]["depth"]
+    assert torch.isfinite(loaded).all() and (loaded[:5] == 0).all() and loaded[10, 10, 0] == 0
+    assert torch.equal(loaded[5:10], torch.from_numpy(depth[5:10] * dm.parsed.depth_scale).float()[..., None])
+    # the loss sees no depth there: a render that only differs on masked pixels costs nothing
+    render = loaded.clone()
+    render[:5] = 123.0
+    assert depth_l1(render, loaded).item() == 0.0

@@ -20,6 +20,7 @@ from .errors import DataError
 from .images import read_image_alpha
 from .parsed import REGION_LABELS, ImageRecord, ParsedScene, ParseOptions
 from .dataparser import parse_dataset
+from .depth_supervision import read_depth_map, warn_masked_depth
 from .random_init import box_points, cube_points, frustum_points
 from .transforms_json import BLENDER_LAYOUT
 
@@ -169,8 +170,10 @@ class DataManager:
         if background is None:
             background = np.asarray(NAMED[default_background(self.parsed.layout)], dtype=np.float64)
         self._train_ids = train_ids
+        self._masked_depth: dict[Path, tuple[int, int]] = {}  # depth file -> (non-finite pixels, pixels)
         self._train = [self._load(self.parsed.images[i], background) for i in train_ids]
         self._test = [self._load(self.parsed.images[i], background) for i in test_ids]
+        warn_masked_depth(self._masked_depth)
         # Region masks: the labels every dataset has, and "moving" where a dynamic one marks it
         # (the scan stops at the first image that has a moving pixel).
         moving = REGION_LABELS["moving"]
@@ -249,7 +252,8 @@ class DataManager:
         depth = labels = None
         size = (record.width, record.height)
         if record.depth_path is not None:
-            depth_np = _load_depth(record.depth_path, size) * self.parsed.depth_scale
+            depth_np, self._masked_depth[record.depth_path] = read_depth_map(record.depth_path, size)
+            depth_np = depth_np * self.parsed.depth_scale
             depth = torch.from_numpy(depth_np.astype(np.float32))[..., None]
         if record.mask_path is not None:
             labels = torch.from_numpy(_load_labels(record.mask_path, size))
@@ -332,19 +336,6 @@ class DataManager:
 
 def _tensor(array: np.ndarray | None) -> Tensor | None:
     return None if array is None else torch.tensor(array, dtype=torch.float32)
-
-
-def _load_depth(path: Path, size: tuple[int, int]) -> np.ndarray:
-    """float [H, W] depth resized (nearest) to ``size`` = (width, height)."""
-    try:
-        depth = np.load(path)
-    except (OSError, ValueError) as err:
-        raise DataError(path, f"depth file is unreadable ({err})") from err
-    if depth.ndim != 2 or not np.all(np.isfinite(depth)):
-        raise DataError(path, f"depth must be a finite [H, W] array, got shape {depth.shape}")
-    if depth.shape != (size[1], size[0]):
-        depth = np.asarray(Image.fromarray(depth.astype(np.float32)).resize(size, Image.Resampling.NEAREST))
-    return depth
 
 
 def _load_labels(path: Path, size: tuple[int, int]) -> np.ndarray:
