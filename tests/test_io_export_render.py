@@ -172,3 +172,21 @@ def test_eg_eval_on_an_exported_ply_matches_the_run(run, tmp_path):
     assert (tmp_path / "scene-eval" / "metrics.json").is_file()
     with pytest.raises(ValueError, match="pass --data"):
         eval_script.main(eval_script.EvalArgs(path))
+
+
+def test_eg_eval_says_how_many_ply_rows_it_left_out(run, tmp_path, capsys):
+    from exploregs_plugin.scripts import eval as eval_script
+
+    path = export_script.main(export_script.ExportArgs(run.run_dir, out=tmp_path / "scene.ply")).path
+    ply = PlyData.read(str(path), mmap=False)
+    vertices = ply["vertex"].data
+    total = len(vertices)
+    vertices["x"][:2] = np.nan
+    vertices["opacity"][5] = np.inf
+    ply.write(str(path))
+    capsys.readouterr()
+    metrics = eval_script.main(eval_script.EvalArgs(path, data="builtin:tiny", save_images=False))
+    err = capsys.readouterr().err
+    assert f"{path}: left out 3 of {total} Gaussians (PLY rows) with NaN or inf values; scoring the other " \
+           f"{total - 3}" in err
+    assert metrics["num_gaussians"] == total - 3 and metrics["dropped_nonfinite"] == 3

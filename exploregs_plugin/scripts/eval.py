@@ -10,7 +10,7 @@ leaving the run's own metrics.json untouched; for a PLY: NAME-eval/ beside it).
 from __future__ import annotations
 
 import math
-
+import sys
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -50,6 +50,9 @@ def main(args: EvalArgs) -> dict:
             raise ValueError(f"{args.path}: a PLY holds no cameras or images; pass --data DATASET to score it")
         dm = DataManagerConfig(data=args.data, data_factor=args.data_factor).setup()
         scene = read_ply(args.path, dataset_normalization(dm) if args.ply_frame == "original" else None)
+        if scene.dropped:
+            print(f"{args.path}: left out {scene.dropped} of {scene.dropped + scene.num_gaussians} Gaussians "
+                  f"(PLY rows) with NaN or inf values; scoring the other {scene.num_gaussians}", file=sys.stderr)
         model = model_from_params(scene.params, scene.sh_degree, device=args.device)
         out = args.out or args.path.with_name(args.path.stem + "-eval")
         extra = {"ply": str(args.path), "data": args.data, "dropped_nonfinite": scene.dropped}
