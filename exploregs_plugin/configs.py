@@ -92,11 +92,16 @@ def tyro_error_text(captured: str) -> str:
     wrapper name (``__tyro-dummy-inner__``) dropped."""
     lines = []
     for line in (ln.strip("│╭╰╮╯─- \t") for ln in captured.splitlines()):
-        if line.startswith("For full helptext"):  # the hint (which may wrap) ends the message
+        if line.startswith(("For full helptext", "Argument helptext")):  # the hint (which may wrap) ends the message
             break
         if line and not line.startswith("usage:"):
             lines.append(line)
     text = " ".join(dict.fromkeys(lines)).replace("__tyro-dummy-inner__.", "")
+    # Python's conversion errors in words: "--seed: expected an integer, got 'abc'"
+    text = re.sub(r"^Value error Error parsing (--[\w.-]+): invalid literal for int\(\) with base 10: (.*)$",
+                  r"\1: expected an integer, got \2", text)
+    text = re.sub(r"^Value error Error parsing (--[\w.-]+): could not convert string to float: (.*)$",
+                  r"\1: expected a number, got \2", text)
     # "Value error Error parsing pipeline.strategy: X" -> "--strategy: X" (the flag group's name)
     return re.sub(r"^Value error Error parsing (?:pipeline\.)?([\w.]+): ", lambda m: f"--{m.group(1).replace('_', '-')}: ", text)
 

@@ -15,10 +15,13 @@ parameter checksum across ranks so that a drift stops the run instead of going u
 
 from __future__ import annotations
 
+import ctypes
 import datetime
 import gc
 import os
 import re
+import signal
+import sys
 from dataclasses import dataclass
 from typing import Any, Sequence
 
@@ -35,6 +38,39 @@ class DistributedError(RuntimeError):
 
 class DivergenceError(DistributedError):
     """The ranks hold different parameters: the run stops instead of training several models."""
+
+
+class PeerLostError(DistributedError):
+    """A collective failed because another rank stopped or died (its launcher names which)."""
+
+
+LAUNCHER_PID = "EXPLOREGS_LAUNCHER_PID"
+"""Set by ``eg-train --machine.num-devices N`` for its ranks: the pid of the launcher, which
+reports a lost rank itself (so the ranks that lost it say nothing)."""
+PR_SET_PDEATHSIG = 1  # linux/prctl.h
+
+
+def launched_by_eg_train(environ: dict[str, str] | None = None) -> bool:
+    """Whether this rank was started by eg-train's own launcher (not by a torchrun command)."""
+    return LAUNCHER_PID in (os.environ if environ is None else environ)
+
+
+def stop_with_launcher() -> None:
+    """Ask the kernel to send this rank SIGTERM when its launcher dies (even by kill -9), so no
+    rank trains on as an orphan: SIGTERM checkpoints at the next step and stops, as it does for
+    a run of one process. Linux only (prctl); elsewhere a no-op."""
+    if not sys.platform.startswith("linux"):
+        return
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
+            return
+    except (OSError, AttributeError):
+        return
+    # the launcher may have died before the request was made: then no signal will ever come
+    launcher = os.environ.get(LAUNCHER_PID)
+    if launcher is not None and launcher.isdigit() and os.getppid() != int(launcher):
+        os.kill(os.getpid(), signal.SIGTERM)
 
 
 def launched_by_torchrun(environ: dict[str, str] | None = None) -> bool:
@@ -159,7 +195,7 @@ def _collective(fn: Any, *args: Any, **kwargs: Any) -> None:
         fn(*args, **kwargs)
     except RuntimeError as err:  # gloo: "Connection closed by peer"; NCCL: a watchdog timeout
         reason = re.sub(r"^\[[^\]]*\]\s*", "", str(err).strip().splitlines()[0]).split(". ")[0][:200]
-        raise DistributedError(f"a collective operation failed, most likely because another rank "
+        raise PeerLostError(f"a collective operation failed, most likely because another rank "
                                f"stopped or died ({reason})") from err
 
 
@@ -181,6 +217,7 @@ def init_world(device: torch.device, timeout_minutes: float = 10.0) -> tuple[Wor
     """
     if not launched_by_torchrun():
         return World(), device
+    stop_with_launcher()
     rank, size = int(os.environ["RANK"]), int(os.environ["WORLD_SIZE"])
     local_rank = int(os.environ.get("LOCAL_RANK", "0"))
     if size == 1:

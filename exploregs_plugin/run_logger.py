@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import sys
+import threading
 import time
 from pathlib import Path
 from typing import Any
@@ -11,12 +13,17 @@ import torch
 from rich.console import Console
 from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
+WRITER_THREAD = "_AsyncWriterThread"  # tensorboard's thread that writes the event file
+
 
 class RunLogger:
     """Writes tensorboard events into the run folder and drives a rich progress bar.
 
     Operation counts from the strategy are summed between two log steps, so
     ``strategy/<op>`` is the number of Gaussians that operation touched in that window.
+
+    A tensorboard writer that cannot write (a full disk) is closed with one line and the run goes
+    on without it: the events are a log, the checkpoints and metrics are what must survive.
     """
 
     def __init__(self, run_dir: Path, total_steps: int, start_step: int, log_every: int,
@@ -26,36 +33,64 @@ class RunLogger:
         if tensorboard:
             from torch.utils.tensorboard import SummaryWriter
 
-            self.writer = SummaryWriter(log_dir=str(run_dir))
+            try:
+                self.writer = SummaryWriter(log_dir=str(run_dir))
+            except OSError as err:
+                _events_stopped(err)
         self.console = Console(stderr=True)
         self.quiet = quiet
         self.counts: dict[str, int] = {}
         self.window_start = time.perf_counter()
         self.window_steps = 0
         self.total_steps = total_steps
-        # No remaining-time column: steps slow down as the Gaussians multiply (9 to 2.6 it/s on the
-        # README's job), so an estimate from the rate so far is 2-3x too low for most of a run.
-        # The bar shows the elapsed time and the recent rate (it/s in the stats) instead.
+        self.started = time.perf_counter()
+        # The remaining time is estimated from the recent rate (the last log window, evaluations
+        # and checkpoints included), not the rate so far: steps slow down as the Gaussians multiply
+        # (9 to 2.6 it/s on the README's job), so the estimate grows while the Gaussians do, until
+        # densification stops at half the run (docs/training.md says so).
         self.progress = Progress(
             TextColumn("[bold]train"), BarColumn(), TextColumn("{task.completed}/{task.total}"),
             TextColumn("{task.fields[stats]}"), TextColumn("elapsed"), TimeElapsedColumn(),
+            TextColumn("{task.fields[eta]}"),
             console=self.console, disable=quiet or not self.console.is_terminal,
         )
-        self.task = self.progress.add_task("train", total=total_steps, completed=start_step, stats="")
+        self.task = self.progress.add_task("train", total=total_steps, completed=start_step, stats="", eta="")
 
     def __enter__(self) -> "RunLogger":
+        self._excepthook = threading.excepthook
+        threading.excepthook = self._writer_thread_failed
         self.progress.start()
         return self
 
     def __exit__(self, *exc: Any) -> None:
         self.progress.stop()
-        if self.writer is not None:
-            self.writer.flush()
-            self.writer.close()
+        self._guard(lambda w: (w.flush(), w.close()))
+        threading.excepthook = self._excepthook
+
+    def _writer_thread_failed(self, args: Any) -> None:
+        """tensorboard's writer thread dies on a full disk and prints a traceback; its error is
+        raised again at the next write, where :meth:`_guard` reports it in one line."""
+        if type(args.thread).__name__ == WRITER_THREAD and isinstance(args.exc_value, OSError):
+            return
+        self._excepthook(args)
+
+    def _guard(self, write: Any) -> None:
+        """``write(writer)``; an OSError (the disk is full, the folder went away) stops the
+        tensorboard events with one line instead of stopping the run."""
+        if self.writer is None:
+            return
+        try:
+            write(self.writer)
+        except OSError as err:
+            writer, self.writer = self.writer, None
+            _events_stopped(err)
+            try:
+                writer.close()
+            except OSError:
+                pass
 
     def scalar(self, tag: str, value: float, step: int) -> None:
-        if self.writer is not None:
-            self.writer.add_scalar(tag, value, step)
+        self._guard(lambda w: w.add_scalar(tag, value, step))
 
     def log_step(self, step: int, stats: dict[str, Any], num_gaussians: int, lrs: dict[str, float]) -> None:
         for op, n in stats["counts"].items():
@@ -77,11 +112,13 @@ class RunLogger:
             self.scalar(f"strategy/{op}", n, step)
         text = (f"{1.0 / max(seconds_per_step, 1e-9):5.1f} it/s  loss {stats['loss']:.4f}  "
                 f"psnr {stats['psnr']:5.2f}  #G {num_gaussians}")
-        self.progress.update(self.task, stats=text)
+        eta = f"ETA {clock((self.total_steps - step - 1) * seconds_per_step)}"
+        self.progress.update(self.task, stats=text, eta=eta)
         # Without a terminal (CI, log files) the bar is off: print a line every 10 log windows.
         every = self.log_every * 10
         if self.progress.disable and not self.quiet and ((step + 1) % every == 0 or step + 1 == self.total_steps):
-            self.console.print(f"step {step + 1}/{self.total_steps}  {text}")
+            elapsed = clock(time.perf_counter() - self.started)
+            self.console.print(f"step {step + 1}/{self.total_steps}  {text}  elapsed {elapsed}  {eta}", soft_wrap=True)
         self.counts = {}
         self.window_start = time.perf_counter()
         self.window_steps = 0
@@ -95,8 +132,19 @@ class RunLogger:
         for region, value in metrics.get("region_psnr", {}).items():
             if np.isfinite(value):
                 self.scalar(f"test/psnr_{region}", value, step)
-        if self.writer is not None:
-            for name, panel in panels:
-                self.writer.add_image(f"test/{name}", panel.clamp(0, 1).numpy(), step, dataformats="HWC")
+        for name, panel in panels:
+            self._guard(lambda w: w.add_image(f"test/{name}", panel.clamp(0, 1).numpy(), step, dataformats="HWC"))
         if not self.quiet:
             self.console.print(f"eval @ {step}: PSNR {metrics['psnr']:.2f} dB  SSIM {metrics['ssim']:.4f}")
+
+
+def _events_stopped(err: OSError) -> None:
+    print(f"warning: tensorboard events stopped, they cannot be written ({err.strerror or err}); "
+          f"training goes on", file=sys.stderr)
+
+
+def clock(seconds: float) -> str:
+    """``H:MM:SS`` (or ``M:SS`` under an hour) for progress lines."""
+    whole = max(0, int(round(seconds)))
+    hours, rest = divmod(whole, 3600)
+    return f"{hours}:{rest // 60:02d}:{rest % 60:02d}" if hours else f"{rest // 60}:{rest % 60:02d}"

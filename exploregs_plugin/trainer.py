@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import signal
 import sys
 import threading
@@ -16,15 +17,19 @@ import torch
 import tyro
 
 from exploregs_plugin.callbacks import TrainingCallback
+from exploregs_plugin.collapse import CollapseError, CollapseWatch
 from exploregs_plugin.configs import load_config, save_config
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.distributed import MachineConfig, init_world, params_checksum
 from exploregs_plugin.evaluation import (evaluate, evaluate_views, evaluation_panel, summarize_evaluation,
                                          write_metrics_json)
-from exploregs_plugin.io.checkpoint import checkpoint_path, load_checkpoint, resolve_run, save_checkpoint
+from exploregs_plugin.io.atomic import create_new_folder
+from exploregs_plugin.io.checkpoint import (CheckpointError, checkpoint_path, load_checkpoint, load_run_checkpoint,
+                                            save_checkpoint)
 from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig, resolve_batch_size
 from exploregs_plugin.run_logger import RunLogger
 from exploregs_plugin.schedule import ScheduleConfig
+from exploregs_plugin.threads import apply_threads
 from exploregs_plugin.viewer.callback import ViewerCallback
 from exploregs_plugin.viewer.config import ViewerConfig
 
@@ -63,7 +68,8 @@ class TrainerConfig:
     pipeline: Annotated[PipelineConfig, tyro.conf.arg(name="")] = field(default_factory=PipelineConfig)
     """Data, model, optimizer, strategy and loss (set as --datamanager.*, --model.*, --strategy.*, ...)."""
     output_dir: Path = Path("outputs")
-    """Runs go to OUTPUT_DIR/<scene>/<method>/<timestamp>/."""
+    """Runs go to OUTPUT_DIR/<scene>/<method>/<timestamp>/ (<timestamp>-2, ... for runs started in
+    the same second)."""
     run_dir: Path | None = None
     """Use exactly this run folder instead of the timestamped one."""
     resume: Path | None = None
@@ -94,7 +100,8 @@ class TrainerConfig:
     """Flush denormal floats to zero (tiny alphas and gradients otherwise slow the CPU)."""
     num_threads: int | None = None
     """Every CPU thread of the run: torch's intra-op threads and the compositor's workers (unset:
-    torch's default, the machine's cores). Parallel runs on one machine should split the cores."""
+    OMP_NUM_THREADS, else one per CPU this process may use; see docs/training.md, "Threads").
+    Parallel runs on one machine should split the cores."""
     quiet: bool = False
     """No progress bar or console lines."""
     viewer: bool = False
@@ -127,7 +134,8 @@ class Trainer:
     that acts between steps (viewer, diagnostics, probes) is a :class:`TrainingCallback`."""
 
     def __init__(self, config: TrainerConfig, run_dir: Path | None = None, checkpoint: Path | None = None,
-                 callbacks: Sequence[TrainingCallback] = ()) -> None:
+                 callbacks: Sequence[TrainingCallback] = (), payload: dict[str, Any] | None = None) -> None:
+        """``payload``: the checkpoint's content when the caller has read it already."""
         self.config = config
         self.callbacks: list[TrainingCallback] = list(callbacks)
         if config.viewer:
@@ -136,7 +144,7 @@ class Trainer:
         if config.flush_denormal:
             torch.set_flush_denormal(True)
         if config.num_threads:
-            torch.set_num_threads(config.num_threads)
+            apply_threads(config.num_threads)
         self.world, self.device = init_world(resolve_device(config.device), config.machine.timeout_minutes)
         if not self.world.is_main:  # rank 0 alone logs, serves the viewer and runs the diagnostics
             self.callbacks = []
@@ -147,18 +155,24 @@ class Trainer:
         config = self.config = replace(config, pipeline=replace(config.pipeline, batch_size=batch))
         self.schedule = config.schedule.resolve(config.max_steps, batch)
         self.pipeline: Pipeline = config.pipeline.setup(self.schedule, config.seed, self.device, self.world)
-        # one run folder for all ranks: rank 0's (its default name holds a timestamp)
-        self.run_dir = Path(self.world.broadcast_object(str(run_dir or config.run_dir or self._default_run_dir())))
+        # one run folder for all ranks: rank 0's (it claims a new timestamped folder unless one is named)
+        named = run_dir or config.run_dir
+        if named is None and self.world.is_main:
+            named = self._new_run_dir()
+        self.run_dir = Path(self.world.broadcast_object(str(named or "")))
         self.start_step = 0
         self.train_seconds = 0.0
         self.history: list[dict[str, Any]] = []
         self.op_totals: dict[str, int] = {}  # run-long sum of every strategy operation's count
         self.last_checkpoint: Path | None = None
         self._checkpointed_at = 0.0  # train_seconds at the last checkpoint
+        self._wall_before = 0.0  # wall-clock seconds of the run before this call to train() (a resume)
+        self._wall_started: float | None = None
+        self._collapse = CollapseWatch()
         self.logger: RunLogger | None = None
         self._stop: _StopOnSignals | None = None
         if checkpoint is not None:
-            self._restore(checkpoint)
+            self._restore(checkpoint, payload)
         elif self.world.is_main:
             with _run_folder_errors(self.run_dir):
                 self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -182,8 +196,10 @@ class Trainer:
                  num_devices: int | None = None) -> "Trainer":
         """Resume a run folder (or a checkpoint inside one) from its saved config; ``device``
         overrides the run's (a GPU run resumes on a CPU-only machine with device="cpu"), and
-        ``num_devices`` its ranks per machine (the global batch stays the run's)."""
-        run_dir, ckpt = resolve_run(Path(path))
+        ``num_devices`` its ranks per machine (the global batch stays the run's). A run folder
+        resumes from its newest checkpoint that reads whole (a note names one that does not)."""
+        note = _note if os.environ.get("RANK", "0") == "0" else None  # the ranks all read the same files
+        run_dir, ckpt, payload = load_run_checkpoint(Path(path), note)
         config = load_config(run_dir / CONFIG_NAME)
         if device is not None:
             config = replace(config, device=device)
@@ -193,17 +209,36 @@ class Trainer:
             config = replace(config, max_steps=max_steps)
         if quiet is not None:
             config = replace(config, quiet=quiet)
-        return cls(config, run_dir=run_dir, checkpoint=ckpt, callbacks=callbacks)
+        return cls(config, run_dir=run_dir, checkpoint=ckpt, callbacks=callbacks, payload=payload)
 
     def _default_run_dir(self) -> Path:
         stamp = datetime.now().strftime("%Y-%m-%d_%H%M%S")
         return self.config.output_dir / self.pipeline.datamanager.scene_name / self.config.method_name / stamp
 
+    def _new_run_dir(self) -> Path:
+        """Create the timestamped run folder; a run that started in the same second (and so made
+        that name first) leaves this one ``<timestamp>-2``, ... (created atomically: two runs never
+        share a folder and overwrite each other's checkpoints)."""
+        default = self._default_run_dir()
+        with _run_folder_errors(default):
+            return create_new_folder(default)
+
     # ----------------------------------------------------------------------------- loop
     def train(self) -> dict[str, Any]:
         """Run from ``start_step`` to ``max_steps``; returns the final metrics."""
-        with _run_folder_errors(self.run_dir):
-            return self._train()
+        self._wall_started = time.perf_counter()
+        try:
+            with _run_folder_errors(self.run_dir):
+                return self._train()
+        finally:
+            self._wall_before, self._wall_started = self.wall_seconds, None
+
+    @property
+    def wall_seconds(self) -> float:
+        """Wall-clock seconds of the run so far, evaluations, checkpoints and callbacks included
+        (``train_seconds`` counts the training steps alone); a resumed run adds its earlier ones."""
+        running = 0.0 if self._wall_started is None else time.perf_counter() - self._wall_started
+        return self._wall_before + running
 
     def _train(self) -> dict[str, Any]:
         eval_steps = self._eval_steps()
@@ -229,6 +264,7 @@ class Trainer:
                     self.train_seconds += elapsed
                     for op, n in stats["counts"].items():
                         self.op_totals[op] = self.op_totals.get(op, 0) + int(n)
+                    self._check_collapse(step, stats)
                     logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
                     for callback in self.callbacks:
                         callback.after_step(self, step + 1, stats)
@@ -251,8 +287,22 @@ class Trainer:
         try:
             return self.pipeline.train_step(step)
         except NonFiniteError as err:
-            where = self.last_checkpoint or "none was written yet"
-            raise NonFiniteError(f"{err}. Training stopped; the last good checkpoint is {where}") from err
+            raise NonFiniteError(f"{err} (a learning rate too high, or non-finite values in the data?). "
+                                 f"Training stopped; {self._last_good()}") from err
+
+    def _check_collapse(self, step: int, stats: dict[str, Any]) -> None:
+        """Stop a run whose training PSNR collapses (see :class:`CollapseWatch`) before it writes a
+        checkpoint of the collapsed state."""
+        reason = self._collapse.update(step, float(stats["psnr"]), float(stats["loss"]),
+                                       restart=bool(stats["counts"].get("opacity_reset", 0)))
+        if reason is not None:
+            raise CollapseError(f"step {step}: {reason}. Training stopped; {self._last_good()}")
+
+    def _last_good(self) -> str:
+        """Where the run can be taken up again, for error messages."""
+        if self.last_checkpoint is None:
+            return "no checkpoint was written yet"
+        return f"the last good checkpoint is {self.last_checkpoint}"
 
     def _minutes_due(self) -> bool:
         """Whether checkpoint_minutes of training have passed since the last checkpoint."""
@@ -306,6 +356,7 @@ class Trainer:
             "steps": self.schedule.max_steps,
             "seed": self.config.seed,
             "train_seconds": self.train_seconds,
+            "wall_seconds": self.wall_seconds,
             "seconds_per_step": self.train_seconds / max(self.schedule.max_steps, 1),
             "history": self.history,
             "strategy_counts": dict(sorted(self.op_totals.items())),
@@ -330,22 +381,27 @@ class Trainer:
             "version": 1,
             "step": step,
             "train_seconds": self.train_seconds,
+            "wall_seconds": self.wall_seconds,
             "history": self.history,
             "op_totals": self.op_totals,
             **self.pipeline.state_dict(),
         }
-        self.last_checkpoint = save_checkpoint(self.run_dir, step, payload, self.config.keep_checkpoints)
+        try:
+            self.last_checkpoint = save_checkpoint(self.run_dir, step, payload, self.config.keep_checkpoints)
+        except CheckpointError as err:  # a full disk: the run stops, the older checkpoint is whole
+            raise CheckpointError(f"{err}; training stopped, {self._last_good()}") from err
         self._checkpointed_at = self.train_seconds
         return self.last_checkpoint
 
-    def _restore(self, path: Path) -> None:
-        payload = load_checkpoint(path)
+    def _restore(self, path: Path, payload: dict[str, Any] | None = None) -> None:
+        payload = load_checkpoint(path) if payload is None else payload
         self.pipeline.load_state_dict(payload)
         if not self.pipeline.generator_restored:
             print(f"note: {path} was saved on another device type; its random stream continues reseeded "
                   f"(deterministic, not bit-identical to an uninterrupted run)", file=sys.stderr)
         self.start_step = int(payload["step"])
         self.train_seconds = float(payload.get("train_seconds", 0.0))
+        self._wall_before = float(payload.get("wall_seconds", self.train_seconds))
         self.history = list(payload.get("history", []))
         self.op_totals = dict(payload.get("op_totals", {}))
         self.last_checkpoint = Path(path)
@@ -354,6 +410,10 @@ class Trainer:
         # a resumed checkpoint from another device or world: all ranks start from the same bits
         self.world.check_same("parameters after loading the checkpoint",
                               params_checksum([p for _, p in self.pipeline.trained_tensors()]))
+
+
+def _note(text: str) -> None:
+    print(text, file=sys.stderr)
 
 
 class RunFolderError(ValueError):

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -333,3 +334,192 @@ def test_a_bad_value_is_one_line_with_the_valid_range(capsys):
         run_cli("eg-train", main, ["--help"])
     assert exit_.value.code == 0
     assert "eg-train --resume RUN_DIR" in capsys.readouterr().out
+
+
+# ----------------------------------------------------------------------------- hardening (issue 31)
+def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path, tiny_scene_dir, monkeypatch):
+    from datetime import datetime
+
+    import exploregs_plugin.trainer as trainer_module
+
+    class Frozen(datetime):
+        @classmethod
+        def now(cls, tz=None):
+            return datetime(2026, 11, 25, 1, 2, 3)
+
+    monkeypatch.setattr(trainer_module, "datetime", Frozen)
+    config = tiny_config(None, output_dir=tmp_path / "outputs", max_steps=2)
+    first, second = Trainer(config), Trainer(config)
+    base = tmp_path / "outputs" / "tiny" / "exploregs-default" / "2026-11-25_010203"
+    assert (first.run_dir, second.run_dir) == (base, base.with_name(base.name + "-2"))
+    assert (first.run_dir / "config.yml").is_file() and (second.run_dir / "config.yml").is_file()
+
+
+def test_a_full_disk_under_the_tensorboard_writer_leaves_training_going(tmp_path, tiny_scene_dir, monkeypatch, capfd):
+    import errno
+
+    from tensorboard.summary.writer.record_writer import RecordWriter
+
+    real_write, calls = RecordWriter.write, {"n": 0}
+
+    def fill_up(self, data):  # runs in tensorboard's writer thread, as a real full disk would
+        calls["n"] += 1
+        if calls["n"] > 3:
+            raise OSError(errno.ENOSPC, "No space left on device")
+        return real_write(self, data)
+
+    monkeypatch.setattr(RecordWriter, "write", fill_up)
+    metrics = tiny_config(tmp_path / "run", max_steps=20, tensorboard=True, log_every=1).setup().train()
+    err = capfd.readouterr().err
+    assert metrics["steps"] == 20 and (tmp_path / "run" / "metrics.json").is_file()
+    assert load_checkpoint(latest_checkpoint(tmp_path / "run"))["step"] == 20
+    assert "Traceback" not in err and "Exception in thread" not in err
+    assert err.count("warning: tensorboard events stopped, they cannot be written (No space left on device); "
+                     "training goes on") == 1
+
+
+def test_a_full_disk_at_a_checkpoint_is_one_line_and_keeps_the_previous_one(tmp_path, tiny_scene_dir, monkeypatch,
+                                                                             capsys):
+    import errno
+
+    from exploregs_plugin.io import checkpoint
+    from exploregs_plugin.scripts import run_cli
+    from exploregs_plugin.scripts.train import main
+
+    real_save = torch.save
+
+    def save(payload, f, *args, **kwargs):
+        if payload["step"] == 20:  # the final checkpoint: the disk is full by then
+            try:
+                raise OSError(errno.ENOSPC, "No space left on device")
+            except OSError:
+                raise RuntimeError("[enforce fail at inline_container.cc:672] . unexpected pos 704 vs 598")
+        return real_save(payload, f, *args, **kwargs)
+
+    monkeypatch.setattr(checkpoint.torch, "save", save)
+    run_dir = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_:
+        run_cli("eg-train", main, ["exploregs-default", "--data", "builtin:tiny", "--max-steps", "20", "--run-dir",
+                                   str(run_dir), "--quiet", "--no-tensorboard", "--checkpoint-every", "10",
+                                   "--eval-count", "1", "--no-save-eval-images"])
+    assert exit_.value.code != 0
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last == (f"eg-train: error: could not write checkpoint {run_dir / 'checkpoints' / 'step-0000020.pt'}: "
+                    f"No space left on device; training stopped, the last good checkpoint is "
+                    f"{run_dir / 'checkpoints' / 'step-0000010.pt'}")
+    assert [p.name for p in (run_dir / "checkpoints").iterdir()] == ["step-0000010.pt"]
+    assert load_checkpoint(run_dir / "checkpoints" / "step-0000010.pt")["step"] == 10
+
+
+def test_bad_settings_are_one_line_at_start(tmp_path, capsys):
+    from exploregs_plugin.scripts import run_cli
+    from exploregs_plugin.scripts.train import main
+
+    for flags, expected in (
+            (["--optim.means-lr", "-1"], "--optim: OptimizerConfig.means_lr must be a finite learning rate >= 0 "
+                                         "(0 freezes the parameter), got -1.0"),
+            (["--optim.opacities-lr", "nan"], "--optim: OptimizerConfig.opacities_lr must be a finite learning "
+                                              "rate >= 0 (0 freezes the parameter), got nan"),
+            (["--optim.sh0-lr", "inf"], "--optim: OptimizerConfig.sh0_lr must be a finite learning rate >= 0 "
+                                        "(0 freezes the parameter), got inf"),
+            (["--seed", "abc"], "--seed: expected an integer, got 'abc'"),
+            (["--max-steps", "1.5"], "--max-steps: expected an integer, got '1.5'"),
+            (["--optim.quats-lr", "fast"], "--optim.quats-lr: expected a number, got 'fast'")):
+        with pytest.raises(SystemExit) as exit_:
+            run_cli("eg-train", main, ["exploregs-default", "--data", "builtin:tiny", "--run-dir",
+                                       str(tmp_path / "run"), *flags])
+        assert exit_.value.code == 2
+        assert capsys.readouterr().err.strip().splitlines() == [f"eg-train: error: {expected}"]
+    assert not (tmp_path / "run").exists()
+
+
+def test_a_collapsing_run_stops_naming_the_learning_rate(tmp_path, tiny_scene_dir, capsys):
+    from exploregs_plugin.scripts import run_cli
+    from exploregs_plugin.scripts.train import main
+
+    # every learning rate x1000 (x100 does not collapse this scene: it ends at 11 dB against
+    # 17.7 dB, without a fall): the PSNR falls from 9 dB to below 0 within a few steps
+    rates = ["--optim.means-lr", "0.16", "--optim.means-lr-final", "0.0016", "--optim.scales-lr", "5",
+             "--optim.quats-lr", "1", "--optim.opacities-lr", "50", "--optim.sh0-lr", "2.5", "--optim.shN-lr", "0.125"]
+    run_dir = tmp_path / "run"
+    with pytest.raises(SystemExit) as exit_:
+        run_cli("eg-train", main, ["exploregs-default", "--data", "builtin:tiny", "--max-steps", "30", "--run-dir",
+                                   str(run_dir), "--quiet", "--no-tensorboard", "--checkpoint-every", "2", *rates])
+    assert exit_.value.code == 1
+    last = capsys.readouterr().err.strip().splitlines()[-1]
+    assert last.startswith("eg-train: error: step ") and "the training PSNR fell to" in last
+    assert "dB below its best" in last and "a learning rate too high? (--optim.*-lr)" in last
+    kept = latest_checkpoint(run_dir)
+    assert f"the last good checkpoint is {kept}" in last
+    assert all(torch.isfinite(v).all() for v in load_checkpoint(kept)["params"].values())
+    assert not (run_dir / "metrics.json").exists()
+
+
+def test_a_normal_run_never_trips_the_collapse_watch():
+    from exploregs_plugin.collapse import CollapseWatch
+
+    watch = CollapseWatch()
+    # a healthy curve with view-to-view noise, then an opacity reset (step 60) whose renders are
+    # 15 dB worse for a while: no collapse
+    psnrs = [12 + min(step, 50) * 0.3 + (3 if step % 2 else -3) for step in range(60)] + [10, 11, 13, 16, 20, 24]
+    for step, psnr in enumerate(psnrs):
+        assert watch.update(step, psnr, 0.3, restart=step == 59) is None, step
+    # the same fall without a reset is one
+    watch = CollapseWatch()
+    reasons = [watch.update(step, psnr, 0.3) for step, psnr in enumerate(psnrs)]
+    assert any(r is not None and "learning rate too high" in r for r in reasons)
+    # a loss that grows tenfold is one as well
+    watch = CollapseWatch()
+    reasons = [watch.update(step, 20.0, loss) for step, loss in enumerate([0.2, 0.2, 0.5, 1.0, 3.0, 5.0, 9.0])]
+    assert reasons[-1] is not None and "the training loss grew to" in reasons[-1]
+
+
+def test_progress_shows_elapsed_and_eta_and_the_total_includes_evaluation(tmp_path, tiny_scene_dir, capsys):
+    from exploregs_plugin.scripts import run_cli
+    from exploregs_plugin.scripts.train import main
+
+    run_cli("eg-train", main, ["exploregs-default", "--data", "builtin:tiny", "--max-steps", "20", "--run-dir",
+                               str(tmp_path / "run"), "--no-tensorboard", "--log-every", "1", "--eval-count", "2",
+                               "--no-save-eval-images"])
+    lines = capsys.readouterr().err.strip().splitlines()
+    steps = [ln for ln in lines if ln.startswith("step ")]
+    assert [ln.split()[1] for ln in steps] == ["10/20", "20/20"]
+    assert all(re.search(r"  elapsed \d+:\d\d  ETA \d+:\d\d$", ln) for ln in steps), steps
+    assert steps[-1].endswith("ETA 0:00")
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["wall_seconds"] > metrics["train_seconds"] > 0
+    assert re.search(rf"{metrics['train_seconds']:.1f} s training, {metrics['wall_seconds']:.1f} s in all "
+                     r"\(evaluation and checkpoints included\)", lines[-1])
+
+
+def test_resume_eval_and_export_skip_a_truncated_newest_checkpoint(tmp_path, tiny_scene_dir, capsys):
+    from exploregs_plugin.scripts import export, eval as eval_script, run_cli
+    from exploregs_plugin.scripts.train import main
+
+    run_dir = tmp_path / "run"
+    tiny_config(run_dir, max_steps=20, checkpoint_every=10).setup().train()
+    newest = run_dir / "checkpoints" / "step-0000020.pt"
+    newest.write_bytes(newest.read_bytes()[:1000])
+    note = (f"note: checkpoint step-0000020.pt of {run_dir} cannot be read (truncated or corrupt); "
+            f"using the previous good one, step-0000010.pt")
+    capsys.readouterr()
+    evaluated = eval_script.main(eval_script.EvalArgs(path=run_dir, out=tmp_path / "eval", save_images=False))
+    assert evaluated["step"] == 10 and note in capsys.readouterr().err
+    exported = export.main(export.ExportArgs(path=run_dir, out=tmp_path / "scene.ply"))
+    assert exported.path.is_file() and note in capsys.readouterr().err
+    metrics = run_cli("eg-train", main, ["--resume", str(run_dir)])
+    err = capsys.readouterr().err
+    assert note in err and f"resuming {run_dir} from step 10" in err and metrics["steps"] == 20
+
+
+def test_resume_of_a_folder_that_is_not_a_run_says_so(tmp_path, capsys):
+    from exploregs_plugin.scripts import run_cli
+    from exploregs_plugin.scripts.train import main
+
+    (tmp_path / "photos").mkdir()
+    with pytest.raises(SystemExit) as exit_:
+        run_cli("eg-train", main, ["--resume", str(tmp_path / "photos")])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        f"eg-train: error: {tmp_path / 'photos'} is not a run folder (it has no config.yml): pass a folder that "
+        f"eg-train wrote, outputs/<scene>/<method>/<timestamp>, or a checkpoint file in one"]

@@ -7,12 +7,14 @@ from __future__ import annotations
 
 import os
 import re
+import sys
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import torch
 
 CHECKPOINT_DIR = "checkpoints"
+RUN_CONFIG = "config.yml"  # what makes a folder a run folder (the trainer writes it first)
 _NAME = re.compile(r"^step-(\d{7,})\.pt$")
 
 
@@ -50,7 +52,8 @@ def atomic_torch_save(payload: Any, path: Path) -> None:
     """torch.save to a temporary file in the same folder, fsync, then rename over ``path``.
 
     On any failure (disk full, interruption) the temporary file is removed and ``path`` keeps
-    its previous content.
+    its previous content. A failed write (an OSError, or the RuntimeError that torch.save makes of
+    the OSError of a full disk) raises :class:`CheckpointError` naming the reason.
     """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -64,9 +67,20 @@ def atomic_torch_save(payload: Any, path: Path) -> None:
         _fsync_dir(path.parent)
     except BaseException as err:
         tmp.unlink(missing_ok=True)
-        if isinstance(err, OSError):
-            raise CheckpointError(f"could not write checkpoint {path}: {err}") from err
+        if isinstance(err, (OSError, RuntimeError)):
+            raise CheckpointError(f"could not write checkpoint {path}: {_write_failure(err)}") from err
         raise
+
+
+def _write_failure(err: BaseException) -> str:
+    """The reason of a failed write: the OSError behind it (torch.save raises a RuntimeError such as
+    "unexpected pos 704 vs 598" whose context is the file's OSError), else the error's first line."""
+    cause: BaseException | None = err
+    while cause is not None:
+        if isinstance(cause, OSError):
+            return cause.strerror or str(cause)
+        cause = cause.__cause__ or cause.__context__
+    return str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
 
 
 def save_checkpoint(run_dir: Path, step: int, payload: dict[str, Any], keep_last: int) -> Path:
@@ -108,5 +122,53 @@ def resolve_run(path: Path) -> tuple[Path, Path]:
         run_dir = path.parent.parent if path.parent.name == CHECKPOINT_DIR else path.parent
         return run_dir, path
     if path.is_dir():
+        check_run_folder(path)
         return path, latest_checkpoint(path)
     raise CheckpointError(f"{path} is neither a run folder nor a checkpoint file")
+
+
+def check_run_folder(path: Path) -> None:
+    """Raise :class:`CheckpointError` when the folder ``path`` is not a run folder (no config.yml),
+    naming the newest run inside it when there is one (``outputs/SCENE`` instead of a run)."""
+    path = Path(path)
+    if (path / RUN_CONFIG).is_file():
+        return
+    inside = [c.parent for depth in ("*", "*/*", "*/*/*") for c in path.glob(f"{depth}/{RUN_CONFIG}")]
+    hint = ""
+    if inside:
+        newest = max(inside, key=lambda run: (run / RUN_CONFIG).stat().st_mtime)
+        hint = f"; it holds {len(inside)} run(s), the newest {newest}"
+    raise CheckpointError(f"{path} is not a run folder (it has no {RUN_CONFIG}): pass a folder that eg-train "
+                          f"wrote, outputs/<scene>/<method>/<timestamp>, or a checkpoint file in one{hint}")
+
+
+def _print_note(text: str) -> None:
+    print(text, file=sys.stderr)
+
+
+def load_run_checkpoint(path: Path, note: Callable[[str], None] | None = _print_note
+                        ) -> tuple[Path, Path, dict[str, Any]]:
+    """A run folder or one checkpoint file -> (run_dir, checkpoint_file, its payload).
+
+    For a run folder, the newest checkpoint that reads whole: one that does not (truncated by a
+    crash of the machine or a full disk outside the atomic write, or damaged in a copy) is
+    skipped for the one before it, and ``note`` is told which was skipped and which was taken.
+    A checkpoint file named explicitly is read as it is.
+    """
+    path = Path(path)
+    run_dir, newest = resolve_run(path)
+    if not path.is_dir():
+        return run_dir, newest, load_checkpoint(newest)
+    bad: list[str] = []
+    for candidate in reversed(list_checkpoints(run_dir)):
+        try:
+            payload = load_checkpoint(candidate)
+        except CheckpointError:
+            bad.append(candidate.name)
+            continue
+        if bad and note is not None:
+            note(f"note: checkpoint {', '.join(bad)} of {run_dir} cannot be read (truncated or corrupt); "
+                 f"using the previous good one, {candidate.name}")
+        return run_dir, candidate, payload
+    raise CheckpointError(f"no checkpoint of {run_dir} can be read ({', '.join(bad)}: truncated or corrupt); "
+                          f"start the run again (its settings are in {run_dir / RUN_CONFIG})")

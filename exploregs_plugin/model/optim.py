@@ -44,6 +44,15 @@ class OptimizerConfig:
     shN_lr: float = 2.5e-3 / 20.0
     """Higher-order SH learn 20x slower than the DC term, as in 3DGS."""
 
+    def __post_init__(self) -> None:
+        # Checked when the config is built, so a bad rate is one line before any work (a NaN rate
+        # otherwise surfaces as a non-finite parameter at step 0, a negative one trains uphill).
+        for name in ("means_lr", "means_lr_final", "scales_lr", "quats_lr", "opacities_lr", "sh0_lr", "shN_lr"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{type(self).__name__}.{name} must be a finite learning rate >= 0 "
+                                 f"(0 freezes the parameter), got {value}")
+
     def base_lrs(self, scene_extent: float) -> dict[str, float]:
         return {
             "means": self.means_lr * scene_extent,

@@ -7,6 +7,7 @@ import sys
 from typing import Any, Callable, TypeVar
 
 from exploregs_plugin.io.checkpoint import CheckpointError
+from exploregs_plugin.threads import apply_threads
 
 T = TypeVar("T")
 
@@ -17,8 +18,10 @@ USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, C
 def run_cli(command: str, main: Callable[[T], Any], args: T) -> Any:
     """Run ``main(args)``; a user error prints ``COMMAND: error: ...`` and exits with code 2.
 
-    Set EXPLOREGS_DEBUG=1 to get the traceback instead.
+    Set EXPLOREGS_DEBUG=1 to get the traceback instead. Every command computes with one thread per
+    CPU this process may use (or OMP_NUM_THREADS); eg-train's --num-threads overrides it.
     """
+    apply_threads()
     try:
         return main(args)
     except USER_ERRORS as err:

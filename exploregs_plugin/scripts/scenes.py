@@ -26,6 +26,7 @@ from exploregs_plugin.data.colmap import read_colmap
 from exploregs_plugin.data.neu3d import is_neu3d, read_neu3d
 from exploregs_plugin.data.errors import DataError
 from exploregs_plugin.data.parsed import REGION_LABELS, ParseOptions
+from exploregs_plugin.threads import apply_threads
 
 
 @dataclass
@@ -158,6 +159,7 @@ def main(argv: list[str]) -> int:
 
 
 def entrypoint() -> None:
+    apply_threads()  # one thread per CPU this process may use, as in every command
     raise SystemExit(main(sys.argv[1:]))
 
 

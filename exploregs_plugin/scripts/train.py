@@ -18,13 +18,15 @@ from pathlib import Path
 import tyro
 
 from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
+from exploregs_plugin.collapse import CollapseError
 from exploregs_plugin.configs import load_config, tyro_error_text
-from exploregs_plugin.distributed import DistributedError, MachineConfig, launched_by_torchrun, leave_world
+from exploregs_plugin.distributed import (DistributedError, MachineConfig, PeerLostError, launched_by_eg_train,
+                                          launched_by_torchrun, leave_world)
 from exploregs_plugin.io.checkpoint import resolve_run
 from exploregs_plugin.scripts import run_cli
 from exploregs_plugin.method_configs import MethodRegistryError, all_methods
 from exploregs_plugin.pipeline import NonFiniteError, resolve_batch_size
-from exploregs_plugin.scripts.launch import LaunchError, launch
+from exploregs_plugin.scripts.launch import LaunchError, LaunchStopped, launch, note_run_dir
 from exploregs_plugin.trainer import CONFIG_NAME, Stopped, Trainer, TrainerConfig
 
 
@@ -114,14 +116,23 @@ def main(argv: list[str]) -> dict:
             trainer = config.setup(callbacks=[BranchGradientLogger()])
         if trainer.world.is_main:
             print(f"run folder: {trainer.run_dir}", file=sys.stderr)
+            note_run_dir(trainer.run_dir)
         metrics = trainer.train()
+    except LaunchStopped as err:  # rank 0 printed where it stopped
+        raise SystemExit(err.exit_code) from None
     except Stopped as err:
+        if trainer is not None and not trainer.world.is_main:  # rank 0 speaks for the run
+            raise SystemExit(err.exit_code) from None
         resume = f"; resume with: eg-train --resume {trainer.run_dir}" if err.checkpoint is not None else ""
         raise _fail(f"{err}{resume}", err.exit_code) from None
     except KeyboardInterrupt:
         where = f"; resume with: eg-train --resume {trainer.run_dir}" if trainer is not None else ""
         raise _fail(f"interrupted{where}", 130) from None
-    except (NonFiniteError, DistributedError, LaunchError) as err:
+    except PeerLostError as err:
+        if launched_by_eg_train():  # the launcher names the rank that was lost
+            raise SystemExit(1) from None
+        raise _fail(str(err), 1) from err
+    except (NonFiniteError, CollapseError, DistributedError, LaunchError) as err:
         raise _fail(str(err), 1) from err
     finally:
         if trainer is not None and trainer.world.is_distributed:
@@ -131,7 +142,8 @@ def main(argv: list[str]) -> dict:
             leave_world(trainer.world)
     if trainer.world.is_main:
         print(f"done: test PSNR {metrics['psnr']:.2f} dB, SSIM {metrics['ssim']:.4f}, "
-              f"{metrics['num_gaussians']} Gaussians, {metrics['train_seconds']:.1f} s; "
+              f"{metrics['num_gaussians']} Gaussians, {metrics['train_seconds']:.1f} s training, "
+              f"{metrics['wall_seconds']:.1f} s in all (evaluation and checkpoints included); "
               f"metrics in {trainer.run_dir / 'metrics.json'}", file=sys.stderr)
     return metrics
 

@@ -17,6 +17,7 @@ import tyro
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.io.checkpoint import CheckpointError
 from exploregs_plugin.runs.scene import PlyFrame, is_ply, load_scene
+from exploregs_plugin.threads import apply_threads
 from exploregs_plugin.viewer import Viewer, ViewerConfig, ViewerScene
 
 
@@ -70,6 +71,7 @@ def main(args: ViewArgs) -> Viewer:
 
 
 def entrypoint() -> None:
+    apply_threads()  # one thread per CPU this process may use, as in every command
     args = tyro.cli(ViewArgs, description="Serve a trained ExploreGS scene (run, checkpoint or PLY) in the browser.")
     try:
         viewer = main(args)
