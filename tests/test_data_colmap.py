@@ -319,3 +319,47 @@ def test_a_training_run_leaves_the_dataset_folder_unchanged(scene_copy: Path, tm
     config.setup().train()
     assert _tree(scene_copy) == before and scene_copy.stat().st_mtime_ns == folder_stamp
     assert list((tmp_path / "run").iterdir())  # the run did write, elsewhere
+
+
+def test_grayscale_16bit_and_rgba_images_are_converted_and_said_once(scene_copy: Path, tmp_path: Path, capsys) -> None:
+    import torch
+
+    from exploregs_plugin.data import DataManagerConfig
+
+    images = scene_copy / "images"
+    rgb = {name: np.asarray(Image.open(images / name).convert("RGB")) for name in ("0001.png", "0002.png", "0003.png")}
+    gray = rgb["0001.png"][..., 1]
+    Image.fromarray(gray, mode="L").save(images / "0001.png")
+    gray16 = (np.arange(64 * 48, dtype=np.uint16).reshape(48, 64) * 21)
+    Image.fromarray(gray16).save(images / "0002.png")  # opens as I;16
+    alpha = np.full((48, 64, 1), 128, np.uint8)
+    Image.fromarray(np.concatenate([rgb["0003.png"], alpha], axis=2), mode="RGBA").save(images / "0003.png")
+    capsys.readouterr()
+    dm = DataManagerConfig(data=str(scene_copy), test_every=0, use_dataset_split=False, background="white",
+                           cache_dir=str(tmp_path / "cache")).setup()
+    err = capsys.readouterr().err
+    notes = [line for line in err.splitlines() if line.startswith("note:")]
+    assert notes == [f"note: {scene_copy}: 1 of 10 images are grayscale (e.g. 0001.png): the gray value is used for "
+                     f"R, G and B; 1 of 10 images are 16-bit grayscale (e.g. 0002.png): scaled to 8 bits (value / 257) "
+                     f"and used for R, G and B; 1 of 10 images have an alpha channel (e.g. 0003.png): composited on the "
+                     f"background colour (--datamanager.background)"]
+    names = [c.name for c in dm.train_cameras]
+    image = {name: (dm.train_item(names.index(name))[1] * 255).round().to(torch.uint8).numpy()
+             for name in ("0001.png", "0002.png", "0003.png")}
+    assert (image["0001.png"] == gray[..., None]).all()
+    assert (image["0002.png"] == np.round(gray16 / 257).astype(np.uint8)[..., None]).all()
+    expected = np.round(rgb["0003.png"] * (128 / 255) + 255 * (1 - 128 / 255)).astype(np.uint8)
+    assert np.abs(image["0003.png"].astype(int) - expected).max() <= 1
+    # a plain RGB dataset says nothing
+    from exploregs_plugin.data import parse_dataset
+
+    capsys.readouterr()
+    parse_dataset("builtin:tiny", ParseOptions())
+    assert "note:" not in capsys.readouterr().err
+
+
+def test_float_image_is_refused_clearly(scene_copy: Path) -> None:
+    Image.fromarray(np.zeros((48, 64), np.float32), mode="F").save(scene_copy / "images" / "0004.tiff")
+    (scene_copy / "images" / "0004.tiff").rename(scene_copy / "images" / "0004.png")
+    with pytest.raises(DataError, match=r"0004\.png: image has 32-bit float pixels"):
+        read_colmap(scene_copy, ParseOptions())

@@ -10,6 +10,7 @@ from __future__ import annotations
 import copy
 import hashlib
 import os
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +19,7 @@ from PIL import Image
 
 from .errors import DataError
 from .images import (
-    cache_file_name, derived_cache_dir, image_size, read_image, resize_to_cache, resized_size, source_stamp,
+    cache_file_name, derived_cache_dir, image_info, image_size, read_image, resize_to_cache, resized_size, source_stamp,
 )
 from .parsed import ImageRecord, ParseOptions
 
@@ -101,7 +102,7 @@ def prepare_image(
     expect_size: the (width, height) the file must have, or None to accept any size with
     the camera's aspect ratio (intrinsics are rescaled to it).
     """
-    width, height = image_size(path)
+    width, height, kind = image_info(path)
     if expect_size is not None and (width, height) != expect_size:
         raise DataError(path, f"image is {width}x{height} but its camera says {expect_size[0]}x{expect_size[1]}")
     cam_aspect = camera.width / camera.height
@@ -114,10 +115,10 @@ def prepare_image(
     if (width, height) != (cam.width, cam.height):
         cam.rescale(width, height)
     if cam.model_name in PINHOLE_MODELS:
-        return ImageRecord(name, path, width, height, pinhole_K(cam), viewmat)
+        return ImageRecord(name, path, width, height, pinhole_K(cam), viewmat, pixel_kind=kind)
     if not options.undistort:
         raise DataError(path, f"camera model {cam.model_name} has lens distortion; {UNDISTORT_HINT}")
-    return _undistorted(root, name, path, cam, viewmat, options)
+    return replace(_undistorted(root, name, path, cam, viewmat, options), pixel_kind=kind)
 
 
 def _undistorted(

@@ -7,15 +7,17 @@ Neu3D (dynamic ones); a folder with ``sparse/`` -> COLMAP; a folder with ``poses
 
 from __future__ import annotations
 
+import sys
 from dataclasses import replace
 from pathlib import Path
 
 from .builtin import ensure_builtin
 from .colmap import read_colmap
 from .errors import DataError
+from .images import conversion_note
 from .neu3d import is_neu3d, read_neu3d
 from .parsed import ParsedScene, ParseOptions, normalize_scene
-from .transforms_json import read_transforms
+from .transforms_json import BLENDER_LAYOUT, read_transforms
 
 BUILTIN_PREFIX = "builtin:"
 
@@ -54,4 +56,10 @@ def parse_dataset(data: str, options: ParseOptions, normalize: bool = True) -> P
     scene = readers[kind](path, options)
     if data.startswith(BUILTIN_PREFIX):
         scene = replace(scene, name=data[len(BUILTIN_PREFIX):])
+    # grayscale and transparent images are converted on purpose, and one line says so (a Blender
+    # folder's RGBA images are its convention: the datamanager reports on its background)
+    note = conversion_note({im.name: im.pixel_kind for im in scene.images},
+                           skip=("alpha",) if scene.layout == BLENDER_LAYOUT else ())
+    if note is not None:
+        print(f"note: {scene.root}: {note}", file=sys.stderr, flush=True)
     return normalize_scene(scene, enabled=normalize)

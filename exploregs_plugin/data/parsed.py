@@ -97,6 +97,8 @@ class ImageRecord:
     mask_path: Path | None = None
     time: float | None = None
     """The frame's time in [0, 1] in a dynamic scene (None: a static scene)."""
+    pixel_kind: str = "rgb"
+    """How the file's pixels become RGB: rgb, gray, gray16 or alpha (see ``images.pixel_kind``)."""
 
     @property
     def camera_center(self) -> np.ndarray:
