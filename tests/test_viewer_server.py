@@ -171,3 +171,30 @@ def test_viewer_on_a_training_pipeline(tiny_scene_dir: Path) -> None:
         assert "finished" in viewer._stats_text()
     finally:
         viewer.close()
+
+
+def test_eg_view_stops_cleanly_on_sigterm(tmp_path: Path) -> None:
+    """SIGTERM (kill, a scheduler, a container stopping) ends eg-view with one line and exit
+    143, not pycolmap's crash dump."""
+    import signal
+    import subprocess
+    import sys
+
+    from exploregs_plugin.io.ply import export_ply
+
+    path = tmp_path / "one.ply"
+    export_ply(path, one_gaussian())
+    proc = subprocess.Popen([sys.executable, "-m", "exploregs_plugin.scripts.view", str(path), "--viewer-config.port",
+                             "0"], stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    try:
+        seen = []
+        while not seen or "serving" not in seen[-1]:
+            line = proc.stderr.readline()
+            assert line, f"eg-view ended before serving: {''.join(seen)}"
+            seen.append(line)
+        proc.send_signal(signal.SIGTERM)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        proc.kill()
+    assert proc.returncode == 128 + signal.SIGTERM, err
+    assert err.strip().splitlines() == ["eg-view: stopped (SIGTERM)"], err

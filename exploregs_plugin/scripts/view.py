@@ -8,6 +8,7 @@
 
 from __future__ import annotations
 
+import signal
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -70,19 +71,39 @@ def main(args: ViewArgs) -> Viewer:
     return args.viewer_config.setup(load_viewer_scene(args), training=False)
 
 
+class _Terminated(Exception):
+    """SIGTERM arrived (from kill, a scheduler or a container stopping)."""
+
+
+def _on_sigterm(signum: int, frame: object) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_DFL)  # a second SIGTERM ends the process at once
+    raise _Terminated
+
+
 def entrypoint() -> None:
+    # pycolmap installs a failure-signal handler that prints a crash dump on SIGTERM: stop with
+    # one line instead (exit 143 = 128 + SIGTERM); Ctrl-C stops the same way with exit 0
+    signal.signal(signal.SIGTERM, _on_sigterm)
     apply_threads()  # one thread per CPU this process may use, as in every command
     args = tyro.cli(ViewArgs, description="Serve a trained ExploreGS scene (run, checkpoint or PLY) in the browser.")
+    viewer = None
     try:
-        viewer = main(args)
-    except (ValueError, FileNotFoundError, CheckpointError) as err:
-        print(f"eg-view: error: {err}", file=sys.stderr)
-        raise SystemExit(2) from err
-    print("eg-view: serving; press Ctrl-C to stop", file=sys.stderr)
-    try:
+        try:
+            viewer = main(args)
+        except (ValueError, FileNotFoundError, CheckpointError) as err:
+            print(f"eg-view: error: {err}", file=sys.stderr)
+            raise SystemExit(2) from err
+        print("eg-view: serving; press Ctrl-C to stop", file=sys.stderr)
         viewer.serve_forever()
+    except _Terminated:
+        print("eg-view: stopped (SIGTERM)", file=sys.stderr)
+        raise SystemExit(128 + signal.SIGTERM) from None
+    except KeyboardInterrupt:  # Ctrl-C while loading; while serving, serve_forever returns
+        print("eg-view: interrupted", file=sys.stderr)
+        raise SystemExit(130) from None
     finally:
-        viewer.close()
+        if viewer is not None:
+            viewer.close()
 
 
 if __name__ == "__main__":
