@@ -1,5 +1,6 @@
 """Gaussian rasterizer (3DGS image model): the pure-torch reference, with separable position
-paths, on any device; gsplat's CUDA kernels as a second backend (``RasterSettings.backend``).
+paths, on any device; a compiled CPU compositor and gsplat's CUDA kernels as further backends
+(``RasterSettings.backend``: auto, torch, cpp, gsplat; see ``backends.py``).
 
 ``rasterize(means, quats, scales, opacities, sh_coeffs, viewmat, K, width, height, ...)``
 returns ``image [H, W, 3], alpha [H, W, 1], depth [H, W, 1], info`` where info holds
@@ -10,9 +11,11 @@ returns ``image [H, W, 3], alpha [H, W, 1], depth [H, W, 1], info`` where info h
 and dC/dalpha.
 """
 
-from .gsplat_backend import BackendError, backend_problem
+from .backends import backend_line, backend_problem, resolve_backend
+from .gsplat_backend import BackendError
 from .rasterize import rasterize
 from .settings import RasterSettings
 from .trace import trace_pixel
 
-__all__ = ["rasterize", "trace_pixel", "RasterSettings", "BackendError", "backend_problem"]
+__all__ = ["rasterize", "trace_pixel", "RasterSettings", "BackendError", "backend_problem", "backend_line",
+           "resolve_backend"]

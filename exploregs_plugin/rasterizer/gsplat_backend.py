@@ -36,13 +36,8 @@ class BackendError(ValueError):
 
 
 @functools.lru_cache(maxsize=32)
-def backend_problem(settings: RasterSettings, device: torch.device) -> str | None:
-    """Why ``settings.backend`` cannot render on ``device`` (one line), or None when it can.
-    Cached: every gsplat render asks it, and the answer depends on its arguments alone."""
-    if settings.backend == "torch":
-        return None
-    if settings.backend != "gsplat":
-        return f"unknown rasterizer backend {settings.backend!r}; choose torch or gsplat"
+def gsplat_problem(settings: RasterSettings, device: torch.device) -> str | None:
+    """Why gsplat's kernels cannot render with ``settings`` on ``device`` (one line), or None."""
     if importlib.util.find_spec("gsplat") is None:
         return f"--model.raster.backend gsplat needs the gsplat package: {INSTALL_HINT}"
     if device.type != "cuda":
@@ -50,7 +45,7 @@ def backend_problem(settings: RasterSettings, device: torch.device) -> str | Non
                 f"use --device cuda on a machine with a GPU, or --model.raster.backend torch")
     if settings.visibility_stats:
         return ("--model.raster.visibility-stats (occlusion-aware splitting) needs the per-Gaussian sums that only "
-                "--model.raster.backend torch computes")
+                "--model.raster.backend cpp or torch compute")
     defaults = {f.name: f.default for f in fields(RasterSettings)}
     for name in _KERNEL_FIXED:
         if getattr(settings, name) != defaults[name]:
@@ -80,7 +75,7 @@ def rasterize_gsplat(
 
     Arguments as there (already validated); ``degree`` is the active SH degree, -1 with ``colors``.
     """
-    problem = backend_problem(settings, means.device)
+    problem = gsplat_problem(settings, means.device)
     if problem is not None:
         raise BackendError(problem)
     from gsplat import rasterization

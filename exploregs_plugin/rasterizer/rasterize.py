@@ -9,7 +9,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .composite import composite, enter_single_threaded, exit_single_threaded, single_threaded_ops
+from .backends import backend_problem, resolve_backend
+from .composite import composite, enter_single_threaded, exit_single_threaded, single_threaded_ops, thread_budget
+from .cpp_backend import CppBins, composite_cpp
 from .gsplat_backend import BackendError, rasterize_gsplat
 from .projection import project_gaussians
 from .settings import RasterSettings
@@ -132,22 +134,27 @@ def rasterize(
         means, quats, scales, opacities, sh_coeffs, colors, viewmat, K, width, height,
         sh_degree, means_cov, means_sh, background,
     )  # fmt: skip
-    if settings.backend != "torch":
+    backend = resolve_backend(settings, means.device)
+    if backend == "gsplat":
         if (means_cov is not None and means_cov is not means) or (means_sh is not None and means_sh is not means):
             raise BackendError("separate tensors for the covariance and SH paths of the means (the branch "
-                               "ablation's --model.detach-paths) need --model.raster.backend torch")
+                               "ablation's --model.detach-paths) need --model.raster.backend torch or cpp")
         return rasterize_gsplat(means, quats, scales, opacities, sh_coeffs, colors, degree, viewmat, K, int(width),
                                 int(height), background, near_plane, far_plane, settings)
+    problem = backend_problem(settings, means.device) if settings.backend == "cpp" else None
+    if problem is not None:
+        raise BackendError(problem)
+    threads = thread_budget()  # the caller's thread count, before the projection goes single-threaded
     with single_threaded_ops():
         return _rasterize(
             means, quats, scales, opacities, sh_coeffs, viewmat, K, int(width), int(height), degree, colors,
-            background, near_plane, far_plane, means_cov, means_sh, settings,
+            background, near_plane, far_plane, means_cov, means_sh, settings, backend == "cpp", threads,
         )  # fmt: skip
 
 
 def _rasterize(
     means, quats, scales, opacities, sh_coeffs, viewmat, K, width, height, degree, colors, background,
-    near_plane, far_plane, means_cov, means_sh, settings,
+    near_plane, far_plane, means_cov, means_sh, settings, compiled, threads,
 ):  # fmt: skip
     dtype = means.dtype
     viewmat, K = viewmat.to(means), K.to(means)  # the dtype and device of the means
@@ -164,16 +171,17 @@ def _rasterize(
     feats = torch.cat([rgb, proj.depths.index_select(0, vis)[:, None]], -1)  # [M, 4]
     means2d_vis = proj.means2d.index_select(0, vis)
     support = proj.support.index_select(0, vis)
-    bins = bin_gaussians(
-        means2d_vis.detach(), support, proj.depths.detach().index_select(0, vis), width, height, settings.tile_size
-    )
-    out, visibility = composite(
-        means2d_vis, proj.conics.index_select(0, vis), proj.opacities.index_select(0, vis), feats, support, bins,
-        settings,
-    )  # fmt: skip
-    ts = settings.tile_size
-    img = out.view(bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 2, 1, 3, 4)
-    img = img.reshape(bins.tiles_y * ts, bins.tiles_x * ts, -1)[:height, :width]
+    depths_vis = proj.depths.detach().index_select(0, vis)
+    conics_vis, opac_vis = proj.conics.index_select(0, vis), proj.opacities.index_select(0, vis)
+    if compiled:
+        bins = CppBins(means2d_vis.detach(), support, depths_vis, width, height, settings.tile_size)
+        img, visibility = composite_cpp(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings, threads)
+    else:
+        bins = bin_gaussians(means2d_vis.detach(), support, depths_vis, width, height, settings.tile_size)
+        out, visibility = composite(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings)
+        ts = settings.tile_size
+        img = out.view(bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 2, 1, 3, 4)
+        img = img.reshape(bins.tiles_y * ts, bins.tiles_x * ts, -1)[:height, :width]
     acc = img[..., 4:5]
     image = img[..., :3]
     if background is not None:

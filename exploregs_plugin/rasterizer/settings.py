@@ -10,10 +10,10 @@ from typing import Literal
 class RasterSettings:
     """Constants of the 3D Gaussian Splatting image model (defaults = the original renderer)."""
 
-    backend: Literal["torch", "gsplat"] = "torch"
-    """Renderer: 'torch' (the pure-torch reference, any device) or 'gsplat' (gsplat's CUDA
-    kernels; needs --device cuda and the gpu extra). The 2D-mean gradient, radii and visibility
-    that the strategies read come from either."""
+    backend: Literal["auto", "torch", "cpp", "gsplat"] = "auto"
+    """Renderer: 'cpp' (compiled CPU compositor, built on first use), 'gsplat' (gsplat's CUDA
+    kernels; --device cuda and the gpu extra), 'torch' (the pure-torch reference, any device), or
+    'auto': gsplat on CUDA when installed, cpp on the CPU when it builds, else torch."""
 
     eps2d: float = 0.3
     """Low-pass filter in pixels^2 added to the diagonal of every 2D covariance."""
