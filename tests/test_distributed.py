@@ -276,6 +276,98 @@ def test_killed_rank_ends_the_job_with_a_clear_error(tmp_path, tiny_scene_dir):
     assert f"rank 1 (pid {pid}) failed with SIGKILL; the other ranks were stopped" in err
     good = load_checkpoint(latest_checkpoint(run_dir))  # the newest checkpoint is whole
     assert good["step"] > 0 and all(torch.isfinite(v).all() for v in good["params"].values())
+    # a short message: what was launched, where the run is, which rank was lost and how to go on
+    assert err.strip().splitlines() == [
+        "launched 2 ranks", f"run folder: {run_dir}",
+        f"eg-train: error: rank 1 (pid {pid}) failed with SIGKILL; the other ranks were stopped; "
+        f"continue with: eg-train --resume {run_dir}"]
+
+
+def _launch(run_dir: Path, *extra: str) -> subprocess.Popen:
+    """A long 2-rank job through eg-train's own launcher, in its own session (as in a terminal)."""
+    argv = [*tiny_argv("exploregs-default", run_dir, "--machine.num-devices", "2", steps=100_000), *extra]
+    return subprocess.Popen([sys.executable, "-m", "exploregs_plugin.scripts.train", *argv], env=worker_env(),
+                            stderr=subprocess.PIPE, text=True, start_new_session=True)
+
+
+def _wait_for(condition, proc: subprocess.Popen, seconds: float = 120) -> None:
+    deadline = time.monotonic() + seconds
+    while not condition() and time.monotonic() < deadline and proc.poll() is None:
+        time.sleep(0.1)
+    assert condition(), "the job never got there"
+
+
+def _alive(pid: int) -> bool:
+    try:
+        return Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()[0] != "Z"
+    except OSError:
+        return False
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="finds the ranks through /proc")
+@pytest.mark.parametrize("signum", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)])
+def test_ctrl_c_or_sigterm_stops_a_launched_job_with_one_line(tmp_path, tiny_scene_dir, signum):
+    run_dir = tmp_path / "run"
+    proc = _launch(run_dir, "--checkpoint-every", "2")
+    try:
+        _wait_for(lambda: list_checkpoints(run_dir), proc)
+        proc.send_signal(signum)  # what Ctrl-C in the terminal sends the launcher (the ranks have their own session)
+        _, err = proc.communicate(timeout=90)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    name = signal.Signals(signum).name
+    assert proc.returncode == 128 + signum, err[-3000:]
+    lines = err.strip().splitlines()
+    assert lines[:2] == ["launched 2 ranks", f"run folder: {run_dir}"] and len(lines) == 3, err[-3000:]
+    step = load_checkpoint(latest_checkpoint(run_dir))["step"]
+    assert lines[2] == (f"eg-train: error: stopped by {name} before step {step}; checkpoint "
+                        f"{latest_checkpoint(run_dir)}; resume with: eg-train --resume {run_dir}")
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="finds the ranks through /proc")
+def test_ranks_stop_when_their_launcher_is_killed(tmp_path, tiny_scene_dir):
+    run_dir = tmp_path / "run"
+    proc = _launch(run_dir, "--checkpoint-every", "2")
+    ranks: list[int | None] = []
+    try:
+        _wait_for(lambda: list_checkpoints(run_dir), proc)
+        ranks = [_rank_pid(proc.pid, rank) for rank in (0, 1)]
+        assert None not in ranks
+        proc.kill()  # kill -9: the launcher can pass nothing on
+        proc.wait(timeout=30)
+        deadline = time.monotonic() + 60
+        while any(_alive(pid) for pid in ranks) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        orphans = [pid for pid in ranks if _alive(pid)]
+    finally:
+        for pid in ranks:
+            if pid is not None and _alive(pid):
+                os.kill(pid, signal.SIGKILL)
+    assert not orphans, "ranks went on training without their launcher"
+    err = proc.stderr.read()
+    assert f"stopped by SIGTERM before step" in err and "Traceback" not in err, err[-3000:]
+    good = load_checkpoint(latest_checkpoint(run_dir))  # they checkpointed on the way out
+    assert all(torch.isfinite(v).all() for v in good["params"].values())
+
+
+@pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="finds the rank's process through /proc")
+def test_a_rank_lost_before_any_checkpoint_says_to_start_again(tmp_path, tiny_scene_dir):
+    run_dir = tmp_path / "run"
+    proc = _launch(run_dir, "--checkpoint-every", "100000", "--checkpoint-minutes", "0")
+    try:
+        _wait_for(lambda: (run_dir / "config.yml").is_file() and _rank_pid(proc.pid, 1) is not None, proc)
+        pid = _rank_pid(proc.pid, 1)
+        os.kill(pid, signal.SIGKILL)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+    assert proc.returncode == 1
+    assert err.strip().splitlines()[-1] == (
+        f"eg-train: error: rank 1 (pid {pid}) failed with SIGKILL; the other ranks were stopped; no checkpoint "
+        f"was written yet: start the run again ({run_dir / 'config.yml'} holds its settings)")
+    assert "--resume" not in err and not list_checkpoints(run_dir)
 
 
 def test_resume_options_take_device_and_ranks(capsys):
