@@ -2,12 +2,18 @@
 
 ``auto`` is CUDA when torch sees a CUDA device, else the CPU. Nothing below the engine picks a
 device by itself: functions follow the device of the tensors they are given.
+
+``python -m exploregs_plugin.device`` says what this machine's torch, CUDA and gsplat will and
+will not do (for example after ``pip install -e ".[gpu]"`` on a machine without a GPU).
 """
 
 from __future__ import annotations
 
 import hashlib
+import importlib.metadata
+import os
 import re
+import shutil
 from typing import Any
 
 import torch
@@ -72,3 +78,42 @@ def restore_generator(generator: torch.Generator, state: torch.Tensor) -> bool:
         digest = hashlib.sha256(state.to(torch.uint8).cpu().numpy().tobytes()).digest()
         generator.manual_seed(int.from_bytes(digest[:8], "little") & ((1 << 63) - 1))
         return False
+
+
+def machine_report() -> list[str]:
+    """What this machine can run, one line per part: torch's build and CUDA devices, what
+    ``--device auto`` picks, and whether gsplat's CUDA kernels (``--model.raster.backend gsplat``)
+    can run here. Imports nothing beyond torch (gsplat is looked up, not imported)."""
+    cuda = torch.cuda.is_available()
+    if cuda:
+        names = ", ".join(torch.cuda.get_device_name(i) for i in range(torch.cuda.device_count()))
+        build = f"CUDA {torch.version.cuda} build; CUDA devices: {names}"
+    elif torch.version.cuda:
+        build = f"CUDA {torch.version.cuda} build, but no CUDA device is visible"
+    else:
+        build = "a CPU-only build, so no CUDA device can be used"
+    lines = [f"torch {torch.__version__}: {build}", f"--device auto: {resolve_device('auto')}"]
+    try:
+        version = importlib.metadata.version("gsplat")
+    except importlib.metadata.PackageNotFoundError:
+        lines.append('gsplat: not installed; only --model.raster.backend gsplat (CUDA) needs it: pip install -e ".[gpu]"')
+        return lines
+    if not cuda:
+        lines.append(f"gsplat {version}: installed, but it will not run here: its kernels are CUDA-only and this "
+                     f"machine has no CUDA device; every command renders on the CPU with the other backends, and "
+                     f"--model.raster.backend gsplat is refused with one line")
+        return lines
+    cuda_home = os.environ.get("CUDA_HOME") or os.environ.get("CUDA_PATH")
+    nvcc = (shutil.which("nvcc", path=os.path.join(cuda_home, "bin")) if cuda_home else None) or shutil.which("nvcc")
+    if nvcc is None:
+        where = f"CUDA_HOME={cuda_home} has no bin/nvcc" if cuda_home else "no nvcc on PATH and CUDA_HOME is unset"
+        lines.append(f"gsplat {version}: installed; it compiles its CUDA kernels on first use and needs nvcc for that "
+                     f"({where}): install the CUDA toolkit or use --model.raster.backend torch")
+    else:
+        lines.append(f"gsplat {version}: installed; --model.raster.backend gsplat compiles its CUDA kernels on first "
+                     f"use with {nvcc} (a few minutes, once; MAX_JOBS=N bounds the parallel compile)")
+    return lines
+
+
+if __name__ == "__main__":
+    print("\n".join(machine_report()))

@@ -207,3 +207,47 @@ def test_to_device_moves_nested_state():
     moved = to_device(state, torch.device("cpu"))
     assert moved["scene_scale"] == 1.5 and torch.equal(moved["stats"]["grad2d"], torch.ones(3))
     assert isinstance(moved["list"], list)
+
+
+def test_machine_report_says_what_gsplat_will_and_will_not_do(monkeypatch):
+    """`python -m exploregs_plugin.device`: after pip install -e ".[gpu]" on a machine without CUDA,
+    one line says gsplat is installed and will not run; with CUDA but no nvcc, what is missing."""
+    import importlib.metadata
+    import os
+    import shutil
+    import subprocess
+    import sys
+
+    from exploregs_plugin.device import machine_report
+
+    real_version = importlib.metadata.version
+
+    def version(name):
+        return "1.5.3" if name == "gsplat" else real_version(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", version)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    lines = machine_report()
+    assert lines[1] == "--device auto: cpu"
+    assert lines[2].startswith("gsplat 1.5.3: installed, but it will not run here: its kernels are CUDA-only")
+
+    def missing(name):
+        raise importlib.metadata.PackageNotFoundError(name)
+
+    monkeypatch.setattr(importlib.metadata, "version", missing)
+    assert machine_report()[2].startswith('gsplat: not installed; only --model.raster.backend gsplat (CUDA) needs it')
+
+    monkeypatch.setattr(importlib.metadata, "version", version)
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "device_count", lambda: 1)
+    monkeypatch.setattr(torch.cuda, "get_device_name", lambda i: "Some GPU")
+    monkeypatch.setenv("CUDA_HOME", "/nonexistent-cuda")
+    monkeypatch.setattr(shutil, "which", lambda *a, **k: None)
+    lines = machine_report()
+    assert "CUDA devices: Some GPU" in lines[0] and lines[1] == "--device auto: cuda"
+    assert "needs nvcc for that (CUDA_HOME=/nonexistent-cuda has no bin/nvcc)" in lines[2]
+    monkeypatch.undo()
+    # the command itself, as CI runs it (no CUDA toolkit): exit 0, three lines
+    done = subprocess.run([sys.executable, "-m", "exploregs_plugin.device"], capture_output=True, text=True,
+                          env={**os.environ, "CUDA_HOME": "/nonexistent-cuda"}, timeout=120)
+    assert done.returncode == 0 and len(done.stdout.strip().splitlines()) == 3, done.stderr
