@@ -11,6 +11,7 @@ import dataclasses
 import enum
 import importlib
 import re
+import textwrap
 from pathlib import Path, PurePath
 from typing import Any
 
@@ -123,3 +124,46 @@ def load_config(path: Path) -> Any:
     if not isinstance(data, dict) or _TYPE_KEY not in data:
         raise ValueError(f"{path} is not an ExploreGS config (no top-level {_TYPE_KEY!r})")
     return config_from_dict(data)
+
+
+_LIST_ITEM = re.compile(r"([-*]|\d+[.)])\s")
+
+
+def join_help_lines(text: str) -> str:
+    """A docstring as help text: the lines of each paragraph joined into one (the terminal
+    wraps them), blank lines kept as paragraph breaks; a list item ("- ", "1. ") or a line
+    indented deeper than the paragraph (an example) starts a new line."""
+    paragraphs = []
+    for paragraph in re.split(r"\n[ \t]*\n", text.strip("\n")):
+        first, *rest = paragraph.split("\n")
+        rest = textwrap.dedent("\n".join(rest)).split("\n") if rest else []
+        lines = [first.strip()]
+        for line in rest:
+            if line[:1].isspace() or _LIST_ITEM.match(line):
+                lines.append(line.rstrip())
+            else:
+                lines[-1] = f"{lines[-1]} {line.strip()}"
+        paragraphs.append("\n".join(lines))
+    return "\n\n".join(paragraphs).strip()
+
+
+def use_joined_help_lines() -> None:
+    """Make tyro join the lines of multi-line docstrings. tyro 1.0 keeps a docstring's line
+    break whenever the next line starts with a space or a non-letter, which is every continued
+    line of a field docstring in a class body, so ``--help`` broke sentences mid-line where the
+    source wraps. Patches tyro's one helper for this (``tyro._strings``; nothing when absent)."""
+    try:
+        from tyro import _strings
+    except ImportError:
+        return
+    if hasattr(_strings, "remove_single_line_breaks"):
+        _strings.remove_single_line_breaks = join_help_lines
+
+
+def unset(meaning: str) -> Any:
+    """A tyro marker for an option whose default is None: ``--help`` says what leaving it unset
+    means (``(default: the model's)``) instead of ``(default: None)``. Use as
+    ``Annotated[int | None, unset("the model's")] = None``."""
+    import tyro
+
+    return tyro.conf.arg(help_behavior_hint=f"(default: {meaning})")

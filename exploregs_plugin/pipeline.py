@@ -104,12 +104,10 @@ class PipelineConfig:
     depth_supervision: DepthSupervisionConfig = field(default_factory=DepthSupervisionConfig)
     """Degrade the depth maps before the depth loss (noise, smooth bias) to play a monocular estimate."""
     batch_size: int | None = None
-    """Training views per step: the global batch, shared among the ranks of a data-parallel run
-    (a multiple of their number). Unset: one view per rank. The schedule counts images seen, so
-    a run at B views per step takes 1/B of the steps for the same images (docs/scale.md)."""
+    """Training views per step, shared among the ranks (a multiple of their number); unset: one
+    per rank. The schedule counts images seen: B views per step take 1/B of the steps."""
     batch_rule: bool = True
-    """With B > 1 views per step, scale the learning rates by sqrt(B) and raise Adam's betas to
-    the power B (Grendel's rule); off: the one-view values."""
+    """With B > 1 views per step, learning rates x sqrt(B) and Adam's betas ^ B (Grendel's rule)."""
 
     def setup(self, schedule: Schedule, seed: int, device: torch.device | str = "cpu",
               world: World = World()) -> "Pipeline":

@@ -46,11 +46,12 @@ class ScheduleConfig:
     """Opacity reset interval as a fraction of the run (3DGS: 3k of 30k)."""
     sh_degree_interval_frac: float = 1.0 / 30.0
     """SH degree is raised every this fraction of the run (3DGS: 1k of 30k)."""
+    # Gaussians made by one densification need about as many Adam steps as 3DGS gives them (100)
+    # to settle before their gradient is judged again; with fewer, freshly split Gaussians still
+    # carry large gradients and the set grows geometrically (measured: 3k -> 71k Gaussians in 300
+    # steps with a 10-step interval).
     min_refine_every: int = 100
-    """Smallest densification interval in steps. Gaussians made by one densification need about
-    as many Adam steps as 3DGS gives them (100) to settle before their gradient is judged again;
-    with fewer, freshly split Gaussians still carry large gradients and the set grows
-    geometrically (measured: 3k -> 71k Gaussians in 300 steps with a 10-step interval)."""
+    """Smallest densification interval in steps (shorter: the Gaussian count runs away)."""
     min_reset_every: int = 200
     """Smallest opacity-reset interval in steps, so Gaussians recover between resets."""
     min_sh_degree_interval: int = 25

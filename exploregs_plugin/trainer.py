@@ -49,11 +49,11 @@ class TrainerConfig:
 
     method_name: str = "exploregs-default"
     """Name of the method this config came from (recorded in the run folder)."""
-    data: str | None = None
-    """Dataset: a COLMAP folder (images/ + sparse/0), a folder with transforms.json, or
-    builtin:NAME (tiny, default, farside, nearside, combined, ...). Unset: builtin:default."""
-    data_factor: int | None = None
-    """Downscale images by this factor (uses images_N/ when present). Unset: the datamanager's."""
+    data: tyro.conf.Suppress[str | None] = None
+    """Shortcut for pipeline.datamanager.data in Python (TrainerConfig(data=...)); not a flag of
+    its own: --data is that field's flag."""
+    data_factor: tyro.conf.Suppress[int | None] = None
+    """Shortcut for pipeline.datamanager.data_factor (--data-factor is that field's flag)."""
     max_steps: int = 1500
     """Number of training steps (the schedule scales with it; see docs/training.md)."""
     seed: int = 0
@@ -88,10 +88,9 @@ class TrainerConfig:
     tensorboard: bool = True
     """Write tensorboard event files into the run folder."""
     grad_branches_every: int = 0
-    """Every this many steps, log the per-view mean norm of the position gradient through each
-    branch (2D mean, 2D covariance, SH direction) and the total as grad_branches/* (0 = off; costs
-    one extra render and backward per sampled view; needs --tensorboard; in Python, pass the
-    callback exploregs_plugin.analysis.tensorboard.BranchGradientLogger() to the Trainer)."""
+    """Every this many steps, log the position gradient's norm through each branch (2D mean, 2D
+    covariance, SH direction) as grad_branches/* in tensorboard (0 = off; one extra render and
+    backward per view; docs/analysis.md)."""
     grad_branches_views: int = 4
     """Training views (evenly spaced) averaged at each --grad-branches-every step."""
     save_eval_images: bool = True

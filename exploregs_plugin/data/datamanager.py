@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Annotated, Any, Literal
 
 import numpy as np
 import torch
@@ -14,6 +14,7 @@ from PIL import Image
 from torch import Tensor
 
 from ..cameras import Camera
+from ..configs import unset
 from .backgrounds import NAMED, default_background, evident_background
 from .cache import cache_root
 from .errors import DataError
@@ -31,11 +32,11 @@ Background = Literal["white", "black", "random"] | tuple[float, float, float] | 
 class DataManagerConfig:
     """Which dataset to load and how."""
 
-    data: str = "builtin:default"
+    data: Annotated[str, tyro.conf.arg(aliases=("--data",))] = "builtin:default"
     """Dataset: builtin:NAME (tiny, default, farside, nearside, combined, *-large; dynamic,
     dynamic-tiny), a COLMAP folder (images/ + sparse/0), a transforms.json (or its folder), or a
     Neu3D / DyNeRF multi-view video folder (poses_bounds.npy + cam00.mp4 ...)."""
-    data_factor: int = 1
+    data_factor: Annotated[int, tyro.conf.arg(aliases=("--data-factor",))] = 1
     """Downscale images by this integer factor (uses images_N/ when present, else caches a resize)."""
     test_every: int = 8
     """Every N-th image in name order is a test image (0: no test images). Ignored when the
@@ -73,13 +74,13 @@ class DataManagerConfig:
     """Near and far depth of 'frusta' points, in units of the scene extent (camera spread)."""
     frame_stride: int = 1
     """Dynamic scenes: keep every this-many-th frame of each camera."""
-    max_frames: int | None = None
-    """Dynamic scenes: use the first this-many frames of each camera's clip (unset: all)."""
-    cache_dir: str | None = None
-    """Cache root for built-in scenes and derived images (default: $EXPLOREGS_CACHE or ~/.cache/exploregs)."""
+    max_frames: Annotated[int | None, unset("all")] = None
+    """Dynamic scenes: use the first this-many frames of each camera's clip."""
+    cache_dir: Annotated[str | None, unset("$EXPLOREGS_CACHE, else $XDG_CACHE_HOME/exploregs or ~/.cache/exploregs")] = None
+    """Cache root for built-in scenes and derived images."""
     cache_beside_data: bool = False
-    """Keep derived images (resized, undistorted) in DATASET/.exploregs/ instead of the cache root
-    (only when the dataset folder is writable; by default a dataset folder is never written to)."""
+    """Keep derived images in DATASET/.exploregs/ (when writable) instead of the cache root; by
+    default a dataset folder is never written to."""
 
     def setup(self) -> "DataManager":
         return DataManager(self)

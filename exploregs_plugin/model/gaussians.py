@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Literal, Mapping
+from typing import Annotated, Literal, Mapping
 
 import numpy as np
 
@@ -12,6 +12,7 @@ import torch
 from torch import Tensor, nn
 
 from exploregs_plugin.cameras import Camera
+from exploregs_plugin.configs import unset
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
 from exploregs_plugin.rasterizer.sh import SH_C0, rgb_to_sh0  # noqa: F401 (SH_C0: the colour convention)
 
@@ -48,10 +49,9 @@ class GaussianModelConfig:
     """Opacity of every initial Gaussian."""
     init_scale: float = 1.0
     """Initial scale = this x mean distance to the 3 nearest neighbouring points."""
-    detach_paths: tuple[PositionPath, ...] = ()
-    """Position-gradient paths to switch off: any of mean2d (projected 2D mean), cov (2D
-    covariance via the Jacobian), sh (SH view direction). The forward pass is unchanged, and
-    so is the screen-space gradient of the projected means that densification uses."""
+    detach_paths: Annotated[tuple[PositionPath, ...], unset("none")] = ()
+    """Position-gradient paths to switch off (the branch ablation): mean2d, cov (2D covariance),
+    sh (SH view direction). Renders and densification's 2D gradient are unchanged."""
     raster: RasterSettings = field(default_factory=RasterSettings)
     """Rasterizer constants."""
 

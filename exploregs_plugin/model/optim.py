@@ -38,11 +38,15 @@ class OptimizerConfig:
     means_lr_final: float = 1.6e-6
     """Final position learning rate (x scene extent), reached by exponential decay at the last step."""
     scales_lr: float = 5e-3
+    """Learning rate of the log-scales."""
     quats_lr: float = 1e-3
+    """Learning rate of the rotation quaternions."""
     opacities_lr: float = 5e-2
+    """Learning rate of the opacity logits."""
     sh0_lr: float = 2.5e-3
+    """Learning rate of the SH DC (base colour) term."""
     shN_lr: float = 2.5e-3 / 20.0
-    """Higher-order SH learn 20x slower than the DC term, as in 3DGS."""
+    """Learning rate of the higher-order SH: 20x below the DC term's, as in 3DGS."""
 
     def __post_init__(self) -> None:
         # Checked when the config is built, so a bad rate is one line before any work (a NaN rate

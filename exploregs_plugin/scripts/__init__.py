@@ -6,10 +6,13 @@ import os
 import sys
 from typing import Any, Callable, TypeVar
 
+from exploregs_plugin.configs import use_joined_help_lines
 from exploregs_plugin.io.checkpoint import CheckpointError
 from exploregs_plugin.threads import apply_threads
 
 T = TypeVar("T")
+
+use_joined_help_lines()  # --help: a docstring's sentences are not broken where the source wraps
 
 USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, CheckpointError)
 """Problems with the user's input: reported as one clear line, not a traceback."""

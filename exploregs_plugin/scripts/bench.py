@@ -21,10 +21,14 @@ import tyro
 
 from exploregs_plugin.bench.presets import PRESETS
 from exploregs_plugin.bench.spec import BenchSpec
+from exploregs_plugin.configs import unset
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.scripts import run_cli
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # every key of bench.presets.PRESETS
+
+
+FROM_PRESET = "the preset's or spec file's"
 
 
 @dataclass
@@ -33,33 +37,34 @@ class BenchCommand:
     summary.csv, results.json and PNG plots. Finished runs in OUT are reused; unfinished ones are
     resumed or redone."""
 
-    preset: tyro.conf.Positional[Optional[PresetName]] = None
+    preset: Annotated[tyro.conf.Positional[Optional[PresetName]], unset("none, the options alone")] = None
     """Start from a preset: quick (minutes), standard (built-in Blur-Trap scenes, ~2 h), real
     (../shared/scenes), real-gpu (the paper's 30k-step recipe on them, for a GPU), dynamic (the 4D
-    methods on the built-in dynamic scene, docs/dynamic.md), branch-ablation, depth-supervision,
-    split-ablation (the paper's ablations, docs/analysis.md). Options below change it."""
+    methods on the built-in dynamic scene, docs/dynamic.md), dnerf (the 4D and two static methods on
+    the D-NeRF lego in ../shared/scenes), branch-ablation, depth-supervision, split-ablation (the
+    paper's ablations, docs/analysis.md). Options below change it."""
     out: Path = Path("bench-results")
     """Results folder: tables and plots here, each run in OUT/runs/<scene>/<entry>/seed<k>/."""
-    spec: Optional[Path] = None
+    spec: Annotated[Optional[Path], unset("none")] = None
     """YAML or JSON spec file (keys: preset, steps, seeds, eval_count, baseline, methods, scenes)."""
-    methods: Optional[tuple[str, ...]] = None
+    methods: Annotated[Optional[tuple[str, ...]], unset(FROM_PRESET)] = None
     """Entries: named (default, default-relaxed-prune, default-lowthresh, seed, split, seedsplit,
     ray, mcmc, mcmc-ray), a registered method (exploregs-seed), or NAME=METHOD for a new row."""
-    scenes: Optional[tuple[str, ...]] = None
+    scenes: Annotated[Optional[tuple[str, ...]], unset(FROM_PRESET)] = None
     """Scenes: builtin:NAME, a dataset path, or NAME=DATA."""
-    seeds: Optional[tuple[int, ...]] = None
+    seeds: Annotated[Optional[tuple[int, ...]], unset(f"{FROM_PRESET}, else 0")] = None
     """Seeds (each run uses one)."""
-    steps: Optional[int] = None
+    steps: Annotated[Optional[int], unset(f"{FROM_PRESET}, else 1000")] = None
     """Common step budget of every run."""
-    eval_count: Optional[int] = None
+    eval_count: Annotated[Optional[int], unset(f"{FROM_PRESET}, else 5")] = None
     """Test evaluations per run (points of the PSNR-against-time curves)."""
-    baseline: Optional[str] = None
-    """Entry for the paired differences (default: default)."""
+    baseline: Annotated[Optional[str], unset(f"{FROM_PRESET}, else default")] = None
+    """Entry that the paired differences are taken against."""
     override: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
-    """Per-entry eg-train arguments, 'ENTRY:ARGS', e.g. 'seed:--strategy.n-seed 50' (repeatable)."""
+    """Per-entry eg-train arguments, 'ENTRY:ARGS', e.g. 'seed:--strategy.n-seed 50'."""
     scene_option: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
-    """Per-scene eg-train arguments, 'SCENE:ARGS', e.g. 'beer:--data-factor 8' (repeatable)."""
-    data_factor: Optional[int] = None
+    """Per-scene eg-train arguments, 'SCENE:ARGS', e.g. 'beer:--data-factor 8'."""
+    data_factor: Annotated[Optional[int], unset("none added")] = None
     """Add --data-factor N to every scene."""
     device: str = "auto"
     """Device of every run: auto (CUDA when available, else CPU), cpu, cuda or cuda:N. Resolved
@@ -68,7 +73,7 @@ class BenchCommand:
     """Runs in parallel, each with cores // jobs torch threads (timings then share the CPU)."""
     retries: int = 1
     """Fresh attempts of a failed run before it is recorded as failed."""
-    timeout: Optional[float] = None
+    timeout: Annotated[Optional[float], unset("no limit")] = None
     """Seconds after which a run is stopped and recorded as failed."""
     report_only: bool = False
     """Train nothing: write the tables and plots from the runs already in OUT."""

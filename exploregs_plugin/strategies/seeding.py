@@ -134,9 +134,9 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
     seed_box_quantile: float = 0.01
     """Quantile trimmed from each side of each axis in the 'robust' box."""
     seed_opacity_base: float = 0.2
-    """Seed opacity = base + gain * r / max r over the batch."""
+    """Seed opacity = base + gain * r / max r (r: distance from the scene centre, over the batch)."""
     seed_opacity_gain: float = 0.5
-    """Seed opacity = base + gain * r / max r over the batch."""
+    """The gain of that formula: opacity added for the seed farthest from the centre."""
     seed_prune_scale3d: float = 10.0
     """While seeding is active, prune only Gaussians larger than this fraction of the extent."""
     seed_min_scale: float = 1e-6

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any, Literal
+
+from exploregs_plugin.configs import unset
 
 if TYPE_CHECKING:
     from exploregs_plugin.viewer.viewer import Viewer
@@ -27,28 +29,26 @@ class ViewerConfig:
     rest_delay: float = 0.25
     """Seconds without camera motion after which the sharp (rest_resolution) render is made."""
     max_render_share: float = 0.2
-    """Largest share of the CPU time the render thread may use while training runs: after a
-    render of t seconds it sleeps t (1 - share) / share. 1.0 = no sleeping. While training is
-    paused or finished (and in eg-view) the viewer renders without sleeping."""
+    """Largest share of CPU time the renders take while training runs (after a t-second render
+    the thread sleeps t (1 - share) / share; 1 = no limit, as in eg-view and a paused run)."""
     output: OutputKind = "rgb"
     """What the render shows: rgb, depth (expected depth, coloured) or alpha (accumulated opacity)."""
-    sh_degree: int | None = None
-    """Spherical-harmonics degree used for the viewer's renders (unset: the model's largest)."""
+    sh_degree: Annotated[int | None, unset("the model's largest")] = None
+    """Spherical-harmonics degree of the viewer's renders."""
     jpeg_quality: int = 85
     """JPEG quality of the frames sent to the browser (1-100)."""
     max_thumbnails: int = 64
-    """Training cameras that get an image thumbnail on their frustum (evenly spread; others show
-    the frustum only). Thumbnails are read once when the viewer starts."""
+    """Training cameras drawn with their image as a thumbnail (evenly spread; the others as frustums)."""
     thumbnail_height: int = 64
     """Height in pixels of the frustum thumbnails."""
-    frustum_scale: float | None = None
-    """Length of the drawn camera frustums in world units (unset: 3% of the scene extent)."""
+    frustum_scale: Annotated[float | None, unset("3% of the scene extent")] = None
+    """Length of the drawn camera frustums in world units."""
     max_points: int = 100_000
     """Largest number of initial points shown (evenly subsampled beyond it)."""
-    point_size: float | None = None
-    """Size of the shown initial points in world units (unset: 0.3% of the scene extent)."""
+    point_size: Annotated[float | None, unset("0.3% of the scene extent")] = None
+    """Size of the shown initial points in world units."""
     show_points: bool = False
-    """Show the initial points when the viewer opens (they cover the splats; a checkbox toggles them)."""
+    """Show the initial points at start (they cover the splats; a checkbox toggles them)."""
     serve_after_training: bool = False
     """Keep serving the finished scene after training ends, until Ctrl-C."""
 
