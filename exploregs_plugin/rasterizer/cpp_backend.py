@@ -1,12 +1,14 @@
 """The compiled CPU compositor (``RasterSettings.backend = "cpp"``): building it, and its autograd Function.
 
-``csrc/composite_cpu.cpp`` holds tile binning and front-to-back compositing, forward and backward,
+``csrc/project_cpu.cpp`` holds the EWA projection, ``csrc/sh_cpu.cpp`` the SH colours and
+``csrc/composite_cpu.cpp`` tile binning and front-to-back compositing, each forward and backward,
 as C++ loops with OpenMP threads. It is compiled on first use with PyTorch's extension machinery
 (``torch.utils.cpp_extension.load``, ninja) into torch's extension cache
 (``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``), under a name that hashes the
 source, the torch version and the CPU, so a later run (or another process) loads it in about a
-second and a changed source or machine builds anew. Projection and SH colours stay torch ops
-(O(N)); compositing, the O(pixels x pairs) part, is the compiled one.
+second and a changed source or machine builds anew. Projection and SH colours fall back to the
+torch ops when the branch ablation feeds separate tensors to their paths, or the camera itself
+needs a gradient.
 
 Determinism: a tile is composited by one thread, and each Gaussian's gradient is summed from
 its per-tile parts in a fixed order, so image and gradients are the same bit for bit at any
@@ -29,9 +31,10 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .projection import Projected
 from .settings import RasterSettings
 
-SOURCE = Path(__file__).parent / "csrc" / "composite_cpu.cpp"
+SOURCES = [Path(__file__).parent / "csrc" / name for name in ("composite_cpu.cpp", "project_cpu.cpp", "sh_cpu.cpp")]
 # -ffp-contract=off: no fused multiply-adds, so a vectorised and a scalar iteration of the same
 # loop round alike (the forward and the backward's recomputation give the same T bit for bit).
 CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
@@ -51,7 +54,8 @@ def _cpu_signature() -> str:
 
 def extension_name() -> str:
     h = hashlib.sha256()
-    for part in (SOURCE.read_bytes(), torch.__version__.encode(), _cpu_signature().encode(), " ".join(CFLAGS).encode()):
+    for part in (*(p.read_bytes() for p in SOURCES), torch.__version__.encode(), _cpu_signature().encode(),
+                 " ".join(CFLAGS).encode()):
         h.update(part)
     return f"exploregs_composite_cpu_{h.hexdigest()[:12]}"
 
@@ -82,7 +86,7 @@ def _load() -> tuple[Any, str | None]:
     log = io.StringIO()
     try:
         with redirect_stdout(log), redirect_stderr(log):
-            module = load(name=extension_name(), sources=[str(SOURCE)], extra_cflags=CFLAGS,
+            module = load(name=extension_name(), sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS,
                           extra_ldflags=LDFLAGS, verbose=False)  # fmt: skip
     except Exception as err:  # a failed build is reported as one line, never a traceback
         text = (str(err) + "\n" + log.getvalue()).strip().splitlines()
@@ -162,3 +166,56 @@ def composite_cpp(
     """Composites binned Gaussians: [H, W, F + 1] (features, then the accumulated alpha) and, with
     ``settings.visibility_stats``, [M, 2] per-Gaussian sums of w = alpha T and of alpha (else [0, 2])."""
     return _CompositeCpp.apply(means2d, conics, opacities, feats, support, bins, settings, threads)
+
+
+class _ProjectCpp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height, near, far, settings, threads):  # type: ignore[override]
+        inputs = [t.detach().contiguous() for t in (means, quats, scales, opacities)]
+        camera = (viewmat.detach(), K.detach(), width, height, float(near), float(far), settings.eps2d,
+                  settings.sigma_radius, settings.guard_band, settings.antialiased)  # fmt: skip
+        means2d, conics, opac, depths, radii, support, visible = extension().project_forward(*inputs, *camera, threads)
+        ctx.mark_non_differentiable(radii, support, visible)
+        ctx.save_for_backward(*inputs)
+        ctx.camera, ctx.threads = camera, threads
+        return means2d, conics, opac, depths, radii, support, visible
+
+    @staticmethod
+    def backward(ctx, g_means2d, g_conics, g_opac, g_depths, *_):  # type: ignore[override]
+        inputs = ctx.saved_tensors
+        n, like = inputs[0].shape[0], inputs[0]
+        grads = [like.new_zeros(shape) if g is None else g.contiguous()
+                 for g, shape in ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_opac, (n,)), (g_depths, (n,)))]
+        d = extension().project_backward(*inputs, *ctx.camera, *grads, ctx.threads)
+        return (*d, None, None, None, None, None, None, None, None)
+
+
+def project_cpp(
+    means: Tensor, quats: Tensor, scales: Tensor, opacities: Tensor, viewmat: Tensor, K: Tensor, width: int,
+    height: int, near_plane: float, far_plane: float, settings: RasterSettings, threads: int,
+) -> Projected:
+    """:func:`projection.project_gaussians` as one compiled kernel (forward and backward), for one
+    tensor of means (no separate covariance path) and a camera without gradient."""
+    means2d, conics, opac, depths, radii, support, visible = _ProjectCpp.apply(
+        means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane, settings, threads)
+    return Projected(means2d, conics, opac, depths, radii, support, visible)
+
+
+class _ShCpp(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, coeffs, means, rows, camera_center, degree, threads):  # type: ignore[override]
+        inputs = (coeffs.detach().contiguous(), means.detach().contiguous(), rows.contiguous(), camera_center.detach())
+        ctx.save_for_backward(*inputs)
+        ctx.degree, ctx.threads = degree, threads
+        return extension().sh_forward(*inputs, degree, threads)
+
+    @staticmethod
+    def backward(ctx, g_colors):  # type: ignore[override]
+        d_coeffs, d_means = extension().sh_backward(*ctx.saved_tensors, ctx.degree, g_colors.contiguous(), ctx.threads)
+        return d_coeffs, d_means, None, None, None, None
+
+
+def sh_colors_cpp(coeffs: Tensor, means: Tensor, rows: Tensor, camera_center: Tensor, degree: int,
+                  threads: int) -> Tensor:
+    """:func:`sh.sh_colors` of the rows ``rows`` [M] of coeffs [N, K, 3] and means [N, 3]: [M, 3]."""
+    return _ShCpp.apply(coeffs, means, rows, camera_center, degree, threads)

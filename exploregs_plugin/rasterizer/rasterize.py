@@ -11,7 +11,7 @@ from torch import Tensor
 
 from .backends import backend_problem, resolve_backend
 from .composite import composite, enter_single_threaded, exit_single_threaded, single_threaded_ops, thread_budget
-from .cpp_backend import CppBins, composite_cpp
+from .cpp_backend import CppBins, composite_cpp, project_cpp, sh_colors_cpp
 from .gsplat_backend import BackendError, rasterize_gsplat
 from .projection import project_gaussians
 from .settings import RasterSettings
@@ -158,16 +158,23 @@ def _rasterize(
 ):  # fmt: skip
     dtype = means.dtype
     viewmat, K = viewmat.to(means), K.to(means)  # the dtype and device of the means
-    proj = project_gaussians(
-        means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane, settings, means_cov
-    )
+    if compiled and (means_cov is None or means_cov is means) and not (viewmat.requires_grad or K.requires_grad):
+        proj = project_cpp(means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane,
+                           settings, threads)
+    else:
+        proj = project_gaussians(
+            means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane, settings, means_cov
+        )
     camera_center = -(viewmat[:3, :3].T @ viewmat[:3, 3])
     vis = torch.nonzero(proj.visible).squeeze(1)
     if degree < 0:
         rgb = colors.index_select(0, vis)
     else:
         src = means if means_sh is None else means_sh
-        rgb = sh_colors(sh_coeffs.index_select(0, vis), src.index_select(0, vis), camera_center, degree)
+        if compiled and src is means and not camera_center.requires_grad:
+            rgb = sh_colors_cpp(sh_coeffs, means, vis, camera_center, degree, threads)
+        else:
+            rgb = sh_colors(sh_coeffs.index_select(0, vis), src.index_select(0, vis), camera_center, degree)
     feats = torch.cat([rgb, proj.depths.index_select(0, vis)[:, None]], -1)  # [M, 4]
     means2d_vis = proj.means2d.index_select(0, vis)
     support = proj.support.index_select(0, vis)

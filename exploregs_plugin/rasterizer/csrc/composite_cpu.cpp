@@ -588,7 +588,29 @@ torch::Tensor sum_pairs(torch::Tensor rows, torch::Tensor gauss_first, torch::Te
   return res;
 }
 
+// project_cpu.cpp
+std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                           torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
+                                           int64_t width, int64_t height, double near, double far, double eps2d,
+                                           double sigma_radius, double guard_band, bool antialiased, int64_t threads);
+std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
+                                            torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
+                                            int64_t width, int64_t height, double near, double far, double eps2d,
+                                            double sigma_radius, double guard_band, bool antialiased,
+                                            torch::Tensor g_means2d, torch::Tensor g_conics, torch::Tensor g_opac,
+                                            torch::Tensor g_depths, int64_t threads);
+
+// sh_cpu.cpp
+torch::Tensor sh_forward(torch::Tensor coeffs, torch::Tensor means, torch::Tensor rows, torch::Tensor camera,
+                         int64_t degree, int64_t threads);
+std::vector<torch::Tensor> sh_backward(torch::Tensor coeffs, torch::Tensor means, torch::Tensor rows,
+                                       torch::Tensor camera, int64_t degree, torch::Tensor g_colors, int64_t threads);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("sh_forward", &sh_forward, "SH colours (forward)");
+  m.def("sh_backward", &sh_backward, "SH colours (backward)");
+  m.def("project_forward", &project_forward, "EWA projection (forward)");
+  m.def("project_backward", &project_backward, "EWA projection (backward)");
   m.def("bin_tiles", &bin_tiles, "Tile-Gaussian pairs, front to back per tile");
   m.def("composite_forward", &composite_forward, "Front-to-back compositing (forward)");
   m.def("composite_backward", &composite_backward, "Front-to-back compositing (backward, per-pair sums)");

@@ -1,0 +1,171 @@
+// SH colours on the CPU, forward and backward: exploregs_plugin/rasterizer/sh.py as one loop over the
+// visible Gaussians. colour = max(sum_b Y_b(d) k_b + 0.5, 0) along d = (m - camera) / |m - camera|
+// (|m - camera|^2 floored at 1e-30), real SH up to degree 3 with the constants of sh.py.
+// Each visible Gaussian writes only its own rows: the result does not depend on the thread count.
+
+#include <torch/extension.h>
+
+#include <omp.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <vector>
+
+namespace {
+
+constexpr double C0 = 0.28209479177387814, C1 = 0.4886025119029199;
+constexpr double C2[5] = {1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792,
+                          0.5462742152960396};
+constexpr double C3[7] = {-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+                          -0.4570457994644658, 1.445305721320277, -0.5900435899266435};
+constexpr double NORM2_MIN = 1e-30;
+
+// Basis values Y_b(x, y, z) for b < (degree + 1)^2 and, with grad, their derivatives (dY/dx, dY/dy, dY/dz).
+template <typename scalar_t>
+inline void basis(scalar_t x, scalar_t y, scalar_t z, int degree, scalar_t* Y, scalar_t (*dY)[3]) {
+  using S = scalar_t;
+  Y[0] = S(C0);
+  if (dY) dY[0][0] = dY[0][1] = dY[0][2] = 0;
+  if (degree < 1) return;
+  Y[1] = -S(C1) * y;
+  Y[2] = S(C1) * z;
+  Y[3] = -S(C1) * x;
+  if (dY) {
+    for (int b = 1; b < 4; ++b) dY[b][0] = dY[b][1] = dY[b][2] = 0;
+    dY[1][1] = -S(C1);
+    dY[2][2] = S(C1);
+    dY[3][0] = -S(C1);
+  }
+  if (degree < 2) return;
+  const S xx = x * x, yy = y * y, zz = z * z;
+  Y[4] = S(C2[0]) * x * y;
+  Y[5] = S(C2[1]) * y * z;
+  Y[6] = S(C2[2]) * (S(2) * zz - xx - yy);
+  Y[7] = S(C2[3]) * x * z;
+  Y[8] = S(C2[4]) * (xx - yy);
+  if (dY) {
+    const S d[5][3] = {{y, x, 0}, {0, z, y}, {-2 * x, -2 * y, 4 * z}, {z, 0, x}, {2 * x, -2 * y, 0}};
+    for (int b = 0; b < 5; ++b)
+      for (int k = 0; k < 3; ++k) dY[4 + b][k] = S(C2[b]) * d[b][k];
+  }
+  if (degree < 3) return;
+  Y[9] = S(C3[0]) * y * (S(3) * xx - yy);
+  Y[10] = S(C3[1]) * x * y * z;
+  Y[11] = S(C3[2]) * y * (S(4) * zz - xx - yy);
+  Y[12] = S(C3[3]) * z * (S(2) * zz - S(3) * xx - S(3) * yy);
+  Y[13] = S(C3[4]) * x * (S(4) * zz - xx - yy);
+  Y[14] = S(C3[5]) * z * (xx - yy);
+  Y[15] = S(C3[6]) * x * (xx - S(3) * yy);
+  if (dY) {
+    const S d[7][3] = {
+        {6 * x * y, 3 * xx - 3 * yy, 0},
+        {y * z, x * z, x * y},
+        {-2 * x * y, 4 * zz - xx - 3 * yy, 8 * y * z},
+        {-6 * x * z, -6 * y * z, 6 * zz - 3 * xx - 3 * yy},
+        {4 * zz - 3 * xx - yy, -2 * x * y, 8 * x * z},
+        {2 * x * z, -2 * y * z, xx - yy},
+        {3 * xx - 3 * yy, -6 * x * y, 0},
+    };
+    for (int b = 0; b < 7; ++b)
+      for (int k = 0; k < 3; ++k) dY[9 + b][k] = S(C3[b]) * d[b][k];
+  }
+}
+
+// Unit direction from the camera centre and 1 / |m - camera| (the floored norm).
+template <typename scalar_t>
+inline void direction(const scalar_t* m, const scalar_t* cam, scalar_t* d, scalar_t& inv, bool& floored) {
+  scalar_t v[3] = {m[0] - cam[0], m[1] - cam[1], m[2] - cam[2]};
+  const scalar_t n2 = v[0] * v[0] + v[1] * v[1] + v[2] * v[2];
+  floored = !(n2 > scalar_t(NORM2_MIN));
+  inv = scalar_t(1) / std::sqrt(floored ? scalar_t(NORM2_MIN) : n2);
+  for (int k = 0; k < 3; ++k) d[k] = v[k] * inv;
+}
+
+template <typename scalar_t>
+void sh_forward_impl(int64_t m, const int64_t* rows, const scalar_t* coeffs, const scalar_t* means,
+                     const scalar_t* cam, int64_t n_coeffs, int degree, scalar_t* colors, int64_t threads) {
+  const int nb = (degree + 1) * (degree + 1);
+#pragma omp parallel for num_threads(std::max<int64_t>(1, threads)) schedule(static)
+  for (int64_t i = 0; i < m; ++i) {
+    const int64_t g = rows[i];
+    scalar_t d[3], inv, Y[16];
+    bool floored;
+    direction(means + 3 * g, cam, d, inv, floored);
+    basis<scalar_t>(d[0], d[1], d[2], degree, Y, nullptr);
+    const scalar_t* k = coeffs + g * n_coeffs * 3;
+    for (int c = 0; c < 3; ++c) {
+      scalar_t v = 0;
+      for (int b = 0; b < nb; ++b) v += Y[b] * k[3 * b + c];
+      colors[3 * i + c] = std::max(v + scalar_t(0.5), scalar_t(0));
+    }
+  }
+}
+
+template <typename scalar_t>
+void sh_backward_impl(int64_t m, const int64_t* rows, const scalar_t* coeffs, const scalar_t* means,
+                      const scalar_t* cam, int64_t n_coeffs, int degree, const scalar_t* g_colors,
+                      scalar_t* d_coeffs, scalar_t* d_means, int64_t threads) {
+  const int nb = (degree + 1) * (degree + 1);
+#pragma omp parallel for num_threads(std::max<int64_t>(1, threads)) schedule(static)
+  for (int64_t i = 0; i < m; ++i) {
+    const int64_t g = rows[i];
+    scalar_t d[3], inv, Y[16], dY[16][3];
+    bool floored;
+    direction(means + 3 * g, cam, d, inv, floored);
+    basis<scalar_t>(d[0], d[1], d[2], degree, Y, dY);
+    const scalar_t* k = coeffs + g * n_coeffs * 3;
+    scalar_t gc[3];
+    for (int c = 0; c < 3; ++c) {  // the clamp at 0 passes the gradient where SH + 0.5 >= 0
+      scalar_t v = 0;
+      for (int b = 0; b < nb; ++b) v += Y[b] * k[3 * b + c];
+      gc[c] = v + scalar_t(0.5) >= scalar_t(0) ? g_colors[3 * i + c] : scalar_t(0);
+    }
+    scalar_t* dk = d_coeffs + g * n_coeffs * 3;
+    scalar_t dd[3] = {0, 0, 0};
+    for (int b = 0; b < nb; ++b) {
+      scalar_t kb = 0;
+      for (int c = 0; c < 3; ++c) {
+        dk[3 * b + c] = Y[b] * gc[c];
+        kb += k[3 * b + c] * gc[c];
+      }
+      for (int q = 0; q < 3; ++q) dd[q] += dY[b][q] * kb;
+    }
+    // d = v inv: dd/dv = inv (I - d d^T), or inv I where the norm is floored
+    const scalar_t proj = floored ? scalar_t(0) : d[0] * dd[0] + d[1] * dd[1] + d[2] * dd[2];
+    for (int q = 0; q < 3; ++q) d_means[3 * g + q] = (dd[q] - d[q] * proj) * inv;
+  }
+}
+
+}  // namespace
+
+// colours [M, 3] of the rows `rows` [M] of coeffs [N, K, 3] and means [N, 3], seen from `camera` [3].
+torch::Tensor sh_forward(torch::Tensor coeffs, torch::Tensor means, torch::Tensor rows, torch::Tensor camera,
+                         int64_t degree, int64_t threads) {
+  TORCH_CHECK(coeffs.is_contiguous() && means.is_contiguous() && rows.is_contiguous(), "sh_cpu: contiguous");
+  TORCH_CHECK(degree >= 0 && degree <= 3 && coeffs.size(1) >= (degree + 1) * (degree + 1), "sh_cpu: degree");
+  const int64_t m = rows.size(0);
+  auto colors = torch::empty({m, 3}, means.options());
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_forward", [&] {
+    auto cam = camera.to(means.scalar_type()).contiguous();
+    sh_forward_impl<scalar_t>(m, rows.data_ptr<int64_t>(), coeffs.data_ptr<scalar_t>(), means.data_ptr<scalar_t>(),
+                              cam.data_ptr<scalar_t>(), coeffs.size(1), static_cast<int>(degree),
+                              colors.data_ptr<scalar_t>(), threads);
+  });
+  return colors;
+}
+
+// (d coeffs [N, K, 3], d means [N, 3]): zero for the rows not listed.
+std::vector<torch::Tensor> sh_backward(torch::Tensor coeffs, torch::Tensor means, torch::Tensor rows,
+                                       torch::Tensor camera, int64_t degree, torch::Tensor g_colors, int64_t threads) {
+  TORCH_CHECK(g_colors.is_contiguous(), "sh_cpu: contiguous");
+  auto d_coeffs = torch::zeros_like(coeffs), d_means = torch::zeros_like(means);
+  AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_backward", [&] {
+    auto cam = camera.to(means.scalar_type()).contiguous();
+    sh_backward_impl<scalar_t>(rows.size(0), rows.data_ptr<int64_t>(), coeffs.data_ptr<scalar_t>(),
+                               means.data_ptr<scalar_t>(), cam.data_ptr<scalar_t>(), coeffs.size(1),
+                               static_cast<int>(degree), g_colors.data_ptr<scalar_t>(), d_coeffs.data_ptr<scalar_t>(),
+                               d_means.data_ptr<scalar_t>(), threads);
+  });
+  return {d_coeffs, d_means};
+}
