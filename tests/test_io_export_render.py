@@ -190,3 +190,15 @@ def test_eg_eval_says_how_many_ply_rows_it_left_out(run, tmp_path, capsys):
     assert f"{path}: left out 3 of {total} Gaussians (PLY rows) with NaN or inf values; scoring the other " \
            f"{total - 3}" in err
     assert metrics["num_gaussians"] == total - 3 and metrics["dropped_nonfinite"] == 3
+
+
+def test_eg_render_of_a_run_writes_into_the_runs_one_renders_folder(tmp_path):
+    """A run has one folder of images, renders/: the end-of-training panels and eg-render's frames."""
+    from types import SimpleNamespace
+
+    scene = SimpleNamespace(run_dir=tmp_path / "run", step=1500)
+    out = render_script._default_out(render_script.RenderArgs(tmp_path / "run"), scene)
+    assert out == tmp_path / "run" / "renders" / "test-rgb-step-0001500"
+    ply = render_script._default_out(render_script.RenderArgs(tmp_path / "s.ply", trajectory="path", mode="depth"),
+                                     SimpleNamespace(run_dir=None, step=0))
+    assert ply == tmp_path / "s-render" / "path-depth"

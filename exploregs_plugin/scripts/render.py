@@ -27,7 +27,7 @@ class RenderArgs:
     path: tyro.conf.Positional[Path]
     """A run folder (latest checkpoint), a checkpoint file, or a 3DGS .ply file."""
     out: Path | None = None
-    """Output folder (default: RUN/render/TRAJECTORY-MODE-step-XXXXXXX, or PLY_STEM-render/TRAJECTORY-MODE beside a PLY)."""
+    """Output folder (default: RUN/renders/TRAJECTORY-MODE-step-XXXXXXX, or PLY_STEM-render/TRAJECTORY-MODE beside a PLY)."""
     trajectory: Trajectory = "test"
     """Which cameras: the test views, the training views, a smooth path through the largest group of
     training cameras (path), or through all of them, across the gaps between groups (path-all)."""
@@ -72,7 +72,9 @@ def _default_out(args: RenderArgs, scene: RenderableScene) -> Path:
     leaf = f"{args.trajectory}-{args.mode}"
     if scene.run_dir is None:  # a PLY: beside it
         return args.path.with_name(f"{args.path.stem}-render") / leaf
-    return scene.run_dir / "render" / f"{leaf}-step-{scene.step:07d}"
+    # one folder of images per run: the end-of-training panels and these frames (runs from
+    # before this had a separate RUN/render/, which stays where it is)
+    return scene.run_dir / "renders" / f"{leaf}-step-{scene.step:07d}"
 
 
 def frame_times(scene: RenderableScene, cameras: list[Camera], trajectory: str, time: float | None) -> list[Camera]:
