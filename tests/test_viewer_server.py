@@ -198,3 +198,31 @@ def test_eg_view_stops_cleanly_on_sigterm(tmp_path: Path) -> None:
         proc.kill()
     assert proc.returncode == 128 + signal.SIGTERM, err
     assert err.strip().splitlines() == ["eg-view: stopped (SIGTERM)"], err
+
+
+def test_thumbnails_close_ahead_of_the_view_are_hidden_until_they_would_not_cover_it() -> None:
+    """The camera the view stands at and its close neighbours ahead would cover part of the
+    picture with their thumbnails: hidden; moving back or turning round shows them again."""
+    from types import SimpleNamespace
+
+    scene = ViewerScene(params=lambda: one_gaussian(), max_sh_degree=0, extent=2.0,
+                        cameras=[camera_at(0.0), camera_at(0.1), camera_at(1.0)],
+                        thumbnail=lambda i: torch.full((60, 80, 3), 0.5))
+    viewer = ViewerConfig(port=0).setup(scene, training=False)  # frustums 0.06 long: covering within 0.24
+    try:
+        # the initial view stands at camera 0: its own thumbnail and camera 1's, 0.1 aside, would cover it
+        assert [h.visible for h in viewer._frustums] == [False, False, True]
+
+        def look(position, wxyz=(1.0, 0.0, 0.0, 0.0)):
+            viewer._on_camera(7, SimpleNamespace(wxyz=wxyz, position=position, fov=1.0, image_width=80,
+                                                 image_height=60))
+            return [h.visible for h in viewer._frustums]
+
+        assert look((0.0, 0.0, -4.1)) == [False, False, True]  # a step back: still in the way
+        assert look((0.0, 0.0, -6.0)) == [True, True, True]  # far enough back: small thumbnails
+        assert look((1.0, 0.0, -4.0)) == [True, True, False]  # at camera 2
+        assert look((1.0, 0.0, -4.0), wxyz=(0.0, 0.0, 1.0, 0.0)) == [True, True, True]  # turned round
+        viewer._set_cameras_visible(False)
+        assert look((0.0, 0.0, -6.0)) == [False, False, False]  # "Show cameras" off wins
+    finally:
+        viewer.close()

@@ -37,7 +37,15 @@ _STATS_INTERVAL = 0.25
 _FRUSTUM_COLOR = (40, 90, 200)
 _FRUSTUM_FRACTION = 0.03  # default frustum length: this x scene extent
 _POINT_FRACTION = 0.003  # default point size: this x scene extent
-_UNHIDE_FRACTION = 0.5  # a hidden frustum shows again once the view is this x its length away
+_COVER_LENGTHS = 4.0
+"""A training camera's thumbnail ahead of the view and nearer than this many frustum lengths would
+cover part of it (at a 60 degree field of view, a sixth of the height or more): it is hidden."""
+
+
+def _forward_of(wxyz: np.ndarray) -> np.ndarray:
+    """The world direction a viser camera looks along: the third column (OpenCV +z) of R(wxyz)."""
+    w, x, y, z = (float(v) for v in wxyz)
+    return np.array([2.0 * (x * z + w * y), 2.0 * (y * z - w * x), 1.0 - 2.0 * (x * x + y * y)])
 
 
 def _evenly_spaced(count: int, limit: int) -> set[int]:
@@ -106,8 +114,8 @@ class Viewer:
         )
         self._frustum_scale = config.frustum_scale or _FRUSTUM_FRACTION * scene.extent
         self._frustums: list[Any] = []
-        self._hidden_frustum: int | None = None
-        self._hidden_reached = False
+        self._thumbnail_centres = np.zeros((0, 3))  # [N, 3] centre of each frustum's image
+        self._covering: set[int] = set()  # frustums hidden because they would cover the view
         self._frustum_lock = threading.RLock()  # camera and click callbacks arrive on viser's pool
         self._show_cameras = True
         self._points: Any = None
@@ -142,6 +150,8 @@ class Viewer:
             )
             handle.on_click(lambda event, index=i: self.jump_to_camera(event.client, index))
             self._frustums.append(handle)
+        self._thumbnail_centres = np.array([camera_to_viser(c)[1] + self._frustum_scale * camera_forward(c)
+                                            for c in cameras]).reshape(-1, 3)
         if scene.points is not None and scene.points.shape[0] > 0 and cfg.max_points > 0:
             stride = max(1, math.ceil(scene.points.shape[0] / cfg.max_points))
             points = scene.points[::stride].detach().float().cpu().numpy()
@@ -154,8 +164,9 @@ class Viewer:
         self._set_initial_camera(cameras)
 
     def _set_initial_camera(self, cameras: list[Camera]) -> None:
-        """Start where the first training camera stands (its frustum hidden, since the view
-        would look through its thumbnail); without cameras, look at the scene from outside."""
+        """Start where the first training camera stands (its frustum and any other close ahead
+        hidden, since their thumbnails would cover the view); without cameras, look at the scene
+        from outside."""
         initial = self.server.initial_camera
         centre = scene_centre(self.scene)
         if cameras:
@@ -167,40 +178,30 @@ class Viewer:
             initial.look_at = tuple(position + distance * forward)
             initial.up = tuple(up)
             initial.fov = vertical_fov(camera)
-            self._hide_frustum(0)
+            self._hide_covering(position, forward)
         else:
             direction = np.array([1.0, 1.0, 0.6])  # from above and aside (viser's default up is +z)
             initial.position = tuple(centre + 2.5 * self.scene.extent * direction / np.linalg.norm(direction))
             initial.look_at = tuple(centre)
 
-    def _hide_frustum(self, index: int | None) -> None:
+    def _hide_covering(self, position: np.ndarray, forward: np.ndarray) -> None:
+        """Hide the frustums whose thumbnails would cover part of a view from ``position`` looking
+        along ``forward`` (ahead of it and within _COVER_LENGTHS frustum lengths: the one it looks
+        through and its close neighbours); show again those that no longer would."""
+        offset = self._thumbnail_centres - np.asarray(position, dtype=np.float64)
+        ahead = offset @ np.asarray(forward, dtype=np.float64) > 0.0
+        near = np.linalg.norm(offset, axis=1) < _COVER_LENGTHS * self._frustum_scale
+        covering = set(np.nonzero(ahead & near)[0].tolist())
         with self._frustum_lock:
-            if self._hidden_frustum is not None:
-                self._frustums[self._hidden_frustum].visible = self._show_cameras
-            self._hidden_frustum = index
-            self._hidden_reached = False
-            if index is not None:
-                self._frustums[index].visible = False
-
-    def _unhide_when_away(self, position: np.ndarray) -> None:
-        """A hidden frustum shows again once a view that reached it moves away (views still on
-        their way there, e.g. a browser's default camera before the initial one applies, do
-        not count)."""
-        with self._frustum_lock:
-            index = self._hidden_frustum
-            if index is None:
-                return
-            centre = np.asarray(self._frustums[index].position, dtype=np.float64)
-            if np.linalg.norm(position - centre) <= _UNHIDE_FRACTION * self._frustum_scale:
-                self._hidden_reached = True
-            elif self._hidden_reached:
-                self._hide_frustum(None)
+            for i in covering ^ self._covering:
+                self._frustums[i].visible = self._show_cameras and i not in covering
+            self._covering = covering
 
     def jump_to_camera(self, client: viser.ClientHandle, index: int) -> None:
         """Move ``client``'s view to training camera ``index`` (what a frustum click does)."""
         camera = self.scene.cameras[index]
         wxyz, position = camera_to_viser(camera)
-        self._hide_frustum(index)  # first, so its thumbnail never flashes across the view
+        self._hide_covering(position, camera_forward(camera))  # first, so no thumbnail flashes across the view
         with client.atomic():
             client.camera.fov = vertical_fov(camera)
             client.camera.wxyz = wxyz
@@ -243,7 +244,7 @@ class Viewer:
         with self._frustum_lock:
             self._show_cameras = visible
             for i, handle in enumerate(self._frustums):
-                handle.visible = visible and i != self._hidden_frustum
+                handle.visible = visible and i not in self._covering
 
     def _stats_text(self) -> str:
         if self._recent:
@@ -278,7 +279,7 @@ class Viewer:
         if state.width < 1 or state.height < 1 or not 0.0 < state.fov < math.pi:
             return  # the browser has not laid out its canvas yet
         self.loop.set_camera(client_id, state)
-        self._unhide_when_away(state.position)
+        self._hide_covering(state.position, _forward_of(state.wxyz))
 
     def _render(self, snapshot: Any, camera: Camera, settings: ViewSettings) -> np.ndarray:
         return render_frame(snapshot, camera, settings.output, settings.sh_degree, self.scene.background,
