@@ -29,13 +29,14 @@ from exploregs_plugin.io.checkpoint import (CheckpointError, checkpoint_path, lo
 from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig, resolve_batch_size
 from exploregs_plugin.run_logger import RunLogger
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.threads import apply_threads
+from exploregs_plugin.threads import IdleCpus, apply_threads, available_cpus, threads_for, threads_from_environment
 from exploregs_plugin.viewer.callback import ViewerCallback
 from exploregs_plugin.viewer.config import ViewerConfig
 
 CONFIG_NAME = "config.yml"
 METRICS_NAME = "metrics.json"
 EVAL_PANELS = 2  # test views shown in tensorboard at each evaluation (render | truth | error)
+THREADS_CHECK_SECONDS = 5.0  # how often a run without --num-threads follows the CPUs left idle
 # TrainerConfig fields that a callback from a layer above the trainer implements: a config that
 # sets one without such a callback is refused instead of silently ignored.
 CALLBACK_FIELDS = {
@@ -99,8 +100,9 @@ class TrainerConfig:
     """Flush denormal floats to zero (tiny alphas and gradients otherwise slow the CPU)."""
     num_threads: int | None = None
     """Every CPU thread of the run: torch's intra-op threads and the compositor's workers (unset:
-    OMP_NUM_THREADS, else one per CPU this process may use; see docs/training.md, "Threads").
-    Parallel runs on one machine should split the cores."""
+    OMP_NUM_THREADS, else one per CPU this process may use that other processes leave idle,
+    followed during the run; see docs/training.md, "Threads"). Parallel runs on one machine
+    should split the cores."""
     quiet: bool = False
     """No progress bar or console lines."""
     viewer: bool = False
@@ -241,6 +243,7 @@ class Trainer:
 
     def _train(self) -> dict[str, Any]:
         eval_steps = self._eval_steps()
+        threads = _FollowIdleCpus() if self._follows_idle_cpus() else None
         try:
             with RunLogger(self.run_dir, self.schedule.max_steps, self.start_step, self.config.log_every,
                            self.config.tensorboard, self.config.quiet) as logger, _StopOnSignals() as stop:
@@ -257,6 +260,8 @@ class Trainer:
                         raise Stopped(stop.signum or signal.SIGTERM, step, self.last_checkpoint)
                     if minutes_due and step > self.start_step:
                         self.save_checkpoint(step)
+                    if threads is not None:
+                        threads.check()
                     start = time.perf_counter()
                     stats = self._train_step(step)
                     stats["step_seconds"] = elapsed = time.perf_counter() - start
@@ -278,9 +283,16 @@ class Trainer:
                     callback.on_train_end(self)
         finally:
             self.logger, self._stop = None, None
+            if threads is not None:
+                threads.restore()
             for callback in self.callbacks:
                 callback.close()
         return self.write_metrics()
+
+    def _follows_idle_cpus(self) -> bool:
+        """A CPU run whose thread count nobody set follows the CPUs other processes leave idle."""
+        return (self.config.num_threads is None and threads_from_environment() is None
+                and self.device.type == "cpu" and not self.world.is_distributed)
 
     def _train_step(self, step: int) -> dict[str, Any]:
         try:
@@ -409,6 +421,32 @@ class Trainer:
         # a resumed checkpoint from another device or world: all ranks start from the same bits
         self.world.check_same("parameters after loading the checkpoint",
                               params_checksum([p for _, p in self.pipeline.trained_tensors()]))
+
+
+class _FollowIdleCpus:
+    """Every THREADS_CHECK_SECONDS, between steps, set torch's thread count (which bounds the
+    compositor's workers) to the CPUs other processes left idle: a process that starts competing
+    for the cores mid-run takes the run down to one thread instead of stalling it (see
+    :class:`exploregs_plugin.threads.IdleCpus`), and one that ends gives the cores back. The
+    count changes the speed, not the result (docs/training.md, "Threads")."""
+
+    def __init__(self) -> None:
+        self.watch = IdleCpus()
+        self.cpus = available_cpus()
+        self.before = torch.get_num_threads()
+        self.checked = time.monotonic()
+
+    def check(self) -> None:
+        if time.monotonic() - self.checked < THREADS_CHECK_SECONDS:
+            return
+        self.checked = time.monotonic()
+        wanted = threads_for(self.watch.sample(), self.cpus)
+        if wanted != torch.get_num_threads():
+            torch.set_num_threads(wanted)
+
+    def restore(self) -> None:
+        if torch.get_num_threads() != self.before:
+            torch.set_num_threads(self.before)
 
 
 def _note(text: str) -> None:

@@ -37,9 +37,44 @@ def test_commands_wait_passively_with_one_thread_per_allowed_cpu():
     line, runtime = probe(one)
     assert line == "threads 1 PASSIVE"
     assert "GOMP_SPINCOUNT = '0'" in runtime  # the runtime read the policy: it was set before torch loaded it
-    # every CPU allowed: as many threads as CPUs
+    # every CPU allowed: at most as many threads as CPUs (fewer while other processes keep some busy)
     line, _ = probe()
-    assert line == f"threads {len(os.sched_getaffinity(0))} PASSIVE"
+    assert line.endswith(" PASSIVE") and 1 <= int(line.split()[1]) <= len(os.sched_getaffinity(0))
+
+
+@pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2,
+                    reason="needs two CPUs and CPU affinity (Linux)")
+def test_a_busy_process_on_one_of_two_cpus_leaves_one_thread():
+    a, b = sorted(os.sched_getaffinity(0))[:2]
+    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"], preexec_fn=lambda: os.sched_setaffinity(0, {a}))
+    try:
+        line, _ = probe({a, b})
+    finally:
+        busy.kill()
+        busy.wait()
+    assert line == "threads 1 PASSIVE"
+
+
+def test_idle_cpus_subtract_other_processes_but_not_this_one(tmp_path, monkeypatch):
+    from exploregs_plugin.threads import IdleCpus, threads_for
+
+    monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
+    (tmp_path / "self").mkdir()
+
+    def write(busy0: int, idle0: int, busy1: int, idle1: int, own: int) -> None:
+        # /proc/stat: cpuN user nice system idle iowait irq softirq steal ...; /proc/self/stat: utime stime
+        (tmp_path / "stat").write_text(f"cpu  0 0 0 0 0 0 0 0 0 0\ncpu0 {busy0} 0 0 {idle0} 0 0 0 0 0 0\n"
+                                       f"cpu1 {busy1} 0 0 {idle1} 0 0 0 0 0 0\ncpu2 999 0 0 0 0 0 0 0 0 0\n")
+        (tmp_path / "self" / "stat").write_text(f"42 (python) R 1 1 1 0 -1 0 0 0 0 0 {own} 0 0 0 20\n")
+
+    write(0, 0, 0, 0, 0)
+    watch = IdleCpus(tmp_path)
+    write(100, 0, 0, 100, 0)  # another process kept cpu0 busy, cpu1 idle: one CPU left
+    assert watch.sample() == pytest.approx(1.0) and threads_for(1.0, 2) == 1
+    write(200, 0, 100, 100, 200)  # both busy with this process's own work: two CPUs left
+    assert watch.sample() == pytest.approx(2.0) and threads_for(2.0, 2) == 2
+    write(200, 0, 100, 100, 200)  # no time passed: unknown, so every CPU
+    assert watch.sample() is None and threads_for(None, 2) == 2
 
 
 def test_a_wait_policy_or_thread_count_the_user_set_is_kept():
@@ -49,13 +84,38 @@ def test_a_wait_policy_or_thread_count_the_user_set_is_kept():
 
 def test_default_threads_follow_affinity_and_omp_num_threads(monkeypatch):
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    assert default_threads() == available_cpus() >= 1
+    assert 1 <= default_threads() <= available_cpus()
     if hasattr(os, "sched_getaffinity"):
         assert available_cpus() == len(os.sched_getaffinity(0))
     monkeypatch.setenv("OMP_NUM_THREADS", "3")
     assert default_threads() == 3
     monkeypatch.setenv("OMP_NUM_THREADS", "many")  # not a count: ignored
-    assert default_threads() == available_cpus()
+    assert 1 <= default_threads() <= available_cpus()
+
+
+def test_a_run_follows_the_idle_cpus_between_steps_and_restores_the_count(tmp_path, tiny_scene_dir, monkeypatch):
+    import torch
+
+    from exploregs_plugin import trainer as trainer_module
+    from exploregs_plugin.callbacks import TrainingCallback
+    from exploregs_plugin.threads import IdleCpus
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(trainer_module, "THREADS_CHECK_SECONDS", 0.0)
+    monkeypatch.setattr(trainer_module, "available_cpus", lambda: 2)
+    idle = iter([2.0, 2.0, 1.0, 1.0, 2.0, 2.0])  # a competitor comes and goes
+    monkeypatch.setattr(IdleCpus, "sample", lambda self: next(idle, 2.0))
+    seen: list[int] = []
+
+    class Threads(TrainingCallback):
+        def after_step(self, trainer, step, stats):
+            seen.append(torch.get_num_threads())
+
+    before = torch.get_num_threads()
+    config = trainer_module.TrainerConfig(data="builtin:tiny", max_steps=6, run_dir=tmp_path / "run", quiet=True,
+                                          tensorboard=False, eval_count=1, save_eval_images=False, device="cpu")
+    trainer_module.Trainer(config, callbacks=[Threads()]).train()
+    assert seen == [2, 2, 1, 1, 2, 2] and torch.get_num_threads() == before
 
 
 def test_num_threads_overrides_the_default(tmp_path, tiny_scene_dir):
