@@ -16,7 +16,7 @@ from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.model.losses import DepthSpace, depth_l1, photometric_loss, psnr
 from exploregs_plugin.model.optim import OptimizerConfig, batch_betas, batch_lr_scale, set_lr
-from exploregs_plugin.rasterizer import BackendError, backend_problem
+from exploregs_plugin.rasterizer import BackendError, backend_line, backend_problem
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
 
@@ -134,6 +134,8 @@ class Pipeline:
         problem = backend_problem(config.model.raster, device)
         if problem is not None:
             raise BackendError(problem)
+        if world.is_main:
+            print(backend_line(config.model.raster, device), flush=True)
         self.generator = make_generator(device, seed)
         self.generator_restored = True  # False after loading a generator state of another device type
         # One run seed drives everything, the camera order and random initial points included.

@@ -66,3 +66,17 @@ def ctrl_c_after_step(monkeypatch: pytest.MonkeyPatch):
             monkeypatch.setattr(Pipeline, "train_step", real_step)
 
     return Switch()
+
+
+@pytest.fixture(params=["torch", "cpp"])
+def raster_backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPatch) -> str:
+    """Runs a test once per CPU renderer: every ``rasterize`` call in it draws with this backend,
+    whatever its settings say (``auto`` included). The compiled one is skipped, with the reason,
+    only on a machine that cannot build it (test_rasterizer_cpp.py fails where it should build)."""
+    from exploregs_plugin.rasterizer import rasterize as rasterize_module
+    from exploregs_plugin.rasterizer.cpp_backend import cpp_problem
+
+    if request.param == "cpp" and cpp_problem() is not None:
+        pytest.skip(f"the cpp backend cannot build here: {cpp_problem()}")
+    monkeypatch.setattr(rasterize_module, "resolve_backend", lambda settings, device: request.param)
+    return request.param

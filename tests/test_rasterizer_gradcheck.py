@@ -3,12 +3,15 @@ pixel-Gaussian pair is a stated margin away from each threshold of the image mod
 
 from __future__ import annotations
 
+import pytest
 import torch
 
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
 from exploregs_plugin.bench.raster_scenes import GaussianScene, random_scene
 
 F64 = torch.float64
+# every test runs once with the torch reference and once with the compiled CPU backend
+pytestmark = pytest.mark.usefixtures("raster_backend")
 S = RasterSettings()
 # Margins: gradcheck perturbs by 1e-6, which moves a mean by well under 1e-4 px and an alpha by
 # well under 1e-5, so no pair may cross a threshold between the two evaluations.

@@ -13,6 +13,8 @@ from exploregs_plugin.rasterizer.reference import reference_rasterize
 from exploregs_plugin.bench.raster_scenes import GaussianScene, random_scene
 
 F64 = torch.float64
+# every test runs once with the torch reference and once with the compiled CPU backend
+pytestmark = pytest.mark.usefixtures("raster_backend")
 
 
 def _run(fn, scene: GaussianScene, dtype, **kw):

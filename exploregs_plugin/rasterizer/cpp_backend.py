@@ -23,6 +23,7 @@ import io
 import os
 import platform
 import shutil
+import sys
 import sysconfig
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -75,6 +76,16 @@ def _toolchain_problem() -> str | None:
     return None
 
 
+def _built(name: str) -> bool:
+    """Whether torch's extension cache already holds a build of ``name`` (then loading takes about a second)."""
+    from torch.utils.cpp_extension import _get_build_directory
+
+    try:
+        return (Path(_get_build_directory(name, verbose=False)) / f"{name}.so").exists()
+    except Exception:  # a private helper of torch's: if it changes, only the progress line is lost
+        return True
+
+
 @functools.lru_cache(maxsize=1)
 def _load() -> tuple[Any, str | None]:
     """(module, None) when the extension builds and loads, else (None, one-line reason)."""
@@ -83,10 +94,14 @@ def _load() -> tuple[Any, str | None]:
         return None, problem
     from torch.utils.cpp_extension import load
 
+    name = extension_name()
+    if not _built(name):
+        print("building the compiled CPU renderer (once per machine and version; about a minute)...", file=sys.stderr,
+              flush=True)
     log = io.StringIO()
     try:
         with redirect_stdout(log), redirect_stderr(log):
-            module = load(name=extension_name(), sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS,
+            module = load(name=name, sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS,
                           extra_ldflags=LDFLAGS, verbose=False)  # fmt: skip
     except Exception as err:  # a failed build is reported as one line, never a traceback
         text = (str(err) + "\n" + log.getvalue()).strip().splitlines()
