@@ -55,14 +55,19 @@ def test_model_directly_in_sparse_folder(scene_copy: Path) -> None:
     assert len(read_colmap(scene_copy, ParseOptions()).images) == 10
 
 
-def test_distorted_model_is_refused_or_undistorted_into_a_cache(scene_copy: Path, tmp_path: Path) -> None:
-    def make_radial(rec: pycolmap.Reconstruction) -> None:
+def _simple_radial(k1: float):
+    """A model edit: every camera becomes SIMPLE_RADIAL with distortion ``k1``."""
+    def edit(rec: pycolmap.Reconstruction) -> None:
         for cam in rec.cameras.values():
             fx, _fy, cx, cy = cam.params
             cam.model = pycolmap.CameraModelId.SIMPLE_RADIAL
-            cam.params = [fx, cx, cy, 0.08]
+            cam.params = [fx, cx, cy, k1]
 
-    _rewrite_model(scene_copy, make_radial)
+    return edit
+
+
+def test_distorted_model_is_refused_or_undistorted_into_a_cache(scene_copy: Path, tmp_path: Path) -> None:
+    _rewrite_model(scene_copy, _simple_radial(0.08))
     with pytest.raises(DataError, match="SIMPLE_RADIAL has lens distortion.*image_undistorter"):
         read_colmap(scene_copy, ParseOptions(undistort=False))
     cache = tmp_path / "cache"
@@ -306,13 +311,7 @@ def test_a_training_run_leaves_the_dataset_folder_unchanged(scene_copy: Path, tm
     """Undistortion and resizing caches go to the cache root, never into the user's dataset."""
     from exploregs_plugin.trainer import TrainerConfig
 
-    def make_radial(rec: pycolmap.Reconstruction) -> None:
-        for cam in rec.cameras.values():
-            fx, _fy, cx, cy = cam.params
-            cam.model = pycolmap.CameraModelId.SIMPLE_RADIAL
-            cam.params = [fx, cx, cy, 0.05]
-
-    _rewrite_model(scene_copy, make_radial)
+    _rewrite_model(scene_copy, _simple_radial(0.05))
     before, folder_stamp = _tree(scene_copy), scene_copy.stat().st_mtime_ns
     config = TrainerConfig(data=str(scene_copy), data_factor=2, max_steps=2, run_dir=tmp_path / "run", quiet=True,
                            tensorboard=False, eval_count=1, save_eval_images=False)
