@@ -170,6 +170,7 @@ class Trainer:
         self._wall_before = 0.0  # wall-clock seconds of the run before this call to train() (a resume)
         self._wall_started: float | None = None
         self._collapse = CollapseWatch()
+        self.threads_used: set[int] = set()  # torch thread counts this run trained with (metrics.json)
         self.logger: RunLogger | None = None
         self._stop: _StopOnSignals | None = None
         if checkpoint is not None:
@@ -243,7 +244,8 @@ class Trainer:
 
     def _train(self) -> dict[str, Any]:
         eval_steps = self._eval_steps()
-        threads = _FollowIdleCpus() if self._follows_idle_cpus() else None
+        threads = _FollowIdleCpus(self.threads_used) if self._follows_idle_cpus() else None
+        self.threads_used.add(torch.get_num_threads())
         try:
             with RunLogger(self.run_dir, self.schedule.max_steps, self.start_step, self.config.log_every,
                            self.config.tensorboard, self.config.quiet) as logger, _StopOnSignals() as stop:
@@ -369,6 +371,7 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "wall_seconds": self.wall_seconds,
             "seconds_per_step": self.train_seconds / max(self.schedule.max_steps, 1),
+            "threads": sorted(self.threads_used),
             "history": self.history,
             "strategy_counts": dict(sorted(self.op_totals.items())),
             "exploration": self.pipeline.exploration_summary(),
@@ -430,7 +433,8 @@ class _FollowIdleCpus:
     :class:`exploregs_plugin.threads.IdleCpus`), and one that ends gives the cores back. The
     count changes the speed, not the result (docs/training.md, "Threads")."""
 
-    def __init__(self) -> None:
+    def __init__(self, used: set[int]) -> None:
+        self.used = used  # every count set is added here
         self.watch = IdleCpus()
         self.cpus = available_cpus()
         self.before = torch.get_num_threads()
@@ -443,6 +447,7 @@ class _FollowIdleCpus:
         wanted = threads_for(self.watch.sample(), self.cpus)
         if wanted != torch.get_num_threads():
             torch.set_num_threads(wanted)
+            self.used.add(wanted)
 
     def restore(self) -> None:
         if torch.get_num_threads() != self.before:

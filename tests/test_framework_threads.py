@@ -114,8 +114,9 @@ def test_a_run_follows_the_idle_cpus_between_steps_and_restores_the_count(tmp_pa
     before = torch.get_num_threads()
     config = trainer_module.TrainerConfig(data="builtin:tiny", max_steps=6, run_dir=tmp_path / "run", quiet=True,
                                           tensorboard=False, eval_count=1, save_eval_images=False, device="cpu")
-    trainer_module.Trainer(config, callbacks=[Threads()]).train()
+    metrics = trainer_module.Trainer(config, callbacks=[Threads()]).train()
     assert seen == [2, 2, 1, 1, 2, 2] and torch.get_num_threads() == before
+    assert metrics["threads"] == sorted({before, 1, 2})
 
 
 def test_num_threads_overrides_the_default(tmp_path, tiny_scene_dir):

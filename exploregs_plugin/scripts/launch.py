@@ -64,11 +64,13 @@ def note_run_dir(run_dir: Path) -> None:
             Path(note).write_text(str(run_dir))
 
 
-def resume_hint(note: Path) -> str:
+def resume_hint(note: Path, several: bool = False) -> str:
     """How to go on after a failed rank: resume when the run has a checkpoint, else start again."""
     try:
         run_dir = Path(note.read_text().strip())
     except OSError:
+        if several:  # rank 0, which names the folder, runs on machine 0
+            return "if the run folder printed on machine 0 has a checkpoint, continue it with eg-train --resume RUN_DIR"
         return "no run folder was made yet: start the run again"
     if list_checkpoints(run_dir):
         return f"continue with: eg-train --resume {run_dir}"
@@ -132,7 +134,7 @@ def launch(machine: MachineConfig, argv: list[str]) -> None:
             rank, failure = err.get_first_failure()
             how = failure.signal_name() if failure.exitcode < 0 else f"exit code {failure.exitcode}"
             raise LaunchError(f"rank {rank} (pid {failure.pid}) failed with {how}; the other ranks were stopped; "
-                              f"{resume_hint(note)}") from None
+                              f"{resume_hint(note, several)}") from None
         finally:
             os.environ.pop(RUN_DIR_NOTE, None)
             os.environ.pop(LAUNCHER_PID, None)
