@@ -18,6 +18,7 @@ from PIL import Image
 from exploregs_plugin.data import DataError, DataManagerConfig, ParseOptions, read_transforms, write_transforms
 from exploregs_plugin.data.backgrounds import border_shares, evident_background
 from exploregs_plugin.data.random_init import cube_bounds, cube_points
+from exploregs_plugin.pipeline import PipelineConfig
 
 W, H = 10, 8
 ANGLE = 2 * math.atan(0.5)  # fx = (w / 2) / tan(angle / 2) = w
@@ -163,7 +164,9 @@ def test_val_refused_outside_the_blender_layout(tmp_path: Path) -> None:
 
 def test_tyro_flags_name_the_background(tmp_path: Path) -> None:
     def parse(*args: str) -> DataManagerConfig:
-        return tyro.cli(DataManagerConfig, args=list(args))
+        # nested as eg-train nests it (at the top level its --data alias would be its own name)
+        flags = [f"--datamanager.{a[2:]}" if a.startswith("--") else a for a in args]
+        return tyro.cli(PipelineConfig, args=flags).datamanager
 
     assert parse("--background", "white").background == "white"
     assert parse("--background", "random").background == "random"

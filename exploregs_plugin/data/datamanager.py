@@ -32,6 +32,8 @@ Background = Literal["white", "black", "random"] | tuple[float, float, float] | 
 class DataManagerConfig:
     """Which dataset to load and how."""
 
+    # --data and --data-factor: eg-train's short flags for these two fields, shown once in --help.
+    # Parse this config nested (as eg-train does): at the top level an alias is the field's own name.
     data: Annotated[str, tyro.conf.arg(aliases=("--data",))] = "builtin:default"
     """Dataset: builtin:NAME (tiny, default, farside, nearside, combined, *-large; dynamic,
     dynamic-tiny), a COLMAP folder (images/ + sparse/0), a transforms.json (or its folder), or a
