@@ -17,10 +17,10 @@ LAYERS: list[tuple[str, ...]] = [
     ("scripts",),
     ("bench", "analysis"),
     ("runs",),
-    ("trainer", "pipeline", "method_configs", "evaluation", "run_logger"),
+    ("trainer", "pipeline", "method_configs", "evaluation", "run_logger", "collapse"),
     ("model", "data", "strategies", "viewer"),
     ("rasterizer", "io", "configs"),
-    ("cameras", "schedule", "callbacks", "device", "distributed", ""),  # "" = the package's own __init__
+    ("cameras", "schedule", "callbacks", "device", "distributed", "threads", ""),  # "" = the package's own __init__
 ]
 LAYER_OF = {name: depth for depth, names in enumerate(LAYERS) for name in names}
 
