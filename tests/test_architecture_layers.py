@@ -1,7 +1,7 @@
 """The import graph keeps the layers of DESIGN.md: no module imports from a layer above it.
 
 From the top: commands (scripts) -> bench, analysis -> run folders (runs) -> trainer/pipeline
--> model, data, strategies, viewer -> rasterizer, io (formats only) -> cameras, schedule.
+-> model, data, strategies, viewer -> rasterizer, io (formats only) -> cameras, schedule, kernels (compiled CPU kernels).
 Every import counts, including those inside functions and under TYPE_CHECKING.
 """
 
@@ -20,7 +20,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("trainer", "pipeline", "method_configs", "evaluation", "run_logger", "collapse"),
     ("model", "data", "strategies", "viewer"),
     ("rasterizer", "io", "configs"),
-    ("cameras", "schedule", "callbacks", "device", "distributed", "threads", ""),  # "" = the package's own __init__
+    ("cameras", "schedule", "callbacks", "device", "distributed", "kernels", "threads", ""),  # "" = the package's own __init__
 ]
 LAYER_OF = {name: depth for depth, names in enumerate(LAYERS) for name in names}
 

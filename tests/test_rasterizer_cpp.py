@@ -219,7 +219,7 @@ def test_a_failing_build_is_one_line_not_a_traceback(tmp_path):
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     lines = out.stdout.strip().splitlines()
-    assert lines[-1].startswith("@the C++ compositor did not build: ") and len(lines) == 1, lines
+    assert lines[-1].startswith("@the C++ kernels did not build: ") and len(lines) == 1, lines
     assert "Traceback" not in out.stderr
 
 

@@ -1,7 +1,7 @@
 """Speed / memory / error benchmark of the rasterizer against a plain autograd compositor.
 
-    python -m exploregs_plugin.bench.rasterizer            # S, M and (if present) the beer scene
-    python -m exploregs_plugin.bench.rasterizer --methods fast torch-cuda gsplat --scenes S M L   # GPU
+    python -m exploregs_plugin.bench.rasterizer            # cpp and torch on S, M and (if present) beer
+    python -m exploregs_plugin.bench.rasterizer --methods torch torch-cuda gsplat --scenes S M L   # GPU
 
 Every (scene, method) runs in a fresh subprocess, so its peak resident memory is its own.
 Times are medians of ``--repeats`` runs after warm-up: wall clock and process CPU time (the
@@ -34,9 +34,12 @@ from .raster_baseline import rasterize_baseline
 from .raster_scenes import GaussianScene, random_scene
 
 SCENES = {"S": (20_000, 256, 256), "M": (50_000, 512, 512), "L": (500_000, 1024, 1024)}
-METHODS = {"fast": "cpu", "baseline": "cpu", "torch-cuda": "cuda", "gsplat": "cuda"}
-"""Method -> device: the torch rasterizer (fast), the plain autograd compositor (baseline), the
-torch rasterizer on CUDA, and gsplat's CUDA kernels (the gsplat backend)."""
+METHODS = {"cpp": "cpu", "torch": "cpu", "baseline": "cpu", "torch-cuda": "cuda", "gsplat": "cuda"}
+"""Method -> device: the compiled CPU backend (cpp), the pure-torch rasterizer (torch), the plain
+autograd compositor (baseline), the torch rasterizer on CUDA, and gsplat's CUDA kernels."""
+BACKEND = {"cpp": "cpp", "torch": "torch", "torch-cuda": "torch", "gsplat": "gsplat"}
+BASE = {"cpp": "torch", "torch": "baseline", "torch-cuda": "torch", "gsplat": "torch"}
+"""The row each method's speed-up is measured against, when it ran."""
 SCENES_DIR = Path(__file__).resolve().parents[3] / "shared" / "scenes"
 WINDOW = 32
 
@@ -91,10 +94,8 @@ def _rasterize(method: str, params, scene: GaussianScene, settings: RasterSettin
     """(image, alpha, depth, info) of ``method`` on the scene's camera."""
     args = (*params, scene.viewmat.to(params[0]), scene.K.to(params[0]), scene.width, scene.height)
     if method == "baseline":
-        return rasterize_baseline(*args, settings=settings)
-    if method == "gsplat":
-        settings = replace(settings, backend="gsplat")
-    return rasterize(*args, settings=settings)
+        return rasterize_baseline(*args, settings=replace(settings, backend="torch"))
+    return rasterize(*args, settings=replace(settings, backend=BACKEND[method]))
 
 
 def _render(method: str, params, scene: GaussianScene, settings: RasterSettings):
@@ -145,7 +146,7 @@ def run_child(scene_name: str, method: str, repeats: int, settings: RasterSettin
     load1 = os.getloadavg()[0]
     with torch.no_grad():
         # the pair count comes from our rasterizer (the baseline composites the same pairs)
-        info = _rasterize("fast" if method == "baseline" else method, params, scene, settings)[3]
+        info = _rasterize("torch" if method == "baseline" else method, params, scene, settings)[3]
     img_err, grad_err = _errors(method, params, scene, settings, wts)
     return {
         "scene": scene_name, "method": method, "n": scene.means.shape[0], "size": f"{scene.width}x{scene.height}",
@@ -183,7 +184,7 @@ def _errors(method, params, scene, settings, wts) -> tuple[tuple[float, float], 
 
 
 def _row(r: dict, base: dict | None) -> str:
-    """``base``: the row this one's speed-up is measured against (fast: baseline; GPU: fast)."""
+    """``base``: the row this one's speed-up is measured against (:data:`BASE`)."""
     ratio = f"{base['fb_s'] / r['fb_s']:.1f}x" if base and base is not r else ""
     return (
         f"| {r['scene']} | {r['n']:,} | {r['size']} | {r['method']} ({r['device']}) | "
@@ -198,8 +199,9 @@ def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=["S", "M", "beer"],
                     help="S, M, L (500k Gaussians at 1024x1024), beer (skipped if absent)")
-    ap.add_argument("--methods", nargs="+", default=["fast", "baseline"], choices=list(METHODS),
-                    help="fast (torch, CPU), baseline (plain compositor, CPU), torch-cuda, gsplat (CUDA)")
+    ap.add_argument("--methods", nargs="+", default=["cpp", "torch"], choices=list(METHODS),
+                    help="cpp (compiled, CPU), torch (pure torch, CPU), baseline (plain compositor, CPU), "
+                         "torch-cuda, gsplat (CUDA)")
     ap.add_argument("--repeats", type=int, default=5, help="timed runs per measurement (median)")
     ap.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0 = torch default)")
     ap.add_argument("--tile-size", type=int, default=16, help="RasterSettings.tile_size")
@@ -224,6 +226,7 @@ def main(argv: list[str] | None = None) -> None:
     for scene in scenes:
         rows = {}
         for method in reversed(a.methods):  # baselines first, so the later rows can show their ratio
+            print(f"# {scene} / {method} ...", file=sys.stderr, flush=True)
             cmd = [sys.executable, "-m", "exploregs_plugin.bench.rasterizer", "--child", scene, method,
                    "--repeats", str(a.repeats), "--threads", str(a.threads), "--tile-size", str(a.tile_size),
                    "--chunk-elements", str(a.chunk_elements), "--workers", str(a.workers)]  # fmt: skip
@@ -232,7 +235,7 @@ def main(argv: list[str] | None = None) -> None:
                 raise RuntimeError(f"bench child {scene}/{method} failed:\n{res.stderr}")
             rows[method] = json.loads(res.stdout.strip().splitlines()[-1])
         for method in a.methods:
-            base = {"fast": rows.get("baseline"), "baseline": None}.get(method, rows.get("fast"))
+            base = rows.get(BASE.get(method, ""))
             print(_row(rows[method], base), flush=True)
 
 

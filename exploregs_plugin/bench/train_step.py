@@ -1,6 +1,7 @@
 """Cost of one training step against the bare renderer step on the same Gaussians and camera.
 
-    python -m exploregs_plugin.bench.train_step --data builtin:default --method exploregs-seedsplit
+    python -m exploregs_plugin.bench.train_step --data builtin:default --methods exploregs-seedsplit
+    python -m exploregs_plugin.bench.train_step --data ../shared/scenes/beer --data-factor 4 --backends torch cpp
     python -m exploregs_plugin.bench.train_step --data ../shared/scenes/beer --device cuda --backend gsplat
 
 Trains ``--warmup`` steps (so the set has grown), then times ``--steps`` more of each, in turn:
@@ -9,7 +10,9 @@ Trains ``--warmup`` steps (so the set has grown), then times ``--steps`` more of
 - ``bare step``: the renderer's forward + backward of the same loss + Adam on a copy of the same
   Gaussians, one fixed camera, no strategy and no data loading: what the renderer alone costs.
 
-The ratio train / bare is the engine's overhead (the gsplat backend's target is at most 1.3).
+The ratio train / bare is the engine's overhead (the gsplat backend's target is at most 1.3); the
+speed-up is the first backend's train step over this one's, for the same method (same seed, so
+the same Gaussians before timing up to float rounding).
 Times are medians; on a GPU every step is waited for (torch.cuda.synchronize).
 """
 
@@ -81,21 +84,25 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--data-factor", type=int, default=None)
     ap.add_argument("--methods", nargs="+", default=["exploregs-default", "exploregs-seedsplit"])
     ap.add_argument("--device", default="auto", help="auto, cpu, cuda or cuda:N")
-    ap.add_argument("--backends", nargs="+", default=["torch"], choices=["torch", "gsplat"])
+    ap.add_argument("--backends", nargs="+", default=["torch", "cpp"], choices=["torch", "cpp", "gsplat"])
     ap.add_argument("--warmup", type=int, default=300, help="steps trained before timing (the set grows)")
     ap.add_argument("--steps", type=int, default=20, help="timed steps of each kind (median)")
     ap.add_argument("--max-steps", type=int, default=1500, help="run length the schedule is resolved for")
     a = ap.parse_args(argv)
     print(f"# torch {torch.__version__}; {a.data} (data factor {a.data_factor or 'default'}); "
           f"{a.warmup} warm-up steps, median of {a.steps}")
-    print("| method | backend | device | image | Gaussians | train step s | bare step s | train / bare | peak GPU GiB |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    for backend in a.backends:
-        for method in a.methods:
+    print("| method | backend | device | image | Gaussians | train step s | bare step s | train / bare | speed-up | "
+          "peak GPU GiB |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    for method in a.methods:
+        first = None
+        for backend in a.backends:
             r = measure(a.data, method, a.device, backend, a.warmup, a.steps, a.data_factor, a.max_steps)
+            first = first or r
             peak = f"{r['peak_gib']:.2f}" if r["peak_gib"] is not None else ""
             print(f"| {r['method']} | {r['backend']} | {r['device']} | {r['size']} | {r['gaussians']:,} | "
-                  f"{r['train_s']:.4f} | {r['bare_s']:.4f} | {r['ratio']:.2f} | {peak} |", flush=True)
+                  f"{r['train_s']:.4f} | {r['bare_s']:.4f} | {r['ratio']:.2f} | {first['train_s'] / r['train_s']:.2f}x | "
+                  f"{peak} |", flush=True)
 
 
 if __name__ == "__main__":

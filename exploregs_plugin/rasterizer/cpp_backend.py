@@ -1,130 +1,26 @@
-"""The compiled CPU compositor (``RasterSettings.backend = "cpp"``): building it, and its autograd Function.
-
-``csrc/project_cpu.cpp`` holds the EWA projection, ``csrc/sh_cpu.cpp`` the SH colours and
-``csrc/composite_cpu.cpp`` tile binning and front-to-back compositing, each forward and backward,
-as C++ loops with OpenMP threads. It is compiled on first use with PyTorch's extension machinery
-(``torch.utils.cpp_extension.load``, ninja) into torch's extension cache
-(``$TORCH_EXTENSIONS_DIR``, default ``~/.cache/torch_extensions``), under a name that hashes the
-source, the torch version and the CPU, so a later run (or another process) loads it in about a
-second and a changed source or machine builds anew. Projection and SH colours fall back to the
-torch ops when the branch ablation feeds separate tensors to their paths, or the camera itself
-needs a gradient.
-
-Determinism: a tile is composited by one thread, and each Gaussian's gradient is summed from
-its per-tile parts in a fixed order, so image and gradients are the same bit for bit at any
-thread count (tested).
+"""The compiled CPU renderer (``RasterSettings.backend = "cpp"``): autograd Functions over the
+C++ kernels of :mod:`exploregs_plugin.kernels` (projection, SH colours, tile binning and
+compositing, each forward and backward). Projection and SH colours fall back to the torch ops
+when the branch ablation feeds separate tensors to their paths, or the camera itself needs a
+gradient.
 """
 
 from __future__ import annotations
 
-import functools
-import hashlib
-import io
-import os
-import platform
-import shutil
-import sys
-import sysconfig
-from contextlib import redirect_stderr, redirect_stdout
-from pathlib import Path
-from typing import Any
-
 import torch
 from torch import Tensor
+
+from exploregs_plugin.kernels import cpp_problem, extension
 
 from .projection import Projected
 from .settings import RasterSettings
 
-SOURCES = [Path(__file__).parent / "csrc" / name for name in ("composite_cpu.cpp", "project_cpu.cpp", "sh_cpu.cpp")]
-# -ffp-contract=off: no fused multiply-adds, so a vectorised and a scalar iteration of the same
-# loop round alike (the forward and the backward's recomputation give the same T bit for bit).
-CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
-LDFLAGS = ["-fopenmp"]
-
-
-def _cpu_signature() -> str:
-    """What -march=native compiles for: the CPU model and flags (a binary built on another CPU
-    may use instructions this one lacks)."""
-    try:
-        text = Path("/proc/cpuinfo").read_text()
-    except OSError:
-        return platform.processor() or platform.machine()
-    lines = [ln for ln in text.splitlines() if ln.startswith(("model name", "flags"))]
-    return "\n".join(sorted(set(lines)))
-
-
-def extension_name() -> str:
-    h = hashlib.sha256()
-    for part in (*(p.read_bytes() for p in SOURCES), torch.__version__.encode(), _cpu_signature().encode(),
-                 " ".join(CFLAGS).encode()):
-        h.update(part)
-    return f"exploregs_composite_cpu_{h.hexdigest()[:12]}"
-
-
-def _toolchain_problem() -> str | None:
-    compiler = os.environ.get("CXX", "c++")
-    if shutil.which(compiler) is None:
-        return f"no C++ compiler found (looked for '{compiler}'; install g++ or set CXX)"
-    if shutil.which("ninja") is None:
-        try:
-            import ninja  # noqa: F401  (the PyPI package puts the binary next to python)
-        except ImportError:
-            return "ninja is not installed (pip install ninja)"
-    include = sysconfig.get_paths().get("include")
-    if not include or not (Path(include) / "Python.h").exists():
-        return f"the Python headers are missing (no Python.h in {include}; install python3-dev)"
-    return None
-
-
-def _built(name: str) -> bool:
-    """Whether torch's extension cache already holds a build of ``name`` (then loading takes about a second)."""
-    from torch.utils.cpp_extension import _get_build_directory
-
-    try:
-        return (Path(_get_build_directory(name, verbose=False)) / f"{name}.so").exists()
-    except Exception:  # a private helper of torch's: if it changes, only the progress line is lost
-        return True
-
-
-@functools.lru_cache(maxsize=1)
-def _load() -> tuple[Any, str | None]:
-    """(module, None) when the extension builds and loads, else (None, one-line reason)."""
-    problem = _toolchain_problem()
-    if problem is not None:
-        return None, problem
-    from torch.utils.cpp_extension import load
-
-    name = extension_name()
-    if not _built(name):
-        print("building the compiled CPU renderer (once per machine and version; about a minute)...", file=sys.stderr,
-              flush=True)
-    log = io.StringIO()
-    try:
-        with redirect_stdout(log), redirect_stderr(log):
-            module = load(name=name, sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS,
-                          extra_ldflags=LDFLAGS, verbose=False)  # fmt: skip
-    except Exception as err:  # a failed build is reported as one line, never a traceback
-        text = (str(err) + "\n" + log.getvalue()).strip().splitlines()
-        # the compiler's first "error:" line says more than torch's "Error building extension"
-        reason = next((ln.strip() for ln in text if "error:" in ln), text[0] if text else repr(err))
-        return None, f"the C++ compositor did not build: {reason[:300]}"
-    return module, None
-
-
-def cpp_problem() -> str | None:
-    """Why the compiled CPU backend cannot be used here (one line), or None (it is built and loaded)."""
-    return _load()[1]
-
-
-def extension() -> Any:
-    module, problem = _load()
-    if module is None:
-        raise RuntimeError(problem)
-    return module
+__all__ = ["cpp_problem", "CppBins", "composite_cpp", "project_cpp", "sh_colors_cpp"]
 
 
 def _thresholds(s: RasterSettings) -> tuple[float, float, float]:
     return s.alpha_max, s.alpha_min, s.transmittance_min
+
 
 
 class CppBins:

@@ -201,6 +201,22 @@ inline void row_range(const Splat<scalar_t>& s, scalar_t tile_y0, int64_t rows, 
   }
 }
 
+// Vectors [c0, c1] of the row holding the columns whose pixel centres lie inside the box
+// (|dx| <= rx, exactly the per-pixel test); c0 > c1 when none. The others are skipped: every
+// lane there would add an exact zero.
+template <typename scalar_t>
+inline void vector_range(const scalar_t* dxs, scalar_t rx, int64_t cols, int64_t& c0, int64_t& c1) {
+  constexpr int64_t L = Lanes<scalar_t>::N;
+  int64_t x0 = cols, x1 = -1;
+  for (int64_t x = 0; x < cols; ++x)
+    if (std::abs(dxs[x]) <= rx) {
+      x0 = std::min(x0, x);
+      x1 = x;
+    }
+  c0 = x0 / L;
+  c1 = x1 < 0 ? -1 : x1 / L;
+}
+
 template <typename scalar_t>
 inline Splat<scalar_t> load_splat(int64_t g, const scalar_t* mean, const scalar_t* con, const scalar_t* opa,
                                   const scalar_t* sup) {
@@ -285,13 +301,15 @@ void forward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, c
     for (int64_t k = 0; k < nf; ++k) f[k] = feat[g * nf + k];
     f[nf] = scalar_t(1);
     for (int64_t x = 0; x < rs; ++x) dxs[x] = scalar_t(px0) + scalar_t(x) + scalar_t(0.5) - s.mx;
+    int64_t c0, c1;
+    vector_range<scalar_t>(dxs, s.rx, cols, c0, c1);
     V w_sum[16], a_sum[16];  // per vector of columns (rs / L <= 16 for tiles up to 64 px wide)
     M n_stop = M{};
     for (int64_t c = 0; c < rs / L; ++c) w_sum[c] = a_sum[c] = V{};
     for (int64_t y = y0; y <= y1; ++y) {
       const scalar_t dy = scalar_t(py0) + scalar_t(y) + scalar_t(0.5) - s.my;
       const scalar_t cdy = s.c * dy * dy, bdy = s.b * dy;
-      for (int64_t c = 0; c < rs / L; ++c) {
+      for (int64_t c = c0; c <= c1; ++c) {  // vectors outside the box would add exact zeros
         const int64_t p = y * rs + c * L;
         const V Tv = load(T + p), lv = load(live + p);
         const PixelStep<scalar_t> st(s, load(dxs + c * L), cdy, bdy, Tv, lv, amax, amin, tmin);
@@ -375,13 +393,15 @@ void backward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, 
     for (int64_t k = 0; k < nf; ++k) f[k] = feat[g * nf + k];
     f[nf] = scalar_t(1);
     for (int64_t x = 0; x < rs; ++x) dxs[x] = scalar_t(px0) + scalar_t(x) + scalar_t(0.5) - s.mx;
+    int64_t c0, c1;
+    vector_range<scalar_t>(dxs, s.rx, cols, c0, c1);
     for (int64_t q = 0; q < ng; ++q)
       for (int64_t c = 0; c < rs / L; ++c) sums[q][c] = V{};
     M n_stop = M{};
     for (int64_t y = y0; y <= y1; ++y) {
       const scalar_t dy = scalar_t(py0) + scalar_t(y) + scalar_t(0.5) - s.my;
       const scalar_t cdy = s.c * dy * dy, bdy = s.b * dy;
-      for (int64_t c = 0; c < rs / L; ++c) {
+      for (int64_t c = c0; c <= c1; ++c) {  // vectors outside the box would add exact zeros
         const int64_t p = y * rs + c * L;
         const V dx = load(dxs + c * L);
         const V Tv = load(T + p), lv = load(live + p);
@@ -606,7 +626,14 @@ torch::Tensor sh_forward(torch::Tensor coeffs, torch::Tensor means, torch::Tenso
 std::vector<torch::Tensor> sh_backward(torch::Tensor coeffs, torch::Tensor means, torch::Tensor rows,
                                        torch::Tensor camera, int64_t degree, torch::Tensor g_colors, int64_t threads);
 
+// ssim_cpu.cpp
+std::vector<torch::Tensor> ssim_forward(torch::Tensor img, torch::Tensor ref, double c1, double c2, int64_t threads);
+torch::Tensor ssim_backward(torch::Tensor img, torch::Tensor ref, torch::Tensor moments, torch::Tensor grad_map,
+                            double c1, double c2, int64_t threads);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("ssim_forward", &ssim_forward, "SSIM map with an 11x11 Gaussian window (forward)");
+  m.def("ssim_backward", &ssim_backward, "SSIM map (backward)");
   m.def("sh_forward", &sh_forward, "SH colours (forward)");
   m.def("sh_backward", &sh_backward, "SH colours (backward)");
   m.def("project_forward", &project_forward, "EWA projection (forward)");

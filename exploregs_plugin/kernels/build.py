@@ -1,0 +1,121 @@
+"""The project's compiled CPU kernels: building them once, loading them.
+
+``csrc/`` holds C++ kernels with OpenMP threads: the EWA projection (``project_cpu.cpp``), SH
+colours (``sh_cpu.cpp``), tile binning and compositing (``composite_cpu.cpp``) of the ``cpp``
+renderer backend, and the fused SSIM loss (``ssim_cpu.cpp``), each forward and backward. They
+are compiled on first use with PyTorch's extension machinery (``torch.utils.cpp_extension.load``,
+ninja) into torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default
+``~/.cache/torch_extensions``), under a name that hashes the sources, the torch version and the
+CPU, so a later run (or another process) loads them in about a second and a changed source or
+machine builds anew. A machine that cannot build them gets one line saying why
+(:func:`cpp_problem`), and the callers fall back to torch ops.
+
+Determinism: every kernel writes each output element from one thread, in a fixed order (sums
+over pixels per tile, per-tile parts added in a fixed order), so results are the same bit for bit
+at any thread count (tested).
+"""
+
+from __future__ import annotations
+
+import functools
+import hashlib
+import io
+import os
+import platform
+import shutil
+import sys
+import sysconfig
+from contextlib import redirect_stderr, redirect_stdout
+from pathlib import Path
+from typing import Any
+
+import torch
+
+SOURCES = [Path(__file__).parent / "csrc" / name
+           for name in ("composite_cpu.cpp", "project_cpu.cpp", "sh_cpu.cpp", "ssim_cpu.cpp")]
+# -ffp-contract=off: no fused multiply-adds, so a vectorised and a scalar iteration of the same
+# loop round alike (the forward and the backward's recomputation give the same T bit for bit).
+CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
+LDFLAGS = ["-fopenmp"]
+
+
+def _cpu_signature() -> str:
+    """What -march=native compiles for: the CPU model and flags (a binary built on another CPU
+    may use instructions this one lacks)."""
+    try:
+        text = Path("/proc/cpuinfo").read_text()
+    except OSError:
+        return platform.processor() or platform.machine()
+    lines = [ln for ln in text.splitlines() if ln.startswith(("model name", "flags"))]
+    return "\n".join(sorted(set(lines)))
+
+
+def extension_name() -> str:
+    h = hashlib.sha256()
+    for part in (*(p.read_bytes() for p in SOURCES), torch.__version__.encode(), _cpu_signature().encode(),
+                 " ".join(CFLAGS).encode()):
+        h.update(part)
+    return f"exploregs_cpu_kernels_{h.hexdigest()[:12]}"
+
+
+def _toolchain_problem() -> str | None:
+    compiler = os.environ.get("CXX", "c++")
+    if shutil.which(compiler) is None:
+        return f"no C++ compiler found (looked for '{compiler}'; install g++ or set CXX)"
+    if shutil.which("ninja") is None:
+        try:
+            import ninja  # the PyPI package, whose binary may not be on PATH (a venv not activated)
+        except ImportError:
+            return "ninja is not installed (pip install ninja)"
+        os.environ["PATH"] = f"{ninja.BIN_DIR}{os.pathsep}{os.environ.get('PATH', '')}"
+    include = sysconfig.get_paths().get("include")
+    if not include or not (Path(include) / "Python.h").exists():
+        return f"the Python headers are missing (no Python.h in {include}; install python3-dev)"
+    return None
+
+
+def _built(name: str) -> bool:
+    """Whether torch's extension cache already holds a build of ``name`` (then loading takes about a second)."""
+    from torch.utils.cpp_extension import _get_build_directory
+
+    try:
+        return (Path(_get_build_directory(name, verbose=False)) / f"{name}.so").exists()
+    except Exception:  # a private helper of torch's: if it changes, only the progress line is lost
+        return True
+
+
+@functools.lru_cache(maxsize=1)
+def _load() -> tuple[Any, str | None]:
+    """(module, None) when the extension builds and loads, else (None, one-line reason)."""
+    problem = _toolchain_problem()
+    if problem is not None:
+        return None, problem
+    from torch.utils.cpp_extension import load
+
+    name = extension_name()
+    if not _built(name):
+        print("building the compiled CPU kernels (once per machine and version; about a minute)...", file=sys.stderr,
+              flush=True)
+    log = io.StringIO()
+    try:
+        with redirect_stdout(log), redirect_stderr(log):
+            module = load(name=name, sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS,
+                          extra_ldflags=LDFLAGS, verbose=False)  # fmt: skip
+    except Exception as err:  # a failed build is reported as one line, never a traceback
+        text = (str(err) + "\n" + log.getvalue()).strip().splitlines()
+        # the compiler's first "error:" line says more than torch's "Error building extension"
+        reason = next((ln.strip() for ln in text if "error:" in ln), text[0] if text else repr(err))
+        return None, f"the C++ kernels did not build: {reason[:300]}"
+    return module, None
+
+
+def cpp_problem() -> str | None:
+    """Why the compiled CPU kernels cannot be used here (one line), or None (they are built and loaded)."""
+    return _load()[1]
+
+
+def extension() -> Any:
+    module, problem = _load()
+    if module is None:
+        raise RuntimeError(problem)
+    return module
