@@ -198,9 +198,9 @@ DNERF_SCENE = "lego-dnerf-tiny"
 """The D-NeRF lego scene at 100x100 in ../shared/scenes (50 train, 20 test frames, RGB on black)."""
 DNERF_ENTRIES = ("4d-default", "4d-split", "4d-seedsplit", "default", "seedsplit")
 DNERF_STEPS = 600
-"""Under a third of the dynamic methods' 2000 steps, so that the 15 runs fit in about 40 minutes
-with --jobs 2 on the shared 2-core machine (measured: docs/results.md); the schedule's fractions
-keep its shape (a 60-step warm-up, densifications at steps 100 and 200)."""
+"""Under a third of the dynamic methods' 2000 steps, chosen to keep the 15 runs near 40 minutes
+with --jobs 2 on the 2-core machine; under the load of docs/results.md they took 91 minutes. The
+schedule's fractions keep its shape (a 60-step warm-up, densifications at steps 100 and 200)."""
 
 
 def dnerf(root: Path | None = None) -> BenchSpec:
