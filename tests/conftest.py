@@ -73,8 +73,12 @@ def raster_backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPat
     """Runs a test once per CPU renderer: every ``rasterize`` call in it draws with this backend,
     whatever its settings say (``auto`` included). The compiled one is skipped, with the reason,
     only on a machine that cannot build it (test_rasterizer_cpp.py fails where it should build)."""
-    from exploregs_plugin.rasterizer import rasterize as rasterize_module
+    import importlib
+
     from exploregs_plugin.rasterizer.cpp_backend import cpp_problem
+
+    # the module (the package's own name `rasterize` is the function)
+    rasterize_module = importlib.import_module("exploregs_plugin.rasterizer.rasterize")
 
     if request.param == "cpp" and cpp_problem() is not None:
         pytest.skip(f"the cpp backend cannot build here: {cpp_problem()}")
