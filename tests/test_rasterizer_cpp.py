@@ -266,3 +266,24 @@ def test_a_short_training_run_with_cpp_matches_torch(tmp_path, tiny_scene_dir):
     assert params_c["means"].shape == params_t["means"].shape
     assert abs(psnr_c - psnr_t) <= 0.05, (psnr_c, psnr_t)
     assert psnr_c > 13.5  # it trained: one step gives 11.6 dB here, 40 steps 15.2 dB
+
+
+@needs_cpp
+def test_a_built_extension_loads_past_a_leftover_build_lock(tmp_path):
+    """A process killed while torch's loader held the build lock leaves the lock file behind; a
+    finished build is imported without waiting on it."""
+    from exploregs_plugin.kernels.build import _build_dir, extension_name
+
+    assert cpp_problem() is None
+    name = extension_name()
+    built = _build_dir(name)
+    env = dict(os.environ, TORCH_EXTENSIONS_DIR=str(tmp_path))
+    code = "from exploregs_plugin.kernels.build import _build_dir, extension_name; print(_build_dir(extension_name()))"
+    folder = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
+    target = tmp_path / os.path.relpath(folder.stdout.strip().splitlines()[-1], tmp_path)
+    target.mkdir(parents=True, exist_ok=True)
+    shutil.copy2(built / f"{name}.so", target / f"{name}.so")
+    (target / "lock").touch()  # held by no one
+    code = "from exploregs_plugin.kernels import cpp_problem; print('@', cpp_problem())"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
+    assert out.stdout.strip().splitlines()[-1] == "@ None", out.stderr

@@ -19,12 +19,14 @@ from __future__ import annotations
 
 import functools
 import hashlib
+import importlib.util
 import io
 import os
 import platform
 import shutil
 import sys
 import sysconfig
+import time
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
 from typing import Any
@@ -74,28 +76,60 @@ def _toolchain_problem() -> str | None:
     return None
 
 
-def _built(name: str) -> bool:
-    """Whether torch's extension cache already holds a build of ``name`` (then loading takes about a second)."""
+def _build_dir(name: str) -> Path | None:
+    """torch's extension cache folder for ``name`` (None if torch's private helper changed)."""
     from torch.utils.cpp_extension import _get_build_directory
 
     try:
-        return (Path(_get_build_directory(name, verbose=False)) / f"{name}.so").exists()
-    except Exception:  # a private helper of torch's: if it changes, only the progress line is lost
-        return True
+        return Path(_get_build_directory(name, verbose=False))
+    except Exception:
+        return None
+
+
+def _import_built(name: str, folder: Path) -> Any:
+    """The built module, imported straight from the cache: no build lock, no ninja run. (torch's
+    ``load`` takes a lock file even for a finished build, and a process killed while holding it,
+    say by Ctrl-C at start, leaves the lock behind for every later process to wait on.)"""
+    spec = importlib.util.spec_from_file_location(name, folder / f"{name}.so")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+# A build lock older than this is left over from a killed process (a build takes about a minute).
+STALE_LOCK_SECONDS = 600
+
+
+def _clear_stale_lock(folder: Path) -> None:
+    lock = folder / "lock"
+    try:
+        age = time.time() - lock.stat().st_mtime
+    except OSError:
+        return
+    if age > STALE_LOCK_SECONDS:
+        print(f"removing a stale build lock ({age / 60:.0f} min old): {lock}", file=sys.stderr, flush=True)
+        lock.unlink(missing_ok=True)
 
 
 @functools.lru_cache(maxsize=1)
 def _load() -> tuple[Any, str | None]:
     """(module, None) when the extension builds and loads, else (None, one-line reason)."""
+    name = extension_name()
+    folder = _build_dir(name)
+    if folder is not None and (folder / f"{name}.so").exists():
+        try:
+            return _import_built(name, folder), None
+        except Exception:  # a damaged build: build it again below
+            pass
     problem = _toolchain_problem()
     if problem is not None:
         return None, problem
     from torch.utils.cpp_extension import load
 
-    name = extension_name()
-    if not _built(name):
-        print("building the compiled CPU kernels (once per machine and version; about a minute)...", file=sys.stderr,
-              flush=True)
+    if folder is not None:
+        _clear_stale_lock(folder)
+    print("building the compiled CPU kernels (once per machine and version; about a minute)...", file=sys.stderr,
+          flush=True)
     log = io.StringIO()
     try:
         with redirect_stdout(log), redirect_stderr(log):
