@@ -23,7 +23,6 @@
 #include <omp.h>
 
 #include <algorithm>
-#include <atomic>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -223,6 +222,20 @@ inline Splat<scalar_t> load_splat(int64_t g, const scalar_t* mean, const scalar_
   return {mean[2 * g], mean[2 * g + 1], con[3 * g], con[3 * g + 1], con[3 * g + 2], opa[g], sup[2 * g], sup[2 * g + 1]};
 }
 
+// What the forward and the backward read once per (tile, Gaussian), so both walk exactly the same
+// pixels: its features and a 1 in f, dx per column of the row in dxs, the rows [y0, y1] and the
+// vectors [c0, c1] its box reaches.
+template <typename scalar_t>
+inline void enter_splat(const Splat<scalar_t>& s, const scalar_t* features, int64_t nf, int64_t px0, int64_t py0,
+                        int64_t rows, int64_t cols, int64_t rs, scalar_t* f, scalar_t* dxs, int64_t& y0, int64_t& y1,
+                        int64_t& c0, int64_t& c1) {
+  for (int64_t k = 0; k < nf; ++k) f[k] = features[k];
+  f[nf] = scalar_t(1);
+  for (int64_t x = 0; x < rs; ++x) dxs[x] = scalar_t(px0) + scalar_t(x) + scalar_t(0.5) - s.mx;
+  row_range(s, scalar_t(py0), rows, y0, y1);
+  vector_range<scalar_t>(dxs, s.rx, cols, c0, c1);
+}
+
 // Features per Gaussian known at compile time (NF > 0: the rasterizer's colour + depth, NF = 4)
 // let the compiler unroll the feature loops; NF = 0 reads md.nf.
 template <int NF, typename scalar_t>
@@ -277,14 +290,12 @@ void forward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, c
   const int64_t ts = md.ts, rs = row_stride<scalar_t>(ts), np = ts * rs;
   const int64_t px0 = (tile % md.tiles_x) * ts, py0 = (tile / md.tiles_x) * ts;
   const int64_t cols = std::min(ts, md.width - px0), rows = std::min(ts, md.height - py0);
-  buf.assign(np * (2 + nf1) + 3 * rs + nf1, scalar_t(0));
+  buf.assign(np * (2 + nf1) + rs + nf1, scalar_t(0));
   scalar_t* T = buf.data();
   scalar_t* live = T + np;
   scalar_t* acc = live + np;
   scalar_t* dxs = acc + nf1 * np;  // [rs] pixel centre minus mean, per column
-  scalar_t* w_col = dxs + rs;      // [rs] per-column sums of w (STATS)
-  scalar_t* a_col = w_col + rs;    // [rs] per-column sums of alpha (STATS)
-  scalar_t* f = a_col + rs;        // [nf1] features of the current Gaussian and a 1
+  scalar_t* f = dxs + rs;          // [nf1] features of the current Gaussian and a 1
   int64_t n_live = 0;
   for (int64_t y = 0; y < rows; ++y)
     for (int64_t x = 0; x < cols; ++x) {
@@ -296,13 +307,8 @@ void forward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, c
   for (int64_t j = off[tile]; j < off[tile + 1] && n_live > 0; ++j) {
     const int64_t g = pg[j];
     const Splat<scalar_t> s = load_splat(g, mean, con, opa, sup);
-    int64_t y0, y1;
-    row_range(s, scalar_t(py0), rows, y0, y1);
-    for (int64_t k = 0; k < nf; ++k) f[k] = feat[g * nf + k];
-    f[nf] = scalar_t(1);
-    for (int64_t x = 0; x < rs; ++x) dxs[x] = scalar_t(px0) + scalar_t(x) + scalar_t(0.5) - s.mx;
-    int64_t c0, c1;
-    vector_range<scalar_t>(dxs, s.rx, cols, c0, c1);
+    int64_t y0, y1, c0, c1;
+    enter_splat(s, feat + g * nf, nf, px0, py0, rows, cols, rs, f, dxs, y0, y1, c0, c1);
     V w_sum[16], a_sum[16];  // per vector of columns (rs / L <= 16 for tiles up to 64 px wide)
     M n_stop = M{};
     for (int64_t c = 0; c < rs / L; ++c) w_sum[c] = a_sum[c] = V{};
@@ -388,13 +394,8 @@ void backward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, 
   for (int64_t j = off[tile]; j < off[tile + 1] && n_live > 0; ++j) {
     const int64_t g = pg[j];
     const Splat<scalar_t> s = load_splat(g, mean, con, opa, sup);
-    int64_t y0, y1;
-    row_range(s, scalar_t(py0), rows, y0, y1);
-    for (int64_t k = 0; k < nf; ++k) f[k] = feat[g * nf + k];
-    f[nf] = scalar_t(1);
-    for (int64_t x = 0; x < rs; ++x) dxs[x] = scalar_t(px0) + scalar_t(x) + scalar_t(0.5) - s.mx;
-    int64_t c0, c1;
-    vector_range<scalar_t>(dxs, s.rx, cols, c0, c1);
+    int64_t y0, y1, c0, c1;
+    enter_splat(s, feat + g * nf, nf, px0, py0, rows, cols, rs, f, dxs, y0, y1, c0, c1);
     for (int64_t q = 0; q < ng; ++q)
       for (int64_t c = 0; c < rs / L; ++c) sums[q][c] = V{};
     M n_stop = M{};
