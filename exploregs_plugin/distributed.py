@@ -48,6 +48,11 @@ LAUNCHER_PID = "EXPLOREGS_LAUNCHER_PID"
 """Set by ``eg-train --machine.num-devices N`` for its ranks: the pid of the launcher, which
 reports a lost rank itself (so the ranks that lost it say nothing)."""
 PR_SET_PDEATHSIG = 1  # linux/prctl.h
+LAUNCHER_GONE = signal.SIGHUP
+"""What a rank of eg-train's launcher gets when the launcher dies: SIGHUP (it hung up), not the
+SIGTERM a user or scheduler sends, because the kernel sends the parent-death signal again for
+every thread of the dying launcher that adopts the rank on the way out (prctl(2)): repeats of
+this one are one request, while a second SIGTERM or Ctrl-C means "stop now"."""
 
 
 def launched_by_eg_train(environ: dict[str, str] | None = None) -> bool:
@@ -56,21 +61,21 @@ def launched_by_eg_train(environ: dict[str, str] | None = None) -> bool:
 
 
 def stop_with_launcher() -> None:
-    """Ask the kernel to send this rank SIGTERM when its launcher dies (even by kill -9), so no
-    rank trains on as an orphan: SIGTERM checkpoints at the next step and stops, as it does for
-    a run of one process. Linux only (prctl); elsewhere a no-op."""
+    """Ask the kernel to send this rank :data:`LAUNCHER_GONE` when its launcher dies (even by
+    kill -9), so no rank trains on as an orphan: the ranks agree to stop at the next step and
+    checkpoint, as for SIGTERM. Linux only (prctl); elsewhere a no-op."""
     if not sys.platform.startswith("linux"):
         return
     try:
         libc = ctypes.CDLL(None, use_errno=True)
-        if libc.prctl(PR_SET_PDEATHSIG, int(signal.SIGTERM), 0, 0, 0) != 0:
+        if libc.prctl(PR_SET_PDEATHSIG, int(LAUNCHER_GONE), 0, 0, 0) != 0:
             return
     except (OSError, AttributeError):
         return
     # the launcher may have died before the request was made: then no signal will ever come
     launcher = os.environ.get(LAUNCHER_PID)
     if launcher is not None and launcher.isdigit() and os.getppid() != int(launcher):
-        os.kill(os.getpid(), signal.SIGTERM)
+        os.kill(os.getpid(), LAUNCHER_GONE)
 
 
 def launched_by_torchrun(environ: dict[str, str] | None = None) -> bool:

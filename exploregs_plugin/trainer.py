@@ -20,7 +20,8 @@ from exploregs_plugin.callbacks import TrainingCallback
 from exploregs_plugin.collapse import CollapseError, CollapseWatch
 from exploregs_plugin.configs import load_config, save_config
 from exploregs_plugin.device import resolve_device
-from exploregs_plugin.distributed import MachineConfig, init_world, params_checksum
+from exploregs_plugin.distributed import (LAUNCHER_GONE, MachineConfig, init_world, launched_by_eg_train,
+                                          params_checksum)
 from exploregs_plugin.evaluation import (evaluate, evaluate_views, evaluation_panel, summarize_evaluation,
                                          write_metrics_json)
 from exploregs_plugin.io.atomic import create_new_folder
@@ -491,10 +492,14 @@ class Stopped(KeyboardInterrupt):
     """Training stopped on a signal (Ctrl-C's SIGINT, or SIGTERM from a scheduler, a container or
     ``kill``) at a step boundary, after writing a checkpoint. ``exit_code`` is 128 + signal."""
 
-    def __init__(self, signum: int, step: int | None = None, checkpoint: Path | None = None) -> None:
+    def __init__(self, signum: int, step: int | None = None, checkpoint: Path | None = None,
+                 where: str = "before training started") -> None:
         self.signum, self.step, self.checkpoint = signum, step, checkpoint
         name = signal.Signals(signum).name
-        where = f"before step {step}; checkpoint {checkpoint}" if step is not None else "before training started"
+        if signum == LAUNCHER_GONE:
+            name += " (its launcher is gone)"
+        if step is not None:
+            where = f"before step {step}; checkpoint {checkpoint}"
         super().__init__(f"stopped by {name} {where}")
 
     @property
@@ -506,12 +511,18 @@ STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 
 
 class _StopOnSignals:
-    """The first SIGINT or SIGTERM asks the loop to stop at the next step boundary (so the
-    checkpoint holds a consistent state, never half an optimizer step); a second one stops at
-    once. Installed from the main thread only (Python delivers signals there)."""
+    """The first SIGINT or SIGTERM (or, in a rank of eg-train's launcher, SIGHUP) asks the loop to
+    stop at the next step boundary (so the checkpoint holds a consistent state, never half an
+    optimizer step); a second SIGINT or SIGTERM stops at once. Repeats of SIGHUP are one request:
+    the kernel sends a launched rank one per thread of its dying launcher (see
+    ``distributed.LAUNCHER_GONE``), and a rank that left at once would leave the others waiting in
+    a collective; once one came, later ones are ignored to the end of the process (they may still
+    arrive while the rank leaves its group). Installed from the main thread only (Python delivers
+    signals there)."""
 
     def __init__(self) -> None:
         self.signum: int | None = None
+        self.launcher_gone = False
         self._previous: dict[int, Any] = {}
 
     @property
@@ -519,15 +530,19 @@ class _StopOnSignals:
         return self.signum is not None
 
     def _handler(self, signum: int, frame: Any) -> None:
-        if self.signum is not None:
-            raise Stopped(signum)
-        self.signum = signum
+        if self.signum is not None and signum != LAUNCHER_GONE:
+            raise Stopped(signum, where="at once, without a checkpoint (a second signal)")
+        self.signum = self.signum or signum
+        self.launcher_gone |= signum == LAUNCHER_GONE
 
     def __enter__(self) -> "_StopOnSignals":
         if threading.current_thread() is threading.main_thread():
-            self._previous = {s: signal.signal(s, self._handler) for s in STOP_SIGNALS}
+            signals = STOP_SIGNALS + ((LAUNCHER_GONE,) if launched_by_eg_train() else ())
+            self._previous = {s: signal.signal(s, self._handler) for s in signals}
         return self
 
     def __exit__(self, *exc: Any) -> None:
         for s, previous in self._previous.items():
+            if s == LAUNCHER_GONE and self.launcher_gone:
+                previous = signal.SIG_IGN
             signal.signal(s, signal.SIG_DFL if previous is None else previous)

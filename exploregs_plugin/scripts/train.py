@@ -20,8 +20,8 @@ import tyro
 from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
 from exploregs_plugin.collapse import CollapseError
 from exploregs_plugin.configs import load_config, tyro_error_text
-from exploregs_plugin.distributed import (DistributedError, MachineConfig, PeerLostError, launched_by_eg_train,
-                                          launched_by_torchrun, leave_world)
+from exploregs_plugin.distributed import (LAUNCHER_GONE, DistributedError, MachineConfig, PeerLostError,
+                                          launched_by_eg_train, launched_by_torchrun, leave_world)
 from exploregs_plugin.io.checkpoint import resolve_run
 from exploregs_plugin.scripts import run_cli
 from exploregs_plugin.method_configs import MethodRegistryError, all_methods
@@ -64,6 +64,7 @@ def parse_config(argv: list[str]) -> TrainerConfig:
 
 
 def _stop_before_training(signum: int, frame: object) -> None:
+    signal.signal(signum, signal.SIG_IGN)  # a repeat (the launcher's SIGHUP comes once per thread) adds nothing
     raise Stopped(signum)
 
 
@@ -98,7 +99,8 @@ def _machine(argv: list[str], resume: tuple[Path, str | None, int | None] | None
 def main(argv: list[str]) -> dict:
     # Before the loop installs its own handler, SIGTERM ends the command with one line (pycolmap's
     # failure handler would otherwise print a crash dump); during training it checkpoints first.
-    signal.signal(signal.SIGTERM, _stop_before_training)
+    for signum in (signal.SIGTERM, LAUNCHER_GONE) if launched_by_eg_train() else (signal.SIGTERM,):
+        signal.signal(signum, _stop_before_training)
     trainer = None
     try:
         resume = resume_options(argv) if argv[:1] == ["--resume"] else None
