@@ -273,6 +273,7 @@ class Pipeline:
             "loss": loss_value,
             "terms": {k: float(v) for k, v in totals.items() if k not in ("loss", "psnr")},
             "psnr": float(totals["psnr"]),
+            "views": tuple(int(i) for i in indices),
             "counts": dict(counts or {}),
             "means_lr": means_lr,
         }

@@ -307,8 +307,10 @@ class Trainer:
     def _check_collapse(self, step: int, stats: dict[str, Any]) -> None:
         """Stop a run whose training PSNR collapses (see :class:`CollapseWatch`) before it writes a
         checkpoint of the collapsed state."""
+        views = stats.get("views", ())
         reason = self._collapse.update(step, float(stats["psnr"]), float(stats["loss"]),
-                                       restart=bool(stats["counts"].get("opacity_reset", 0)))
+                                       restart=bool(stats["counts"].get("opacity_reset", 0)),
+                                       view=views[0] if len(views) == 1 else None)
         if reason is not None:
             raise CollapseError(f"step {step}: {reason}. Training stopped; {self._last_good()}")
 
