@@ -12,7 +12,7 @@ import pytest
 from exploregs_plugin.bench.presets import preset
 from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec, BenchSpecError
 from exploregs_plugin.bench.specfile import compose
-from exploregs_plugin.bench.presets import LOWTHRESH_GROW_GRAD2D, entry_from_arg, named_entries, real
+from exploregs_plugin.bench.presets import LOWTHRESH_GROW_GRAD2D, entry_from_arg, full, named_entries, real
 from exploregs_plugin.bench.runner import RunRecord
 from exploregs_plugin.bench.spec import build_config, comparable, config_fingerprint, configs_match, scene_from_arg
 from exploregs_plugin.bench.tables import mean_std, run_row, summarize
@@ -123,6 +123,37 @@ def test_real_preset_skips_absent_scenes(tmp_path):
     spec = real(tmp_path)
     assert [s.name for s in spec.scenes] == ["fox"] and spec.scenes[0].options == ("--data-factor", "12")
     assert any("beer" in note for note in spec.notes)
+
+
+def test_full_preset_runs_the_compared_methods_three_times_and_the_rest_once(tmp_path):
+    with pytest.raises(BenchSpecError, match="no captured scenes"):
+        full(tmp_path)
+    for name in ("beer", "fox"):
+        (tmp_path / name).mkdir()
+    spec = full(tmp_path)
+    assert spec.steps == 30_000 and spec.seeds == (0, 1, 2)
+    runs = [(scene.name, entry.name, seed) for scene, entry, seed in spec.runs()]
+    assert len(runs) == 2 * (2 * 3 + 7)
+    assert {e for _, e, s in runs if s > 0} == {"default", "seedsplit"}
+    # seed outermost: every method of every scene at seed 0 comes before any second seed
+    first_repeat = next(i for i, (_, _, s) in enumerate(runs) if s > 0)
+    assert all(s == 0 for _, _, s in runs[:first_repeat]) and first_repeat == 2 * 9
+    # the overrides parse against each method, as eg-train would parse them
+    official = _config(spec, "seedsplit-official").pipeline.strategy
+    assert (official.n_seed, official.seed_every, official.n_split, official.split_every) == (100, 100, 20, 1)
+    assert official.seed_box_mode == "cameras" and official.split_scale_factor == 1.6
+    assert _config(spec, "seedsplit").pipeline.strategy.budget == "paper"
+    assert _config(spec, "default", scene=1).pipeline.datamanager.data_factor == 9
+    # a --seeds choice keeps each entry within it; the tables count each entry's own seeds
+    assert spec.seeds_of(spec.entry("mcmc")) == (0,) and spec.seeds_of(spec.entry("default")) == (0, 1, 2)
+    records = [_record("default", s, 20.0 + s) for s in (0, 1, 2)] + [_record("mcmc", 0, 21.0)]
+    small = BenchSpec(entries=(spec.entry("default"), BenchEntry("mcmc", "exploregs-mcmc", seeds=(0,))),
+                      scenes=(BenchScene("s", "builtin:tiny"),), seeds=(0, 1, 2))
+    summary = {s["entry"]: s for s in summarize(small, [run_row(small, r) for r in records])}
+    assert summary["mcmc"]["n_seeds"] == 1 and summary["mcmc"]["n_done"] == 1
+    assert summary["mcmc"]["paired"]["psnr"]["mean"] == pytest.approx(1.0)
+    with pytest.raises(BenchSpecError, match="seeds must be unique"):
+        BenchSpec(entries=(BenchEntry("d", "exploregs-default", seeds=(0, 0)),), scenes=small.scenes)
 
 
 def _record(entry: str, seed: int, psnr: float | None, far: float = 20.0) -> RunRecord:

@@ -105,6 +105,20 @@ def test_robust_box_trims_outliers():
     assert rows["means"].max() > 2.0  # the paper's AABB keeps the far Gaussian's extent
 
 
+def test_cameras_box_is_the_extent_cube_around_the_cameras_centre_whatever_the_centres():
+    g = torch.Generator().manual_seed(5)
+    params = make_gaussians(200, g)
+    with torch.no_grad():
+        params["means"][0] = torch.tensor([50.0, 50.0, 50.0])  # far outside: ignored by this box
+    center = torch.tensor([1.0, -2.0, 0.5])
+    rows = seed_rows(params["means"], params["scales"], 2000, torch.Generator().manual_seed(0), center, 3,
+                     box="cameras", extent=3.0)
+    offset = rows["means"] - center
+    assert offset.abs().max() <= 3.0 + 1e-5 and offset.abs().max() > 2.9  # fills the cube, not more
+    assert torch.allclose(offset.mean(0), torch.zeros(3), atol=0.2)
+    assert seed_rows(params["means"][:0], params["scales"][:0], 5, g, center, 3, box="cameras") is None
+
+
 def test_seeding_relaxes_size_prune_while_active():
     s = SeedingStrategy(n_seed=5, seed_every=10, **WINDOW)
     assert s.size_prune_factor(200) == 10.0 and DefaultStrategy(**WINDOW).size_prune_factor(200) == 0.1

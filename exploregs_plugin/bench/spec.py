@@ -63,6 +63,9 @@ class BenchEntry:
     same scene and seed (``--strategy.cap-max {default:num_gaussians}``): such a run waits for it."""
     description: str = ""
     """One line for the docs and results.md."""
+    seeds: tuple[int, ...] | None = None
+    """The seeds this entry runs, of the bench's (None: all of them): a control or a costly method
+    may run once where the methods compared run three times."""
 
     def depends_on(self) -> set[str]:
         """Entries whose results this entry's overrides use."""
@@ -125,6 +128,8 @@ class BenchSpec:
             raise BenchSpecError(f"seeds must be unique, got {list(self.seeds)}")
         names = {e.name for e in self.entries}
         for e in self.entries:
+            if e.seeds is not None and len(set(e.seeds)) != len(e.seeds):
+                raise BenchSpecError(f"entry {e.name!r}: seeds must be unique, got {list(e.seeds)}")
             for ref in e.depends_on():
                 if ref not in names:
                     raise BenchSpecError(f"entry {e.name!r} uses the result of {ref!r}, which is not in the bench")
@@ -137,10 +142,14 @@ class BenchSpec:
                 return e
         raise BenchSpecError(f"no entry named {name!r}")
 
+    def seeds_of(self, entry: BenchEntry) -> tuple[int, ...]:
+        """The bench's seeds that ``entry`` runs (its own list, within the bench's)."""
+        return self.seeds if entry.seeds is None else tuple(s for s in self.seeds if s in entry.seeds)
+
     def runs(self) -> list[tuple[BenchScene, BenchEntry, int]]:
-        """Every (scene, entry, seed), seeds innermost-last so that a partial bench covers all
-        methods of a scene at seed 0 before it starts seed 1."""
-        return [(sc, e, s) for sc in self.scenes for s in self.seeds for e in self.entries]
+        """Every (scene, entry, seed), seed outermost, so that a partial bench covers all methods
+        of every scene at seed 0 before it starts seed 1."""
+        return [(sc, e, s) for s in self.seeds for sc in self.scenes for e in self.entries if s in self.seeds_of(e)]
 
 
 _STREAM_LOCK = threading.Lock()

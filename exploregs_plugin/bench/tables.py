@@ -65,12 +65,13 @@ def summarize(spec: BenchSpec, rows: list[dict[str, Any]]) -> list[dict[str, Any
     out = []
     for scene in spec.scenes:
         for entry in spec.entries:
-            mine = [index[(scene.name, entry.name, s)] for s in spec.seeds if (scene.name, entry.name, s) in index]
+            seeds = spec.seeds_of(entry)
+            mine = [index[(scene.name, entry.name, s)] for s in seeds if (scene.name, entry.name, s) in index]
             done = [r for r in mine if r["status"] == "done"]
             item: dict[str, Any] = {
                 "scene": scene.name, "entry": entry.name, "method": entry.method,
                 "n_done": len(done), "n_failed": sum(r["status"] == "failed" for r in mine),
-                "n_seeds": len(spec.seeds), "metrics": {}, "paired": {},
+                "n_seeds": len(seeds), "metrics": {}, "paired": {},
             }
             for key in METRICS:
                 item["metrics"][key] = mean_std([r[key] for r in done if r[key] is not None])
@@ -155,8 +156,10 @@ def markdown(spec: BenchSpec, rows: list[dict[str, Any]], summary: list[dict[str
         "",
         "## Entries", "",
     ]
-    lines += _table(["name", "method", "overrides", "what"],
+    own_seeds = any(e.seeds is not None for e in spec.entries)  # a seeds column only when they differ
+    lines += _table(["name", "method", "overrides", "what"] + (["seeds"] if own_seeds else []),
                     [[e.name, e.method, f"`{' '.join(e.overrides)}`" if e.overrides else "", e.description]
+                     + ([", ".join(map(str, spec.seeds_of(e)))] if own_seeds else [])
                      for e in spec.entries])
     lines += ["", "Scenes: " + "; ".join(
         f"`{s.name}` = `{s.data}`" + (f" `{' '.join(s.options)}`" if s.options else "") for s in spec.scenes), ""]

@@ -39,7 +39,8 @@ class BenchCommand:
 
     preset: Annotated[tyro.conf.Positional[Optional[PresetName]], unset("none, the options alone")] = None
     """Start from a preset: quick (minutes), standard (built-in Blur-Trap scenes, ~2 h), real
-    (../shared/scenes), real-gpu (the paper's 30k-step recipe on them, for a GPU), dynamic (the 4D
+    (../shared/scenes), full (the paper's 30k-step schedule on them, on a CPU: ~10 h with --jobs
+    2, resumable), real-gpu (the same recipe at full resolution, for a GPU), dynamic (the 4D
     methods on the built-in dynamic scene, docs/dynamic.md), dnerf (the 4D and two static methods on
     the D-NeRF lego in ../shared/scenes), branch-ablation, depth-supervision, split-ablation (the
     paper's ablations, docs/analysis.md). Options below change it."""
@@ -87,8 +88,9 @@ def describe(spec: BenchSpec, results: Path) -> list[str]:
     from exploregs_plugin.bench.runner import is_finished
 
     n = len(spec.runs())
+    fewer = " (fewer for some methods)" if n < len(spec.entries) * len(spec.scenes) * len(spec.seeds) else ""
     lines = [f"bench {spec.name}: {len(spec.entries)} methods x {len(spec.scenes)} scenes x "
-             f"{len(spec.seeds)} seeds = {n} runs of {spec.steps} steps",
+             f"{len(spec.seeds)} seeds{fewer} = {n} runs of {spec.steps} steps",
              "  methods: " + ", ".join(e.name + (f" [{' '.join(e.overrides)}]" if e.overrides else "")
                                        for e in spec.entries),
              "  scenes: " + ", ".join(f"{s.name} ({s.data}{' ' + ' '.join(s.options) if s.options else ''})"

@@ -44,22 +44,30 @@ SEED_SEEN = "seed_seen"
 """Per-Gaussian statistic: number of training views in which the row was visible since seeding."""
 
 
-def seed_box(means: Tensor, mode: str = "aabb", quantile: float = 0.01) -> tuple[Tensor, Tensor] | None:
+def seed_box(means: Tensor, mode: str = "aabb", quantile: float = 0.01, center: Tensor | None = None,
+             extent: float = 1.0) -> tuple[Tensor, Tensor] | None:
     """Box of the finite centres: (lo [3], hi [3]); None when there is no finite centre.
 
     mode 'aabb' is the paper's rule (min/max); 'robust' uses the per-axis ``quantile`` and
-    ``1 - quantile`` so a few outliers do not inflate the box.
+    ``1 - quantile`` so a few outliers do not inflate the box; 'cameras' is the cube
+    ``center +- extent`` (the cameras' centre and the scene extent, 1.1 x the farthest camera's
+    distance from it), where the released code of the paper seeds.
     """
     finite = means[torch.isfinite(means).all(dim=-1)]
     if finite.shape[0] == 0:
         return None
+    if mode == "cameras":
+        if center is None:
+            raise StrategyError("seed box mode 'cameras' needs the cameras' centre")
+        c = center.to(dtype=finite.dtype, device=finite.device)
+        return c - float(extent), c + float(extent)
     if mode == "aabb":
         return finite.min(dim=0).values, finite.max(dim=0).values
     if mode == "robust":
         q = torch.tensor([quantile, 1.0 - quantile], dtype=finite.dtype, device=finite.device)
         lo_hi = torch.quantile(finite, q, dim=0)
         return lo_hi[0], lo_hi[1]
-    raise StrategyError(f"seed box mode must be 'aabb' or 'robust', got '{mode}'")
+    raise StrategyError(f"seed box mode must be 'aabb', 'robust' or 'cameras', got '{mode}'")
 
 
 def seed_rows(
@@ -72,6 +80,7 @@ def seed_rows(
     *,
     box: str = "aabb",
     box_quantile: float = 0.01,
+    extent: float = 1.0,
     opacity_base: float = 0.2,
     opacity_gain: float = 0.5,
     min_scale: float = 1e-7,
@@ -81,9 +90,10 @@ def seed_rows(
     means, log_scales: [N, 3] existing Gaussians; scene_center: [3]; sh_rest: K - 1 higher SH
     coefficients. Returns {means [S,3], scales [S,3], quats [S,4], opacities [S], sh0 [S,1,3],
     shN [S,sh_rest,3]}. A zero-volume box (e.g. one Gaussian, coplanar centres) is kept as is:
-    seeds lie in it. ``min_scale`` floors the scale of a seed that lands on the centre.
+    seeds lie in it. ``min_scale`` floors the scale of a seed that lands on the centre; ``extent``
+    is the half-side of the 'cameras' box.
     """
-    bounds = seed_box(means.detach(), box, box_quantile)
+    bounds = seed_box(means.detach(), box, box_quantile, scene_center, extent)
     if bounds is None or n_seed <= 0:
         return None
     lo, hi = bounds
@@ -129,8 +139,9 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
     """Seeds added per seeding step (0 disables). None: from `budget` (paper: 20)."""
     seed_every: int | None = None
     """Seeding interval in steps. None: from `budget` (paper: the densification interval)."""
-    seed_box_mode: Literal["aabb", "robust"] = "aabb"
-    """Seed box: 'aabb' of all centres (the paper) or 'robust' per-axis quantiles."""
+    seed_box_mode: Literal["aabb", "robust", "cameras"] = "aabb"
+    """Seed box: 'aabb' of all centres (the paper's text), 'robust' per-axis quantiles, or 'cameras':
+    the cube of half-side the scene extent around the cameras' centre (the paper's released code)."""
     seed_box_quantile: float = 0.01
     """Quantile trimmed from each side of each axis in the 'robust' box."""
     seed_opacity_base: float = 0.2
@@ -251,6 +262,7 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
             params["shN"].shape[1],
             box=self.seed_box_mode,
             box_quantile=self.seed_box_quantile,
+            extent=state["scene_scale"],
             opacity_base=self.seed_opacity_base,
             opacity_gain=self.seed_opacity_gain,
             min_scale=self.seed_min_scale * state["scene_scale"],
