@@ -17,7 +17,6 @@ from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.model.dynamic import DynamicGaussianModelConfig
 from exploregs_plugin.pipeline import PipelineConfig
-from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.trainer import TrainerConfig
 
@@ -36,10 +35,10 @@ class MethodRegistryError(ValueError):
     """A method name is unknown, or a plugin's method could not be loaded."""
 
 
-def _method(name: str, description: str, strategy: object, visibility_stats: bool = False) -> MethodSpecification:
-    """``visibility_stats``: the rasterizer also sums each Gaussian's weight and alpha (occlusion-aware splitting)."""
-    model = GaussianModelConfig(raster=RasterSettings(visibility_stats=visibility_stats))
-    config = TrainerConfig(method_name=name, pipeline=PipelineConfig(strategy=strategy, model=model))
+def _method(name: str, description: str, strategy: object) -> MethodSpecification:
+    """A static method: the default model and renderer (the pipeline asks the renderer for what
+    the strategy requires)."""
+    config = TrainerConfig(method_name=name, pipeline=PipelineConfig(strategy=strategy, model=GaussianModelConfig()))
     return MethodSpecification(config=config, description=description)
 
 
@@ -87,9 +86,9 @@ def builtin_methods() -> dict[str, MethodSpecification]:
         _method("exploregs-guided", "Default + guided seeding: seeds on the rays of the pixels with the highest recent error.",
                 s.GuidedSeedingStrategy(budget=budget)),
         _method("exploregs-occlusion", "Default + occlusion-aware splitting: split what blending hides and still errs.",
-                s.OcclusionSplittingStrategy(budget=budget), visibility_stats=True),
+                s.OcclusionSplittingStrategy(budget=budget)),
         _method("exploregs-guided-occlusion", "Default + guided seeding + occlusion-aware splitting.",
-                s.GuidedOcclusionStrategy(budget=budget), visibility_stats=True),
+                s.GuidedOcclusionStrategy(budget=budget)),
         # Dynamic scenes (4DGS): the paper's sparse Random Splitting, 5 per step, and 20 seeds per densification.
         _dynamic_method("exploregs-4d-default", "4DGS (HexPlane deformation of canonical Gaussians) with 3DGS density control.",
                         s.DefaultStrategy()),

@@ -19,6 +19,7 @@ from exploregs_plugin.model.optim import OptimizerConfig, batch_betas, batch_lr_
 from exploregs_plugin.rasterizer import BackendError, backend_line, backend_problem
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
+from exploregs_plugin.strategies.base import VIEW_ERRORS, VISIBILITY_STATS
 
 
 VIEW_ROWS = ("radii", "visibility")
@@ -84,6 +85,15 @@ class NonFiniteError(RuntimeError):
     """Training produced a NaN or inf (in the loss or in a parameter)."""
 
 
+def renderer_for(model: GaussianModelConfig, requires: frozenset[str]) -> GaussianModelConfig:
+    """The model's config with its renderer asked for what the strategy requires (``requires``
+    of the strategy's class): visibility statistics cost a second accumulation per pixel, so
+    they are computed only for a strategy that reads them."""
+    if VISIBILITY_STATS in requires and not model.raster.visibility_stats:
+        return replace(model, raster=replace(model.raster, visibility_stats=True))
+    return model
+
+
 @dataclass
 class PipelineConfig:
     """Everything a training step needs: data, model, optimizer, densification strategy, loss."""
@@ -131,11 +141,13 @@ class Pipeline:
             raise ValueError(f"the schedule was resolved for {schedule.views_per_step} views per step but the "
                              f"batch has {self.batch_size}: resolve it with views_per_step={self.batch_size}")
         self.lr_scale = batch_lr_scale(self.batch_size, config.batch_rule)
-        problem = backend_problem(config.model.raster, device)
+        self.requires = type(config.strategy).requires
+        model_config = renderer_for(config.model, self.requires)
+        problem = backend_problem(model_config.raster, device)
         if problem is not None:
             raise BackendError(problem)
         if world.is_main:
-            print(backend_line(config.model.raster, device), flush=True)
+            print(backend_line(model_config.raster, device), flush=True)
         self.generator = make_generator(device, seed)
         self.generator_restored = True  # False after loading a generator state of another device type
         # One run seed drives everything, the camera order and random initial points included.
@@ -143,7 +155,7 @@ class Pipeline:
         dm = self.datamanager
         self.scene_extent = float(dm.scene_extent)
         self.background = dm.background.to(device)
-        self.model = config.model.setup(*to_device((dm.points, dm.points_rgb), device), seed=seed)
+        self.model = model_config.setup(*to_device((dm.points, dm.points_rgb), device), seed=seed)
         self.optimizers = self._make_optimizers()
         # a dynamic model's deformation field trains with its own optimizer, out of the strategies' reach
         self.field_optimizer = self._make_field_optimizer()
@@ -215,7 +227,7 @@ class Pipeline:
             image, _, depth, info = self.model.render(camera, sh_degree, background)
             self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
             loss, terms = photometric_loss(image, target, self.config.ssim_lambda)
-            if self.strategy.wants_view_errors:  # guided exploration: where this view is still wrong
+            if VIEW_ERRORS in self.requires:  # guided exploration: where this view is still wrong
                 info["view"] = {"index": index, "viewmat": camera.viewmat, "K": camera.K, "target": target,
                                 "error": (image.detach() - target).abs().mean(dim=-1)}
             if self.config.depth_loss_weight > 0.0:

@@ -34,30 +34,32 @@ def test_builtins_are_listed():
     assert all(issubclass(cls, Strategy) for cls in names.values())
 
 
-def test_entry_point_strategy_is_discovered(tmp_path, monkeypatch):
-    _fake_distribution(
-        tmp_path,
-        "eg_fake_plugin",
-        "fancy = eg_fake_plugin_mod:FancyStrategy",
-        """
-        from dataclasses import dataclass
-        import torch
-        from exploregs_plugin.strategies import DefaultStrategy, StepContext, ops
+FANCY_SOURCE = """
+from dataclasses import dataclass
+import torch
+from exploregs_plugin.strategies import DefaultStrategy, StepContext, ops
 
-        @dataclass
-        class FancyStrategy(DefaultStrategy):
-            fanciness: float = 2.0
+@dataclass
+class FancyStrategy(DefaultStrategy):
+    fanciness: float = 2.0
 
-            def explore(self, ctx: StepContext) -> dict[str, int]:
-                counts = super().explore(ctx)
-                n = ctx.params["means"].shape[0]
-                mask = torch.zeros(n, dtype=torch.bool)
-                mask[0] = True
-                counts["fancy"] = ops.duplicate(ctx.params, ctx.optimizers, ctx.state["stats"], mask)
-                return counts
-        """,
-    )
+    def explore(self, ctx: StepContext) -> dict[str, int]:
+        counts = super().explore(ctx)
+        n = ctx.params["means"].shape[0]
+        mask = torch.zeros(n, dtype=torch.bool)
+        mask[0] = True
+        counts["fancy"] = ops.duplicate(ctx.params, ctx.optimizers, ctx.state["stats"], mask)
+        return counts
+"""
+
+
+def _fancy_plugin(tmp_path, monkeypatch) -> None:
+    _fake_distribution(tmp_path, "eg_fake_plugin", "fancy = eg_fake_plugin_mod:FancyStrategy", FANCY_SOURCE)
     monkeypatch.syspath_prepend(str(tmp_path))
+
+
+def test_entry_point_strategy_is_discovered(tmp_path, monkeypatch):
+    _fancy_plugin(tmp_path, monkeypatch)
     names = available_strategies()
     assert names["fancy"].__name__ == "FancyStrategy"
     strategy = names["fancy"](refine_start_iter=0, refine_stop_iter=10, refine_every=5, reset_every=100)
@@ -86,3 +88,69 @@ def test_broken_entry_point_is_a_clear_error(tmp_path, monkeypatch, line, module
     text = str(err.value)
     assert message in text
     assert "eg_bad_plugin" in text and ENTRY_POINT_GROUP in text
+
+
+def test_a_plugin_strategy_is_selectable_with_every_method(tmp_path, monkeypatch):
+    from exploregs_plugin.method_configs import all_methods
+    from exploregs_plugin.scripts.train import parse_config
+
+    _fancy_plugin(tmp_path, monkeypatch)
+    for name, spec in all_methods().items():
+        config = parse_config([name, "--strategy", "fancy", "--strategy.fanciness", "3", "--max-steps", "7"])
+        strategy = config.pipeline.strategy
+        assert type(strategy).__name__ == "FancyStrategy" and strategy.fanciness == 3.0, name
+        # the rest of the method stays: its model, data, schedule
+        assert type(config.pipeline.model) is type(spec.config.pipeline.model), name
+        assert config.pipeline.datamanager.data == spec.config.pipeline.datamanager.data, name
+        assert config.method_name == name and config.max_steps == 7
+
+
+@pytest.mark.parametrize("method", ["exploregs-seedsplit", "exploregs-4d-default"])
+def test_a_plugin_strategy_trains_inside_a_built_in_method(tmp_path, monkeypatch, tiny_scene_dir, method):
+    from exploregs_plugin.scripts.train import parse_config
+
+    _fancy_plugin(tmp_path, monkeypatch)
+    config = parse_config([method, "--strategy=fancy", "--data", "builtin:tiny", "--max-steps", "6", "--run-dir",
+                           str(tmp_path / "run"), "--quiet", "--no-tensorboard", "--eval-count", "1",
+                           "--no-save-eval-images", "--num-threads", "1"])
+    trainer = config.setup()
+    start = trainer.pipeline.model.num_gaussians
+    trainer.train()
+    # its operator ran at every step (one duplicate each), and nothing else grew the set so early
+    assert trainer.op_totals["fancy"] == 6 and trainer.pipeline.model.num_gaussians == start + 6
+
+
+def test_built_in_names_select_the_named_methods_strategy_and_bad_names_are_one_line(capsys):
+    from exploregs_plugin.method_configs import get_method
+    from exploregs_plugin.scripts.train import parse_config
+
+    config = parse_config(["exploregs-default", "--strategy", "seedsplit"])
+    assert config.pipeline.strategy == get_method("exploregs-seedsplit").config.pipeline.strategy
+    assert config.method_name == "exploregs-default"
+    for argv, expected in ((["exploregs-default", "--strategy", "nope"], "unknown strategy 'nope'; registered "
+                            "strategies: default, guided, guided-occlusion, mcmc, occlusion, ray, seed, seedsplit, split"),
+                           (["exploregs-default", "--strategy"], "--strategy needs the name of a registered strategy"),
+                           (["--strategy", "seed"], "--strategy NAME needs a method first")):
+        with pytest.raises(SystemExit) as exit_:
+            parse_config(argv)
+        assert exit_.value.code == 2
+        assert capsys.readouterr().err.strip().splitlines()[-1].startswith(f"eg-train: error: {expected}")
+
+
+def test_strategies_declare_what_they_need_and_the_renderer_computes_just_that():
+    from exploregs_plugin.model import GaussianModelConfig
+    from exploregs_plugin.pipeline import renderer_for
+    from exploregs_plugin.strategies import SeedSplitStrategy
+    from exploregs_plugin.strategies.base import VIEW_ERRORS, VISIBILITY_STATS, StrategyError
+    from exploregs_plugin.strategies.guided import GuidedSeedingStrategy
+    from exploregs_plugin.strategies.occlusion import GuidedOcclusionStrategy, OcclusionSplittingStrategy
+
+    # a composed strategy requires what each part does, whatever the order of its bases
+    assert GuidedOcclusionStrategy.requires == {VIEW_ERRORS, VISIBILITY_STATS}
+    assert OcclusionSplittingStrategy.requires == {VISIBILITY_STATS}
+    assert GuidedSeedingStrategy.requires == {VIEW_ERRORS} and SeedSplitStrategy.requires == frozenset()
+    model = GaussianModelConfig()
+    assert renderer_for(model, OcclusionSplittingStrategy.requires).raster.visibility_stats
+    assert renderer_for(model, GuidedSeedingStrategy.requires) is model and not model.raster.visibility_stats
+    with pytest.raises(StrategyError, match="requires names"):
+        type("Odd", (DefaultStrategy,), {"requires": frozenset({"depth"})})

@@ -14,6 +14,7 @@ import signal
 import sys
 from dataclasses import replace
 from pathlib import Path
+from typing import Any
 
 import tyro
 
@@ -26,12 +27,14 @@ from exploregs_plugin.io.checkpoint import resolve_run
 from exploregs_plugin.scripts import run_cli
 from exploregs_plugin.method_configs import MethodRegistryError, all_methods
 from exploregs_plugin.pipeline import NonFiniteError, resolve_batch_size
+from exploregs_plugin.strategies.registry import StrategyPluginError, available_strategies
 from exploregs_plugin.scripts.launch import LaunchError, LaunchStopped, launch, note_run_dir
 from exploregs_plugin.trainer import CONFIG_NAME, Stopped, Trainer, TrainerConfig
 
 
-DESCRIPTION = ("Train a 3D Gaussian Splatting scene with ExploreGS. Continue an interrupted run with: "
-               "eg-train --resume RUN_DIR [--device DEVICE] [--machine.num-devices N].")
+DESCRIPTION = ("Train a 3D Gaussian Splatting scene with ExploreGS. Any method can take any registered "
+               "strategy (built-in or from a plugin) with: eg-train METHOD --strategy NAME. Continue an "
+               "interrupted run with: eg-train --resume RUN_DIR [--device DEVICE] [--machine.num-devices N].")
 RESUME_USAGE = "usage: eg-train --resume RUN_DIR [--device auto|cpu|cuda|cuda:N] [--machine.num-devices N]"
 
 
@@ -41,17 +44,24 @@ def _fail(message: str, code: int) -> "SystemExit":
 
 
 def parse_config(argv: list[str]) -> TrainerConfig:
-    """Turn the command line into a TrainerConfig (one tyro subcommand per method)."""
+    """Turn the command line into a TrainerConfig (one tyro subcommand per method; ``--strategy
+    NAME`` swaps the method's strategy for a registered one before the rest is parsed)."""
     try:
         methods = all_methods()
     except MethodRegistryError as err:
         raise _fail(str(err), 2) from err
     if argv and not argv[0].startswith("-") and argv[0] not in methods:
         raise _fail(f"unknown method {argv[0]!r}; known methods: {', '.join(sorted(methods))}", 2)
+    argv, strategy_name = _strategy_choice(argv)
+    defaults = {name: spec.config for name, spec in methods.items()}
+    if strategy_name is not None:
+        if not argv or argv[0].startswith("-"):
+            raise _fail("--strategy NAME needs a method first: eg-train METHOD --strategy NAME", 2)
+        strategy = chosen_strategy(strategy_name, methods)
+        base = defaults[argv[0]]
+        defaults[argv[0]] = replace(base, pipeline=replace(base.pipeline, strategy=strategy))
     subcommands = tyro.extras.subcommand_type_from_defaults(
-        {name: spec.config for name, spec in methods.items()},
-        {name: spec.description for name, spec in methods.items()},
-    )
+        defaults, {name: spec.description for name, spec in methods.items()})
     captured = io.StringIO()
     try:
         with contextlib.redirect_stderr(captured):
@@ -61,6 +71,42 @@ def parse_config(argv: list[str]) -> TrainerConfig:
             sys.stderr.write(captured.getvalue())
             raise
         raise _fail(tyro_error_text(captured.getvalue()) or f"invalid arguments {argv}", 2) from None
+
+
+def _strategy_choice(argv: list[str]) -> tuple[list[str], str | None]:
+    """``argv`` without ``--strategy NAME`` (or ``--strategy=NAME``), and NAME (None if absent).
+    ``--strategy.FIELD`` options stay: they set fields of the chosen strategy."""
+    rest, name = [], None
+    args = iter(argv)
+    for arg in args:
+        if arg == "--strategy":
+            name = next(args, None)
+            if name is None or name.startswith("-"):
+                raise _fail("--strategy needs the name of a registered strategy: "
+                            + ", ".join(sorted(available_strategies())), 2)
+        elif arg.startswith("--strategy="):
+            name = arg.split("=", 1)[1]
+        else:
+            rest.append(arg)
+    return rest, name
+
+
+def chosen_strategy(name: str, methods: dict) -> Any:
+    """The strategy ``--strategy NAME`` selects: a built-in with the settings of the method
+    ``exploregs-NAME`` when it has that class (so ``eg-train exploregs-default --strategy
+    seedsplit`` explores as ``exploregs-seedsplit`` does), otherwise the class's own defaults
+    (a plugin's, from the ``exploregs.strategies`` entry points)."""
+    try:
+        registered = available_strategies()
+    except StrategyPluginError as err:
+        raise _fail(str(err), 2) from err
+    if name not in registered:
+        raise _fail(f"unknown strategy {name!r}; registered strategies: {', '.join(sorted(registered))}", 2)
+    cls = registered[name]
+    method = methods.get(f"exploregs-{name}")
+    if method is not None and type(method.config.pipeline.strategy) is cls:
+        return method.config.pipeline.strategy
+    return cls()
 
 
 def _stop_before_training(signum: int, frame: object) -> None:

@@ -59,6 +59,12 @@ class StepContext:
         return require_generator(self.generator, who)
 
 
+VIEW_ERRORS = "view_errors"
+VISIBILITY_STATS = "visibility_stats"
+REQUIREMENTS = frozenset({VIEW_ERRORS, VISIBILITY_STATS})
+"""Everything a strategy can declare in ``Strategy.requires``."""
+
+
 @dataclass
 class Strategy:
     """Base class: shared fields (Gaussian cap, schedule) and the contract's default hooks."""
@@ -74,9 +80,22 @@ class Strategy:
     reset_every: int | None = None
     """Opacity reset interval in steps. None: the run's schedule."""
 
-    wants_view_errors: ClassVar[bool] = False
-    """When true, the pipeline passes each step's view in ``info["view"]``: {"index", "viewmat"
-    [4, 4], "K" [3, 3], "error" [H, W] (mean |render - target|), "target" [H, W, 3]}."""
+    requires: ClassVar[frozenset[str]] = frozenset()
+    """What the strategy needs beyond the 2D-mean gradient, radii and visibility, which every
+    step gives; the pipeline asks the renderer for exactly this: ``VIEW_ERRORS`` (each step's view
+    in ``info["view"]``: {"index", "viewmat" [4, 4], "K" [3, 3], "error" [H, W] (mean |render -
+    target|), "target" [H, W, 3]}) and ``VISIBILITY_STATS`` (``info["visibility"]`` [N, 2]: each
+    Gaussian's summed compositing weight alpha T and alpha over the view's pixels)."""
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        # A composed strategy requires what each of its parts does (a class that declares
+        # ``requires`` adds to its bases' instead of hiding them in the MRO).
+        super().__init_subclass__(**kwargs)
+        cls.requires = frozenset().union(cls.__dict__.get("requires", frozenset()),
+                                         *(getattr(base, "requires", frozenset()) for base in cls.__mro__[1:]))
+        unknown = cls.requires - REQUIREMENTS
+        if unknown:
+            raise StrategyError(f"{cls.__name__}.requires names {sorted(unknown)}; known: {sorted(REQUIREMENTS)}")
 
     SCHEDULE_FIELDS: ClassVar[tuple[str, ...]] = (
         "refine_start_iter",

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..rasterizer.sh import rgb_to_sh0
-from .base import StrategyError
+from .base import VIEW_ERRORS, StrategyError
 from .default import DefaultStrategy
 from .geometry import random_unit_quats
 from .ops import Params
@@ -164,7 +164,7 @@ class GuidedSeedingMixin(SeedingMixin):
     guide_scale: float = 1.0
     """Seed scale as a multiple of its cell's footprint at its depth (z * cell / f)."""
 
-    wants_view_errors = True
+    requires = frozenset({VIEW_ERRORS})
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -180,7 +180,7 @@ class GuidedSeedingMixin(SeedingMixin):
         view = info.get("view")
         if view is None:
             raise StrategyError(f"{type(self).__name__} needs info['view'] (the step's error map): the "
-                                f"pipeline passes it to strategies whose wants_view_errors is true")
+                                f"pipeline passes it to strategies that require VIEW_ERRORS")
         width, height = view["target"].shape[1], view["target"].shape[0]
         cell = view_cell(self.guide_cell, width, height)
         error, colour = coarse_view(view["error"].detach(), view["target"].detach(), cell)

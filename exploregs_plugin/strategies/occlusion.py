@@ -22,7 +22,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from .base import StrategyError
+from .base import VISIBILITY_STATS, StrategyError
 from .default import DefaultStrategy, ndc_gradient_norms, screen_gradient, visible_mask
 from .guided import GuidedSeedingMixin
 from .ops import Params, num_gaussians
@@ -46,8 +46,10 @@ def occlusion_weights(log_scales: Tensor, vis_weight: Tensor, vis_alpha: Tensor,
 
 @dataclass
 class OcclusionSplittingMixin(SplittingMixin):
-    """Random Splitting with candidates drawn by occlusion and compensated error (needs
-    ``--model.raster.visibility-stats``, which the built-in method sets)."""
+    """Random Splitting with candidates drawn by occlusion and compensated error (it requires the
+    renderer's visibility statistics, which the pipeline then asks for)."""
+
+    requires = frozenset({VISIBILITY_STATS})
 
     occlusion_t_floor: float = 0.05
     """Smallest T-bar the gradient is divided by (a fully hidden Gaussian's gradient is noise)."""
@@ -65,8 +67,8 @@ class OcclusionSplittingMixin(SplittingMixin):
         if n == 0:
             return counts
         if "visibility" not in info:
-            raise StrategyError(f"{type(self).__name__} needs info['visibility']: set "
-                                f"--model.raster.visibility-stats (the torch rasterizer computes it)")
+            raise StrategyError(f"{type(self).__name__} needs info['visibility'] (the renderer's visibility "
+                                f"statistics): declare VISIBILITY_STATS in its requires")
         stats = state["stats"]
         vis = info["visibility"].detach().to(params["means"].dtype)  # [N, 2]
         for key in (VIS_WEIGHT, VIS_ALPHA, OCC_ERROR):
