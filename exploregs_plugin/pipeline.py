@@ -14,7 +14,8 @@ from exploregs_plugin.device import make_generator, restore_generator, to_device
 from exploregs_plugin.distributed import World
 from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
 from exploregs_plugin.model import GaussianModelConfig
-from exploregs_plugin.model.losses import DepthSpace, depth_l1, photometric_loss, psnr
+from exploregs_plugin.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
+from exploregs_plugin.model.losses import DepthSpace, psnr
 from exploregs_plugin.model.optim import OptimizerConfig, batch_betas, batch_lr_scale, set_lr
 from exploregs_plugin.rasterizer import BackendError, backend_line, backend_problem
 from exploregs_plugin.schedule import Schedule
@@ -94,6 +95,14 @@ def renderer_for(model: GaussianModelConfig, requires: frozenset[str]) -> Gaussi
     return model
 
 
+def loss_terms(config: "PipelineConfig") -> list[LossTerm]:
+    """The per-view loss terms a pipeline config asks for, in the order they are summed."""
+    terms: list[LossTerm] = [PhotometricTerm(config.ssim_lambda)]
+    if config.depth_loss_weight > 0.0:
+        terms.append(DepthTerm(config.depth_loss_weight, config.depth_loss_space, config.depth_supervision))
+    return terms
+
+
 @dataclass
 class PipelineConfig:
     """Everything a training step needs: data, model, optimizer, densification strategy, loss."""
@@ -159,6 +168,7 @@ class Pipeline:
         self.optimizers = self._make_optimizers()
         # a dynamic model's deformation field trains with its own optimizer, out of the strategies' reach
         self.field_optimizer = self._make_field_optimizer()
+        self.loss_terms = loss_terms(config)
         self.strategy = config.strategy.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
         # Scene centre = mean training-camera centre (seeding measures distances from it).
@@ -205,77 +215,20 @@ class Pipeline:
         data-parallel run renders its share) and minimises their mean loss. Each view is
         back-propagated on its own (one view's graph in memory at a time), the ranks' gradients
         are summed with one all-reduce, and the strategy sees every view's observations."""
-        batch, world = self.batch_size, self.world
         self.model.begin_step(step, self.schedule.max_steps)
-        indices = self.datamanager.next_train_indices(batch)  # every rank draws the whole batch
+        indices = self.datamanager.next_train_indices(self.batch_size)  # every rank draws the whole batch
         # the backgrounds too, so that the run's generator advances alike on every rank
         backgrounds = [self._step_background() for _ in indices]
-        share = batch // world.size
-        mine = range(world.rank * share, (world.rank + 1) * share)
-        sh_degree = self.sh_degree_at(step)
-        infos: list[dict[str, Any]] = []
+        share = self.batch_size // self.world.size
+        mine = range(self.world.rank * share, (self.world.rank + 1) * share)
         totals: dict[str, Tensor] = {}
-        for position in mine:
-            index = indices[position]
-            camera, target, extras = self.datamanager.train_item(index)
-            target = target.to(self.device, non_blocking=True)
-            background = backgrounds[position]
-            if self.random_background:
-                # The target was composited on the dataset background b0 with alpha a:
-                # t = c a + b0 (1 - a), so on a new background b it is t + (b - b0)(1 - a).
-                target = target + (background - self.background) * (1.0 - extras["alpha"].to(self.device))
-            image, _, depth, info = self.model.render(camera, sh_degree, background)
-            self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
-            loss, terms = photometric_loss(image, target, self.config.ssim_lambda)
-            if VIEW_ERRORS in self.requires:  # guided exploration: where this view is still wrong
-                info["view"] = {"index": index, "viewmat": camera.viewmat, "K": camera.K, "target": target,
-                                "error": (image.detach() - target).abs().mean(dim=-1)}
-            if self.config.depth_loss_weight > 0.0:
-                if "depth" not in extras:
-                    raise ValueError("depth_loss_weight > 0 but the dataset has no depth maps")
-                gt_depth = self.config.depth_supervision.apply(extras["depth"], index).to(self.device)
-                depth_term = depth_l1(depth, gt_depth, self.config.depth_loss_space)
-                loss = loss + self.config.depth_loss_weight * depth_term
-                terms["depth"] = depth_term.detach()
-            if batch > 1:
-                loss = loss / batch  # the batch's mean loss (its gradient is the mean of the views')
-                terms = {k: v / batch for k, v in terms.items()}
-                info["n_cameras"] = batch  # so the strategies undo the 1/B in the 2D-mean gradients
-            if position == mine.start and world.is_main:  # the regulariser enters once per step
-                reg = self.strategy.regularization_loss(self.params)
-                model_reg = self.model.regularization_loss()  # a deformation field's plane regularisers
-                if model_reg is not None:
-                    reg = reg + model_reg
-                loss = loss + reg
-                terms["reg"] = reg.detach()
-            loss.backward()
-            for key, value in {"loss": loss.detach(), "psnr": torch.tensor(psnr(image, target) / batch, device="cpu"),
-                               **terms}.items():
-                value = value.detach().reshape(()).to("cpu", torch.float64)
-                totals[key] = totals[key] + value if key in totals else value
-            infos.append(info)
-        if world.is_distributed:
-            totals.setdefault("reg", torch.zeros((), dtype=torch.float64))  # rank 0 adds it: same keys everywhere
-            self._all_reduce_gradients(totals)
-            step_info = {"views": gather_view_infos(world, infos, self.model.num_gaussians)}
-        else:
-            step_info = infos[0] if batch == 1 else {"views": infos}
+        infos = [self._train_view(step, indices[p], backgrounds[p], p == mine.start, totals) for p in mine]
+        step_info = self._step_observations(infos, totals)
         loss_value = float(totals["loss"])
         if not math.isfinite(loss_value):
             raise NonFiniteError(f"step {step}: the loss is {loss_value} (terms: " + ", ".join(
                 f"{k}={float(v):.4g}" for k, v in totals.items() if k not in ("loss", "psnr")) + ")")
-
-        means_lr = self.means_lr_at(step)
-        set_lr(self.optimizers["means"], means_lr)
-        for optimizer in self.optimizers.values():
-            optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
-        if self.field_optimizer is not None:
-            lrs = self.model.field_lrs(step, self.schedule.max_steps, self.scene_extent, self.lr_scale)
-            for group in self.field_optimizer.param_groups:
-                group["lr"] = lrs[group["name"]]
-            self.field_optimizer.step()
-            self.field_optimizer.zero_grad(set_to_none=True)
+        means_lr = self._optimizer_step(step)
         self.check_finite(step)
         counts = self.strategy.step_post_backward(
             self.params, self.optimizers, self.strategy_state, step, step_info, lr=means_lr,
@@ -289,6 +242,71 @@ class Pipeline:
             "counts": dict(counts or {}),
             "means_lr": means_lr,
         }
+
+    def _train_view(self, step: int, index: int, background: Tensor, first: bool,
+                    totals: dict[str, Tensor]) -> dict[str, Any]:
+        """Render one training view, back-propagate its share of the step's loss, add its values
+        to ``totals``; returns its render info (the strategy's observations of this view)."""
+        batch = self.batch_size
+        camera, target, extras = self.datamanager.train_item(index)
+        target = self._target_on(background, target.to(self.device, non_blocking=True), extras)
+        image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background)
+        self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
+        loss, terms = view_loss(self.loss_terms, ViewLossInput(image, target, depth, extras, index))
+        if VIEW_ERRORS in self.requires:  # guided exploration: where this view is still wrong
+            info["view"] = {"index": index, "viewmat": camera.viewmat, "K": camera.K, "target": target,
+                            "error": (image.detach() - target).abs().mean(dim=-1)}
+        if batch > 1:
+            loss = loss / batch  # the batch's mean loss (its gradient is the mean of the views')
+            terms = {k: v / batch for k, v in terms.items()}
+            info["n_cameras"] = batch  # so the strategies undo the 1/B in the 2D-mean gradients
+        if first and self.world.is_main:  # the regularisers enter once per step
+            reg = self._regularisers()
+            loss = loss + reg
+            terms["reg"] = reg.detach()
+        loss.backward()
+        for key, value in {"loss": loss.detach(), "psnr": torch.tensor(psnr(image, target) / batch, device="cpu"),
+                           **terms}.items():
+            value = value.detach().reshape(()).to("cpu", torch.float64)
+            totals[key] = totals[key] + value if key in totals else value
+        return info
+
+    def _target_on(self, background: Tensor, target: Tensor, extras: dict[str, Any]) -> Tensor:
+        """The training image on this step's background. The dataset composited it on b0 with
+        alpha a: t = c a + b0 (1 - a), so on a new background b it is t + (b - b0)(1 - a)."""
+        if not self.random_background:
+            return target
+        return target + (background - self.background) * (1.0 - extras["alpha"].to(self.device))
+
+    def _regularisers(self) -> Tensor:
+        """The strategy's regulariser (MCMC's) plus the model's (a deformation field's planes)."""
+        reg = self.strategy.regularization_loss(self.params)
+        model_reg = self.model.regularization_loss()
+        return reg if model_reg is None else reg + model_reg
+
+    def _step_observations(self, infos: list[dict[str, Any]], totals: dict[str, Tensor]) -> dict[str, Any]:
+        """What the strategy observes of the step: one view's info, or every view's in the order of
+        the global batch; across ranks, the gradients and totals are summed first (one all-reduce)."""
+        if self.world.is_distributed:
+            totals.setdefault("reg", torch.zeros((), dtype=torch.float64))  # rank 0 adds it: same keys everywhere
+            self._all_reduce_gradients(totals)
+            return {"views": gather_view_infos(self.world, infos, self.model.num_gaussians)}
+        return infos[0] if self.batch_size == 1 else {"views": infos}
+
+    def _optimizer_step(self, step: int) -> float:
+        """Step every optimizer at this step's learning rates; returns the means' learning rate."""
+        means_lr = self.means_lr_at(step)
+        set_lr(self.optimizers["means"], means_lr)
+        for optimizer in self.optimizers.values():
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        if self.field_optimizer is not None:
+            lrs = self.model.field_lrs(step, self.schedule.max_steps, self.scene_extent, self.lr_scale)
+            for group in self.field_optimizer.param_groups:
+                group["lr"] = lrs[group["name"]]
+            self.field_optimizer.step()
+            self.field_optimizer.zero_grad(set_to_none=True)
+        return means_lr
 
     def _step_background(self) -> Tensor:
         if not self.random_background:

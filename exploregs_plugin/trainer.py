@@ -17,7 +17,7 @@ import torch
 import tyro
 
 from exploregs_plugin.callbacks import TrainingCallback
-from exploregs_plugin.collapse import CollapseError, CollapseWatch
+from exploregs_plugin.collapse import CollapseError, CollapseWatch, deliberate_setback
 from exploregs_plugin.configs import load_config, save_config
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.distributed import (LAUNCHER_GONE, MachineConfig, init_world, launched_by_eg_train,
@@ -307,9 +307,9 @@ class Trainer:
     def _check_collapse(self, step: int, stats: dict[str, Any]) -> None:
         """Stop a run whose training PSNR collapses (see :class:`CollapseWatch`) before it writes a
         checkpoint of the collapsed state."""
-        views = stats.get("views", ())
-        reason = self._collapse.update(step, float(stats["psnr"]), float(stats["loss"]),
-                                       restart=bool(stats["counts"].get("opacity_reset", 0)),
+        views, counts = stats.get("views", ()), stats["counts"]
+        restart = deliberate_setback(counts, self.pipeline.model.num_gaussians)
+        reason = self._collapse.update(step, float(stats["psnr"]), float(stats["loss"]), restart=restart,
                                        view=views[0] if len(views) == 1 else None)
         if reason is not None:
             raise CollapseError(f"step {step}: {reason}. Training stopped; {self._last_good()}")

@@ -492,6 +492,11 @@ def test_the_collapse_watch_judges_a_view_against_its_own_record():
     # an opacity reset starts the records afresh: the fall right after it is not a collapse
     watch.update(406, 20.0, 0.05, view=1, restart=True)
     assert all(watch.update(407 + k, psnr - 12.0, 0.05, view=view) is None for k, (view, psnr) in enumerate(views))
+    # a refinement that pruned a large share of the set restarts it too (the world-size prune)
+    from exploregs_plugin.collapse import deliberate_setback
+
+    assert deliberate_setback({"pruned": 200, "opacity_reset": 0}, 1000) and deliberate_setback({"opacity_reset": 1}, 5)
+    assert not deliberate_setback({"pruned": 50}, 1000) and not deliberate_setback({}, 0)
     # a view's loss grown tenfold over its own lowest is one too
     watch = CollapseWatch()
     for step in range(4):

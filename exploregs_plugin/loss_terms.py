@@ -1,0 +1,78 @@
+"""The training loss as a list of terms, each a small object with its weight.
+
+For one training view the pipeline minimises  sum_k term_k(view)  (a batch of B views takes the
+mean over its views); the regularisers of the strategy (MCMC's opacity and scale terms) and of
+the model (a deformation field's plane smoothness) enter once per step, not per view. A method
+chooses its terms through its PipelineConfig (``ssim_lambda``, ``depth_loss_weight``, ...);
+a new term is a class with ``__call__(view) -> (weighted loss, logged parts)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Any, Protocol, Sequence
+
+from torch import Tensor
+
+from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
+from exploregs_plugin.model.losses import DepthSpace, depth_l1, photometric_loss
+
+
+@dataclass(frozen=True)
+class ViewLossInput:
+    """What a loss term may read about one rendered training view."""
+
+    image: Tensor
+    """[H, W, 3] render."""
+    target: Tensor
+    """[H, W, 3] training image, on the render's background."""
+    depth: Tensor
+    """[H, W, 1] rendered expected depth."""
+    extras: dict[str, Any] = field(default_factory=dict)
+    """The dataset's extras of this view (``depth`` maps, ``alpha``, region masks)."""
+    index: int = 0
+    """The view's index among the training views."""
+
+
+class LossTerm(Protocol):
+    def __call__(self, view: ViewLossInput) -> tuple[Tensor, dict[str, Tensor]]:
+        """(weighted scalar loss in the graph, detached parts to log by name)."""
+
+
+@dataclass(frozen=True)
+class PhotometricTerm:
+    """3DGS's image loss: (1 - lambda) L1 + lambda (1 - SSIM); logs ``l1`` and ``dssim``."""
+
+    ssim_lambda: float = 0.2
+
+    def __call__(self, view: ViewLossInput) -> tuple[Tensor, dict[str, Tensor]]:
+        return photometric_loss(view.image, view.target, self.ssim_lambda)
+
+
+@dataclass(frozen=True)
+class DepthTerm:
+    """weight x L1 between the rendered depth and the dataset's depth map (in z or 1/z), the map
+    first degraded by ``supervision`` (to play a monocular estimate); logs ``depth``."""
+
+    weight: float
+    space: DepthSpace = "depth"
+    supervision: DepthSupervisionConfig = field(default_factory=DepthSupervisionConfig)
+
+    def __call__(self, view: ViewLossInput) -> tuple[Tensor, dict[str, Tensor]]:
+        if "depth" not in view.extras:
+            raise ValueError("depth_loss_weight > 0 but the dataset has no depth maps")
+        target = self.supervision.apply(view.extras["depth"], view.index).to(view.depth.device)
+        term = depth_l1(view.depth, target, self.space)
+        return self.weight * term, {"depth": term.detach()}
+
+
+def view_loss(terms: Sequence[LossTerm], view: ViewLossInput) -> tuple[Tensor, dict[str, Tensor]]:
+    """The sum of the terms on one view (in their order) and every term's logged parts."""
+    if not terms:
+        raise ValueError("the training loss needs at least one term")
+    loss, parts = None, {}
+    for term in terms:
+        value, logged = term(view)
+        loss = value if loss is None else loss + value
+        parts.update(logged)
+    return loss, parts
