@@ -1,6 +1,6 @@
 """The camera record shared by data, model, rasterizer wrappers and viewer.
 
-Conventions (DESIGN.md): OpenCV axes (x right, y down, z forward), world-to-camera
+Conventions (docs/architecture.md#conventions): OpenCV axes (x right, y down, z forward), world-to-camera
 ``viewmat [4, 4]``, pinhole intrinsics ``K [3, 3]``, pixel centres at +0.5.
 """
 

@@ -95,7 +95,7 @@ def renderer_for(model: GaussianModelConfig, requires: frozenset[str]) -> Gaussi
     return model
 
 
-def loss_terms(config: "PipelineConfig") -> list[LossTerm]:
+def loss_terms_of(config: "PipelineConfig") -> list[LossTerm]:
     """The per-view loss terms a pipeline config asks for, in the order they are summed."""
     terms: list[LossTerm] = [PhotometricTerm(config.ssim_lambda)]
     if config.depth_loss_weight > 0.0:
@@ -168,7 +168,7 @@ class Pipeline:
         self.optimizers = self._make_optimizers()
         # a dynamic model's deformation field trains with its own optimizer, out of the strategies' reach
         self.field_optimizer = self._make_field_optimizer()
-        self.loss_terms = loss_terms(config)
+        self.loss_terms = loss_terms_of(config)
         self.strategy = config.strategy.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
         # Scene centre = mean training-camera centre (seeding measures distances from it).

@@ -1,4 +1,4 @@
-"""The import graph keeps the layers of DESIGN.md: no module imports from a layer above it.
+"""The import graph keeps the layers of docs/architecture.md#layers: no module imports from a layer above it.
 
 From the top: commands (scripts) -> bench, analysis -> run folders (runs) -> trainer/pipeline
 -> model, data, strategies, viewer -> rasterizer, io (formats only) -> cameras, schedule, kernels (compiled CPU kernels).
@@ -17,7 +17,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("scripts",),
     ("bench", "analysis"),
     ("runs",),
-    ("trainer", "pipeline", "method_configs", "evaluation", "run_logger", "collapse"),
+    ("trainer", "pipeline", "method_configs", "evaluation", "run_logger", "collapse", "loss_terms"),
     ("model", "data", "strategies", "viewer"),
     ("rasterizer", "io", "configs"),
     ("cameras", "schedule", "callbacks", "device", "distributed", "kernels", "threads", ""),  # "" = the package's own __init__
