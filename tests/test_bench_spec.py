@@ -140,9 +140,12 @@ def test_full_preset_runs_the_compared_methods_three_times_and_the_rest_once(tmp
     assert all(s == 0 for _, _, s in runs[:first_repeat]) and first_repeat == 2 * 9
     # the overrides parse against each method, as eg-train would parse them
     official = _config(spec, "seedsplit-official").pipeline.strategy
-    assert (official.n_seed, official.seed_every, official.n_split, official.split_every) == (100, 100, 20, 1)
+    assert (official.n_seed, official.seed_every, official.budget) == (10, 700, "cpu-small")
     assert official.seed_box_mode == "cameras" and official.split_scale_factor == 1.6
-    assert _config(spec, "seedsplit").pipeline.strategy.budget == "paper"
+    assert _config(spec, "seedsplit").pipeline.strategy.budget == "cpu-small"
+    # the threshold for 120-pixel-high images (3DGS's at 720), half of it for the count control
+    assert _config(spec, "default").pipeline.strategy.grow_grad2d == pytest.approx(0.0012)
+    assert spec.entry("default-lowthresh").overrides[:2] == ("--strategy.grow-grad2d", "0.0006")
     assert _config(spec, "default", scene=1).pipeline.datamanager.data_factor == 9
     # a --seeds choice keeps each entry within it; the tables count each entry's own seeds
     assert spec.seeds_of(spec.entry("mcmc")) == (0,) and spec.seeds_of(spec.entry("default")) == (0, 1, 2)

@@ -185,26 +185,49 @@ def real_gpu(root: Path | None = None) -> BenchSpec:
 
 FULL_SCENES = {"beer": ("beer", 6), "fox": ("fox", 9)}
 """name -> (folder in ../shared/scenes, data factor) of the full-schedule CPU bench: beer 720x1280
--> 120x213, fox 1080x1920 -> 120x213. Chosen by measurement (docs/results.md, "Full schedule"):
-at factor 4 a Default run on beer took 0.12 s per step at one thread by step 1300 with 16k
-Gaussians and still growing, over an hour for 30k steps; factor 6 keeps a run near 45 minutes."""
+-> 120x213, fox 1080x1920 -> 120x213, both 120 pixels high (see FULL_GROW_GRAD2D). Chosen by
+measurement (docs/results.md, "Full schedule on a CPU")."""
+FULL_HEIGHT = 120
+"""Image height of both scenes at their factor (the densification threshold depends on it)."""
+REFERENCE_HEIGHT = 720
+"""Image height at which the full bench's Default uses 3DGS's own threshold (beer's capture)."""
+FULL_GROW_GRAD2D = round(0.0002 * REFERENCE_HEIGHT / FULL_HEIGHT, 8)
+"""Default's densification threshold in the full bench: 3DGS's 0.0002 x 720 / 120. The statistic
+is a view-averaged NDC gradient, and for a Gaussian of about a pixel it scales as 1 / H (the loss
+is a mean over the image's pixels, the NDC factor is W / 2 and H / 2): at a sixth of the height
+the same errors give six times the gradient. With 0.0002 itself, Default on beer at 120 or 60
+pixels high grew from 4.4k to about 100k Gaussians by step 3000 of 30k and kept growing (far past
+a CPU's budget and any sensible count for so few pixels); at 0.0012, on beer at 120 pixels high,
+it had 9.5k at step 3000, 6.8k after the prune that follows the first opacity reset and 8.0k at
+step 5000 (docs/results.md). Every Default-family entry uses it, the count control half of it."""
 FULL_STEPS = 30_000
 FULL_SEEDS = (0, 1, 2)
-OFFICIAL_BUDGET = ("--strategy.n-seed", "100", "--strategy.seed-every", "100", "--strategy.n-split", "20",
-                   "--strategy.split-every", "1", "--strategy.split-scale-factor", "1.6",
-                   "--strategy.seed-box-mode", "cameras", "--strategy.seed-prune-scale3d", "10.0")
-"""The paper's released code, where it differs from its text: 100 seeds every 100 steps (the text:
-20 per densification), 20 random splits every step, children at scale / (0.8 N) with N = 2, seeds
-in the cube of the camera extent (the text: the box of the Gaussians), the 10x-extent world-size
-prune while seeding. Seeding and splitting stop with densification (15k of 30k)."""
+FULL_BUDGET = "cpu-small"
+"""Exploration budget of the full bench: the paper's ratios of explored to final Gaussians (0.19
+random splits and 0.2% seeds per final Gaussian) for about 20k final Gaussians, which over the 30k
+schedule resolves to 3 random splits every 11 steps and 2 seeds every 700. The paper's absolute
+budget (20 splits every step, 20 seeds per densification), made for 1.5M Gaussians, does not fit a
+CPU: Seed+Split with it on beer at 120 pixels high had 60k Gaussians at step 3300 (Default: 7k)
+and ran at 5 steps per second and falling, hours for one run."""
+OFFICIAL_BUDGET = ("--strategy.budget", FULL_BUDGET, "--strategy.n-seed", "10", "--strategy.seed-every", "700",
+                   "--strategy.split-scale-factor", "1.6", "--strategy.seed-box-mode", "cameras",
+                   "--strategy.seed-prune-scale3d", "10.0")
+"""The paper's released code, where it differs from its text, at the full bench's scale: five
+times the seeds (the code: 100 every 100 steps against the text's 20 per densification, here 10
+every 700 against 2), seeds in the cube of the camera extent (the text: the box of the
+Gaussians), children at scale / (0.8 N) with N = 2 and the 10x-extent world-size prune while
+seeding (both as the text), the same random splits. Seeding and splitting stop with
+densification (15k of 30k)."""
 
 
 def full(root: Path | None = None) -> BenchSpec:
     """The paper's claims at the standard 3DGS schedule on the captured scenes, on a CPU: 30k
     steps (densify from 500 to 15k every 100, opacity reset every 3k, SH degree up every 1k),
-    every 8th view for testing, at the data factor of :data:`FULL_SCENES`. Default and Seed+Split
-    with three seeds, the other methods and the controls with one; the exploration methods at the
-    paper's budget (its text) and Seed+Split also at its released code's (``seedsplit-official``).
+    every 8th view for testing, at the data factor of :data:`FULL_SCENES` and the densification
+    threshold of :data:`FULL_GROW_GRAD2D`. Default and Seed+Split with three seeds, the other
+    methods and the controls with one; the exploration methods at the paper's ratios
+    (:data:`FULL_BUDGET`) and Seed+Split also with its released code's settings
+    (``seedsplit-official``).
     MCMC and MCMC-ray are capped at Default's final count and the low-threshold control at
     Seed+Split's, so counts match. Meant for ``--jobs 2`` with one thread per run."""
     root = Path(root) if root is not None else shared_scenes_root()
@@ -215,22 +238,24 @@ def full(root: Path | None = None) -> BenchSpec:
     if not scenes:
         raise BenchSpecError(f"full preset: no captured scenes under {root}; nothing to run")
     named, once = named_entries(), (0,)
+    grad = ("--strategy.grow-grad2d", repr(FULL_GROW_GRAD2D))
+    budget = ("--strategy.budget", FULL_BUDGET)
     entries = (
-        named["default"],
-        BenchEntry("seedsplit", "exploregs-seedsplit", PAPER_BUDGET, "Random Seeding + Splitting, the paper's budget"),
-        BenchEntry("seed", "exploregs-seed", PAPER_BUDGET, "Random Seeding, the paper's budget", seeds=once),
-        BenchEntry("split", "exploregs-split", PAPER_BUDGET, "Random Splitting, the paper's budget", seeds=once),
-        BenchEntry("seedsplit-official", "exploregs-seedsplit", OFFICIAL_BUDGET,
-                   "Random Seeding + Splitting, the budget of the paper's released code", seeds=once),
-        replace(named["default-relaxed-prune"], seeds=once),
+        BenchEntry("default", "exploregs-default", grad, "3DGS adaptive density control (the baseline)"),
+        BenchEntry("seedsplit", "exploregs-seedsplit", budget + grad, "Random Seeding + Splitting"),
+        BenchEntry("seed", "exploregs-seed", budget + grad, "Random Seeding", seeds=once),
+        BenchEntry("split", "exploregs-split", budget + grad, "Random Splitting", seeds=once),
+        BenchEntry("seedsplit-official", "exploregs-seedsplit", OFFICIAL_BUDGET + grad,
+                   "Random Seeding + Splitting with the released code's settings", seeds=once),
+        replace(named["default-relaxed-prune"], overrides=named["default-relaxed-prune"].overrides + grad,
+                seeds=once),
         BenchEntry("mcmc", "exploregs-mcmc", ("--strategy.cap-max", "{default:num_gaussians}"),
                    "3DGS-MCMC capped at Default's final count", seeds=once),
         BenchEntry("mcmc-ray", "exploregs-mcmc-ray", ("--strategy.cap-max", "{default:num_gaussians}"),
                    "3DGS-MCMC with ray-only noise, capped at Default's final count", seeds=once),
         BenchEntry("default-lowthresh", "exploregs-default",
-                   named["default-lowthresh"].overrides + ("--strategy.cap-max", "{seedsplit:num_gaussians}"),
-                   "control: Default with the lower gradient threshold, capped at Seed+Split's final count",
-                   seeds=once),
+                   ("--strategy.grow-grad2d", repr(round(FULL_GROW_GRAD2D / 2, 8)), "--strategy.cap-max", "{seedsplit:num_gaussians}"),
+                   "control: Default at half the threshold, capped at Seed+Split's final count", seeds=once),
     )
     return BenchSpec(entries=entries, scenes=tuple(scenes), seeds=FULL_SEEDS, steps=FULL_STEPS,
                      eval_count=10, name="full", notes=tuple(notes))
