@@ -254,7 +254,8 @@ def full(root: Path | None = None) -> BenchSpec:
         BenchEntry("mcmc-ray", "exploregs-mcmc-ray", ("--strategy.cap-max", "{default:num_gaussians}"),
                    "3DGS-MCMC with ray-only noise, capped at Default's final count", seeds=once),
         BenchEntry("default-lowthresh", "exploregs-default",
-                   ("--strategy.grow-grad2d", repr(round(FULL_GROW_GRAD2D / 2, 8)), "--strategy.cap-max", "{seedsplit:num_gaussians}"),
+                   ("--strategy.grow-grad2d", repr(round(FULL_GROW_GRAD2D / 2, 8)),
+                    "--strategy.cap-max", "{seedsplit:num_gaussians}"),
                    "control: Default at half the threshold, capped at Seed+Split's final count", seeds=once),
     )
     return BenchSpec(entries=entries, scenes=tuple(scenes), seeds=FULL_SEEDS, steps=FULL_STEPS,
