@@ -153,19 +153,27 @@ def real(root: Path | None = None) -> BenchSpec:
                      seeds=(0,), steps=REAL_STEPS, eval_count=4, name="real", notes=tuple(notes))
 
 
+def _captured_scenes(preset: str, table: dict[str, tuple[str, int]], root: Path | None
+                     ) -> tuple[tuple[BenchScene, ...], tuple[str, ...]]:
+    """The scenes of ``table`` (name -> (folder, data factor)) found under ``root`` (default
+    ../shared/scenes), and a note for each absent one; BenchSpecError when none is there."""
+    root = Path(root) if root is not None else shared_scenes_root()
+    scenes = tuple(BenchScene(name, str(root / folder), ("--data-factor", str(factor)))
+                   for name, (folder, factor) in table.items() if (root / folder).is_dir())
+    notes = tuple(f"{preset} preset: {root / folder} is absent; scene {name!r} skipped"
+                  for name, (folder, _) in table.items() if not (root / folder).is_dir())
+    if not scenes:
+        raise BenchSpecError(f"{preset} preset: no captured scenes under {root}; nothing to run")
+    return scenes, notes
+
+
 def real_gpu(root: Path | None = None) -> BenchSpec:
     """The paper's recipe on the captured scenes, on a GPU: 30k steps with the 3DGS schedule
     unscaled (densify from 500 to 15k every 100, opacity reset every 3k, SH degree up by one
     every 1k to 3), full or the usual resolution, every 8th view for testing, the paper's
     exploration budget, three seeds. MCMC is capped at Default's final count, and the
     low-threshold control at Seed+Split's, so counts match (``{ENTRY:num_gaussians}``)."""
-    root = Path(root) if root is not None else shared_scenes_root()
-    scenes = [BenchScene(name, str(root / folder), ("--data-factor", str(factor)))
-              for name, (folder, factor) in REAL_GPU_SCENES.items() if (root / folder).is_dir()]
-    notes = [f"real-gpu preset: {root / folder} is absent; scene {name!r} skipped"
-             for name, (folder, _) in REAL_GPU_SCENES.items() if not (root / folder).is_dir()]
-    if not scenes:
-        raise BenchSpecError(f"real-gpu preset: no captured scenes under {root}; nothing to run")
+    scenes, notes = _captured_scenes("real-gpu", REAL_GPU_SCENES, root)
     named = named_entries()
     entries = (
         named["default"],
@@ -230,13 +238,7 @@ def full(root: Path | None = None) -> BenchSpec:
     (``seedsplit-official``).
     MCMC and MCMC-ray are capped at Default's final count and the low-threshold control at
     Seed+Split's, so counts match. Meant for ``--jobs 2`` with one thread per run."""
-    root = Path(root) if root is not None else shared_scenes_root()
-    scenes = [BenchScene(name, str(root / folder), ("--data-factor", str(factor)))
-              for name, (folder, factor) in FULL_SCENES.items() if (root / folder).is_dir()]
-    notes = [f"full preset: {root / folder} is absent; scene {name!r} skipped"
-             for name, (folder, _) in FULL_SCENES.items() if not (root / folder).is_dir()]
-    if not scenes:
-        raise BenchSpecError(f"full preset: no captured scenes under {root}; nothing to run")
+    scenes, notes = _captured_scenes("full", FULL_SCENES, root)
     named, once = named_entries(), (0,)
     grad = ("--strategy.grow-grad2d", repr(FULL_GROW_GRAD2D))
     budget = ("--strategy.budget", FULL_BUDGET)
