@@ -147,6 +147,71 @@ def join_help_lines(text: str) -> str:
     return "\n\n".join(paragraphs).strip()
 
 
+_BOX_TOP = re.compile(r"^[╭┌]─+ (.*?) ─+[╮┐]\s*$")
+_BOX_LINE = re.compile(r"^[│|] (.*?)\s*[│|]\s*$")
+_DEFAULT = re.compile(r"\s*\(default: (.*)\)\s*$")
+_SENTENCE_END = re.compile(r"(?<=[.;])\s")
+
+
+def _is_rule(line: str) -> bool:
+    return bool(line) and set(line) <= set("─-")
+
+
+def _flag_line(name: str, description: str, width: int) -> str:
+    """``  --flag TYPE   First sentence... [default]`` in at most ``width`` characters."""
+    found = _DEFAULT.search(description)
+    value = found.group(1) if found else None
+    default = "" if value is None else f" [{value if len(value) <= 24 else value[:21] + '...'}]"
+    first = _SENTENCE_END.split(_DEFAULT.sub("", description), maxsplit=1)[0].rstrip(".;")
+    line = f"  {name:<30} {first}"
+    room = max(width - len(default), len(name) + 8)  # the flag itself is never cut
+    return (line if len(line) <= room else line[:room - 3].rstrip() + "...") + default
+
+
+def _box_lines(title: str, lines: list[str], width: int) -> list[str]:
+    """One tyro box: its title (with the group's description, which comes before a rule line
+    when there is one), then a line per flag (a flag starts at the box's edge, its text is
+    indented) or per other entry (a subcommand)."""
+    rule = next((i for i, line in enumerate(lines) if _is_rule(line.strip())), None)
+    about = " ".join(line.strip() for line in lines[:rule]) if rule is not None else ""
+    out = [f"{title}:" + (f" {about}" if about else "")]
+    flag: list[str] | None = None
+    for line in lines[rule + 1 if rule is not None else 0:]:
+        if line.startswith("-") and flag is not None and flag[0].endswith(",") and len(flag) == 1:
+            flag[0] += f" {line.strip()}"  # a flag's names went on over two lines
+        elif line.startswith("-"):
+            if flag is not None:
+                out.append(_flag_line(flag[0], " ".join(flag[1:]), width))
+            flag = [line.strip()]
+        elif flag is not None and line.strip():
+            flag.append(line.strip())
+        elif line.strip():
+            out.append(f"  {line.strip()}")
+    if flag is not None:
+        out.append(_flag_line(flag[0], " ".join(flag[1:]), width))
+    return out
+
+
+def compact_help(text: str, width: int = 100) -> str:
+    """tyro's ``--help`` with one line per flag: the flag, the first sentence of its description
+    (cut at ``width``) and its default; each box becomes a group title with its description.
+    Nothing is dropped but the rest of each description, which ``--help-full`` keeps."""
+    out: list[str] = []
+    box: tuple[str, list[str]] | None = None
+    for raw in text.splitlines():
+        top, inside = _BOX_TOP.match(raw), _BOX_LINE.match(raw)
+        if top:
+            box = (top.group(1), [])
+        elif box is not None and inside:
+            box[1].append(inside.group(1))
+        elif box is not None and raw.startswith(("╰", "└")):
+            out += _box_lines(*box, width)
+            box = None
+        else:
+            out.append(raw)
+    return "\n".join(out).rstrip() + "\n"
+
+
 def use_joined_help_lines() -> None:
     """Make tyro join the lines of multi-line docstrings. tyro 1.0 keeps a docstring's line
     break whenever the next line starts with a space or a non-letter, which is every continued

@@ -3,6 +3,8 @@ where unset has a meaning to say."""
 
 from __future__ import annotations
 
+import re
+
 import pytest
 
 from exploregs_plugin.configs import join_help_lines
@@ -26,7 +28,7 @@ def test_eg_train_help_one_flag_per_setting_and_whole_sentences(capsys, monkeypa
     import exploregs_plugin.scripts  # noqa: F401  (the commands' help settings)
     from exploregs_plugin.scripts.train import parse_config
 
-    text = _help(capsys, monkeypatch, lambda: parse_config(["exploregs-seedsplit", "--help"]))
+    text = _help(capsys, monkeypatch, lambda: parse_config(["exploregs-seedsplit", "--help-full"]))
     # --data and --datamanager.data are one setting: one entry names both flags
     assert text.count("--data STR, --datamanager.data STR") == 1 and text.count("--data ") == 1
     assert text.count("--data-factor INT, --datamanager.data-factor INT") == 1
@@ -38,6 +40,27 @@ def test_eg_train_help_one_flag_per_setting_and_whole_sentences(capsys, monkeypa
     assert (config.pipeline.datamanager.data, config.pipeline.datamanager.data_factor) == ("builtin:tiny", 2)
     config = parse_config(["exploregs-default", "--datamanager.data", "builtin:farside", "--datamanager.data-factor", "3"])
     assert (config.pipeline.datamanager.data, config.pipeline.datamanager.data_factor) == ("builtin:farside", 3)
+
+
+def _flags(text: str) -> set[str]:
+    return set(re.findall(r"(?<![\w-])(--[a-z][\w.-]*[\w])", text))
+
+
+def test_eg_train_method_help_is_one_line_per_flag_and_keeps_every_flag(capsys, monkeypatch):
+    from exploregs_plugin.scripts.train import parse_config
+
+    full = _help(capsys, monkeypatch, lambda: parse_config(["exploregs-seedsplit", "--help-full"]), width=80)
+    short = _help(capsys, monkeypatch, lambda: parse_config(["exploregs-seedsplit", "--help"]), width=80)
+    flag_lines = [line for line in full.splitlines() if line.startswith("│ -")]
+    assert len(short.splitlines()) <= len(full.splitlines()) / 3
+    assert _flags("\n".join(flag_lines)) <= _flags(short)  # every flag is still there, once
+    assert short.count("\n  --max-steps INT ") == 1 and "[1500]" in short.split("--max-steps INT", 1)[1].split("\n")[0]
+    assert all(len(line) <= 100 for line in short.splitlines() if line.startswith("  -"))
+    assert "strategy options: Densification / exploration strategy" in short
+    assert short.rstrip().endswith("eg-train METHOD --help-full")
+    # another strategy's flags show with --strategy NAME
+    swapped = _help(capsys, monkeypatch, lambda: parse_config(["exploregs-default", "--strategy", "mcmc", "--help"]))
+    assert "--strategy.noise-lr" in swapped and "--strategy.n-seed" not in swapped
 
 
 def test_eg_bench_help_says_what_unset_means(capsys, monkeypatch):

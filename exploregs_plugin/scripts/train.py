@@ -20,7 +20,7 @@ import tyro
 
 from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
 from exploregs_plugin.collapse import CollapseError
-from exploregs_plugin.configs import load_config, tyro_error_text
+from exploregs_plugin.configs import compact_help, load_config, tyro_error_text
 from exploregs_plugin.distributed import (LAUNCHER_GONE, DistributedError, MachineConfig, PeerLostError,
                                           launched_by_eg_train, launched_by_torchrun, leave_world)
 from exploregs_plugin.io.checkpoint import resolve_run
@@ -53,6 +53,8 @@ def parse_config(argv: list[str]) -> TrainerConfig:
     if argv and not argv[0].startswith("-") and argv[0] not in methods:
         raise _fail(f"unknown method {argv[0]!r}; known methods: {', '.join(sorted(methods))}", 2)
     argv, strategy_name = _strategy_choice(argv)
+    full_help = "--help-full" in argv  # tyro's whole help; --help shows one line per flag
+    argv = ["--help" if arg == "--help-full" else arg for arg in argv]
     defaults = {name: spec.config for name, spec in methods.items()}
     if strategy_name is not None:
         if not argv or argv[0].startswith("-"):
@@ -62,15 +64,28 @@ def parse_config(argv: list[str]) -> TrainerConfig:
         defaults[argv[0]] = replace(base, pipeline=replace(base.pipeline, strategy=strategy))
     subcommands = tyro.extras.subcommand_type_from_defaults(
         defaults, {name: spec.description for name, spec in methods.items()})
-    captured = io.StringIO()
+    captured, shown = io.StringIO(), _Utf8Text()
     try:
-        with contextlib.redirect_stderr(captured):
+        with contextlib.redirect_stderr(captured), contextlib.redirect_stdout(shown):
             return tyro.cli(subcommands, args=argv, description=DESCRIPTION)
     except SystemExit as exit_:
-        if exit_.code in (0, None):  # --help
+        if exit_.code in (0, None):  # --help (tyro writes it to stdout)
+            text = shown.getvalue()
+            if not full_help and argv and not argv[0].startswith("-"):  # a method's flags
+                text = compact_help(text) + "Every flag's whole description: eg-train METHOD --help-full\n"
+            sys.stdout.write(text)
             sys.stderr.write(captured.getvalue())
             raise
         raise _fail(tyro_error_text(captured.getvalue()) or f"invalid arguments {argv}", 2) from None
+
+
+class _Utf8Text(io.StringIO):
+    """A text buffer that says it takes UTF-8, so tyro draws its help boxes as on a terminal
+    (``compact_help`` reads those)."""
+
+    @property
+    def encoding(self) -> str:  # type: ignore[override]
+        return "utf-8"
 
 
 def _strategy_choice(argv: list[str]) -> tuple[list[str], str | None]:
