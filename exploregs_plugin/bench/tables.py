@@ -10,6 +10,7 @@ import math
 from pathlib import Path
 from typing import Any
 
+from exploregs_plugin.bench.far_region import describe_rule, fill_far_regions
 from exploregs_plugin.bench.runner import RunRecord
 from exploregs_plugin.bench.spec import BenchSpec
 from exploregs_plugin.io.atomic import atomic_write_text
@@ -183,6 +184,12 @@ def markdown(spec: BenchSpec, rows: list[dict[str, Any]], summary: list[dict[str
     lines += ["", f"## Region PSNR (dB; {' / '.join(regions) or 'no regions'}, pooled over test views)", ""]
     if region_scenes:
         lines += _grouped(spec, summary, [(r, f"region_{r}", 2, 1.0, False) for r in regions], region_scenes)
+        depth_far = sorted({(r["scene"], r["far_reference"], r["far_quantile"])
+                            for r in rows if r.get("far_reference")})
+        if depth_far:  # captured scenes: far_region.fill_far_regions
+            refs = ", ".join(f"`{sc}`: `{ref}`" for sc, ref, _ in depth_far)
+            lines += ["", f"For captured scenes \"far\" is {describe_rule(depth_far[0][2])} (reference run {refs}; "
+                      f"the same pixels for every method)."]
         if "moving" in regions:  # a dynamic scene: occluded means occluded by motion
             lines += ["", "## Region D-SSIM (dynamic scenes; occluded = static content that moving things "
                       "cover part of the time)", ""]
@@ -239,6 +246,7 @@ def write_tables(results: Path, spec: BenchSpec, records: list[RunRecord],
     """Write results.md, results.csv (one row per run), summary.csv (one row per method and scene)
     and results.json (spec, runs with their histories, summary) into ``results``."""
     rows = [run_row(spec, r) for r in records]
+    fill_far_regions(Path(results), spec, rows)  # captured scenes: far by the reference run's depth
     summary = summarize(spec, rows)
     results = Path(results)
     results.mkdir(parents=True, exist_ok=True)
