@@ -14,8 +14,9 @@ spread evenly over the run's densification window (see :func:`scaled_budget`).
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
-from typing import Literal
+from typing import Any, Literal
 
 from .base import Strategy
 
@@ -129,6 +130,15 @@ class BudgetMixin(Strategy):
         if self.budget not in BUDGET_PRESETS:
             raise ValueError(f"unknown exploration budget '{self.budget}'; known presets: {sorted(BUDGET_PRESETS)}")
         super().__post_init__()
+
+    def schedule_defaults(self, schedule: Any) -> dict[str, int]:
+        """The schedule's values plus the budget's counts and intervals for the exploration
+        fields this strategy has (``n_seed``/``seed_every`` of Seeding, ``n_split``/``split_every``
+        of Splitting), resolved once for every operator composed here."""
+        defaults = super().schedule_defaults(schedule)
+        budget = dataclasses.asdict(self.resolved_budget(defaults, schedule.views_per_step))
+        own = {f.name for f in dataclasses.fields(self)}
+        return {**defaults, **{name: value for name, value in budget.items() if name in own}}
 
     def resolved_budget(self, defaults: dict[str, int], views_per_step: int = 1) -> ExplorationBudget:
         """The budget for this strategy's densification window (own values, else ``defaults``)."""

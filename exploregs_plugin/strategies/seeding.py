@@ -177,11 +177,6 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
     def deferred_fields(self) -> tuple[str, ...]:
         return super().deferred_fields() + ("n_seed", "seed_every")
 
-    def schedule_defaults(self, schedule: Any) -> dict[str, int]:
-        defaults = super().schedule_defaults(schedule)
-        budget = self.resolved_budget(defaults, schedule.views_per_step)
-        return {**defaults, "n_seed": budget.n_seed, "seed_every": budget.seed_every}
-
     def seeding_active(self, step: int) -> bool:
         return bool(self.n_seed) and step < self.refine_stop_iter
 

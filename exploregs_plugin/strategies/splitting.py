@@ -64,11 +64,6 @@ class SplittingMixin(BudgetMixin, DefaultStrategy):
     def deferred_fields(self) -> tuple[str, ...]:
         return super().deferred_fields() + ("n_split", "split_every")
 
-    def schedule_defaults(self, schedule: Any) -> dict[str, int]:
-        defaults = super().schedule_defaults(schedule)
-        budget = self.resolved_budget(defaults, schedule.views_per_step)
-        return {**defaults, "n_split": budget.n_split, "split_every": budget.split_every}
-
     def explore(self, ctx: StepContext) -> dict[str, int]:
         counts = super().explore(ctx)
         counts["random_split"] = 0
