@@ -87,3 +87,16 @@ def test_io_knows_formats_only():
     for module, imports in _graph().items():
         if _unit(module) == "io":
             assert {_unit(t) for t in imports} <= {"io", "cameras"}, (module, imports)
+
+
+def test_training_loads_the_viewer_and_tensorboard_only_when_used():
+    # the viewer's server (viser) and tensorboard cost a quarter second and more at every start of
+    # eg-train, a bench worker or eg-eval; they load when a viewer or a writer is built
+    import subprocess
+    import sys
+
+    probe = ("import sys, exploregs_plugin.scripts.train, exploregs_plugin.bench.worker; "
+             "print(sorted(m for m in ('viser', 'tensorboard', 'torch.utils.tensorboard') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[]"

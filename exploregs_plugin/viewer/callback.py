@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from exploregs_plugin.callbacks import TrainingCallback
 from exploregs_plugin.viewer.config import ViewerConfig
-from exploregs_plugin.viewer.viewer import Viewer
+
+if TYPE_CHECKING:  # the server side (viser) loads when a viewer is built, not with the trainer
+    from exploregs_plugin.viewer.viewer import Viewer
 
 
 class ViewerCallback(TrainingCallback):
