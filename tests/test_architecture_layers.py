@@ -1,6 +1,6 @@
 """The import graph keeps the layers of docs/architecture.md#layers: no module imports from a layer above it.
 
-From the top: commands (scripts) -> bench, analysis -> run folders (runs) -> trainer/pipeline
+From the top: commands (scripts) -> bench, analysis, integrations -> run folders (runs) -> trainer/pipeline
 -> model, data, strategies, viewer -> rasterizer, io (formats only) -> cameras, schedule, kernels (compiled CPU kernels).
 Every import counts, including those inside functions and under TYPE_CHECKING.
 """
@@ -15,7 +15,7 @@ import exploregs_plugin
 PACKAGE = Path(exploregs_plugin.__file__).parent
 LAYERS: list[tuple[str, ...]] = [
     ("scripts",),
-    ("bench", "analysis"),
+    ("bench", "analysis", "integrations"),
     ("runs",),
     ("trainer", "pipeline", "method_configs", "evaluation", "run_logger", "collapse", "loss_terms"),
     ("model", "data", "strategies", "viewer"),
