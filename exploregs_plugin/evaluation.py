@@ -13,7 +13,7 @@ import numpy as np
 import torch
 from PIL import Image
 
-from exploregs_plugin.model.losses import MSE_FLOOR, SSIM_WINDOW, d_ssim, ms_ssim_many, psnr, ssim_map
+from exploregs_plugin.model.losses import SSIM_WINDOW, d_ssim, ms_ssim_many, pooled_psnr, psnr, ssim_map
 from exploregs_plugin.model import GaussianModel
 from exploregs_plugin.io.atomic import atomic_write_text
 
@@ -158,8 +158,7 @@ def summarize_evaluation(parts: Sequence[dict[str, Any]], num_gaussians: int) ->
     }
     if region_n:
         result["region_psnr"] = {
-            r: (-10.0 * math.log10(max(region_sq[r] / region_n[r], MSE_FLOOR)) if region_n[r] else float("nan"))
-            for r in sorted(region_n)
+            r: pooled_psnr(region_sq[r], region_n[r]) for r in sorted(region_n)
         }
         result["region_ssim"] = {r: (region_ssim[r] / region_n[r] if region_n[r] else float("nan"))
                                  for r in sorted(region_n)}

@@ -16,8 +16,6 @@ recomputes them.
 
 from __future__ import annotations
 
-import json
-import math
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -26,11 +24,12 @@ from typing import Any, Callable, Iterator
 import torch
 from torch import Tensor
 
+from exploregs_plugin.bench.runner import read_json
 from exploregs_plugin.bench.spec import BenchSpec
 from exploregs_plugin.configs import load_config
 from exploregs_plugin.evaluation import write_metrics_json
 from exploregs_plugin.io.checkpoint import CheckpointError, atomic_torch_save, checkpoint_path
-from exploregs_plugin.model.losses import MSE_FLOOR, psnr
+from exploregs_plugin.model.losses import pooled_psnr, psnr
 from exploregs_plugin.runs.load import LoadedRun, load_run
 from exploregs_plugin.trainer import CONFIG_NAME, TrainerConfig
 
@@ -113,14 +112,6 @@ def masked_squared_error(image: Tensor, target: Tensor, mask: Tensor) -> tuple[f
     sq = ((image.double() - target.double()) ** 2).mean(dim=-1)
     mask = mask.to(sq.device)
     return float(sq[mask].sum()), int(mask.sum())
-
-
-def pooled_psnr(squared_error: float, count: int) -> float:
-    """PSNR of pooled pixels, -10 log10(max(sum of squared error / count, MSE_FLOOR)); NaN for
-    no pixels (as evaluation.py's regions and model.losses.psnr)."""
-    if count <= 0:
-        return float("nan")
-    return -10.0 * math.log10(max(squared_error / count, MSE_FLOOR))
 
 
 def _plane(value: Tensor, name: str) -> Tensor:
@@ -224,14 +215,6 @@ def far_region_psnr(run_dir: Path, masks: list[Tensor], device: str = "auto") ->
 
 
 # ----------------------------------------------------------------------------- caches
-def _read_json(path: Path) -> dict[str, Any] | None:
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, ValueError):
-        return None
-    return data if isinstance(data, dict) else None
-
-
 def cached_masks(reference: Path, quantile: float, masks_file: Path | None, device: str = "auto") -> list[Tensor]:
     """:func:`far_masks`, kept in ``masks_file`` with the reference's fingerprint and the quantile
     and reused while both match (None: no file)."""
@@ -257,14 +240,15 @@ def cached_far_region_psnr(run_dir: Path, reference: Path, quantile: float = FAR
     default :func:`far_masks` of ``reference``)."""
     run_dir, quantile = Path(run_dir), check_quantile(quantile)
     key = {"reference": run_fingerprint(reference), "quantile": quantile, "run": run_fingerprint(run_dir)}
-    saved = _read_json(run_dir / RESULT_NAME)
-    if saved is not None and all(saved.get(k) == v for k, v in key.items()):
+    saved = read_json(run_dir / RESULT_NAME)
+    if isinstance(saved, dict) and all(saved.get(k) == v for k, v in key.items()):
         return saved
     result = far_region_psnr(run_dir, masks() if masks is not None else far_masks(reference, quantile, device), device)
     payload = {**key, "rule": describe_rule(quantile), "psnr": result.psnr,
                "per_view": result.per_view, "pixels": result.pixels}
     write_metrics_json(run_dir / RESULT_NAME, payload)  # atomic; NaN -> null
-    return _read_json(run_dir / RESULT_NAME) or payload
+    written = read_json(run_dir / RESULT_NAME)
+    return written if isinstance(written, dict) else payload
 
 
 # ----------------------------------------------------------------------------- the bench's tables

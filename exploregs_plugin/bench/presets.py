@@ -138,19 +138,9 @@ def standard() -> BenchSpec:
 def real(root: Path | None = None) -> BenchSpec:
     """The captured scenes in ``../shared/scenes`` at reduced resolution; absent ones are skipped
     with a note (BenchSpecError when none is present)."""
-    root = Path(root) if root is not None else shared_scenes_root()
-    scenes, notes = [], []
-    for name, (folder, factor) in REAL_SCENES.items():
-        path = root / folder
-        if path.is_dir():
-            scenes.append(BenchScene(name, str(path), ("--data-factor", str(factor))))
-        else:
-            notes.append(f"real preset: {path} is absent; scene {name!r} skipped")
-    if not scenes:
-        raise BenchSpecError(f"real preset: no captured scenes under {root} (expected {', '.join(REAL_SCENES)}); "
-                             f"nothing to run")
-    return BenchSpec(entries=_entries(("default", "seed", "split", "seedsplit")), scenes=tuple(scenes),
-                     seeds=(0,), steps=REAL_STEPS, eval_count=4, name="real", notes=tuple(notes))
+    scenes, notes = _captured_scenes("real", REAL_SCENES, root)
+    return BenchSpec(entries=_entries(("default", "seed", "split", "seedsplit")), scenes=scenes,
+                     seeds=(0,), steps=REAL_STEPS, eval_count=4, name="real", notes=notes)
 
 
 def _captured_scenes(preset: str, table: dict[str, tuple[str, int]], root: Path | None
@@ -163,7 +153,8 @@ def _captured_scenes(preset: str, table: dict[str, tuple[str, int]], root: Path 
     notes = tuple(f"{preset} preset: {root / folder} is absent; scene {name!r} skipped"
                   for name, (folder, _) in table.items() if not (root / folder).is_dir())
     if not scenes:
-        raise BenchSpecError(f"{preset} preset: no captured scenes under {root}; nothing to run")
+        raise BenchSpecError(f"{preset} preset: no captured scenes under {root} (expected "
+                             f"{', '.join(table)}); nothing to run")
     return scenes, notes
 
 
@@ -187,8 +178,8 @@ def real_gpu(root: Path | None = None) -> BenchSpec:
         BenchEntry("mcmc", "exploregs-mcmc", ("--strategy.cap-max", "{default:num_gaussians}"),
                    "3DGS-MCMC capped at Default's final count"),
     )
-    return BenchSpec(entries=entries, scenes=tuple(scenes), seeds=REAL_GPU_SEEDS, steps=REAL_GPU_STEPS,
-                     eval_count=6, name="real-gpu", notes=tuple(notes))
+    return BenchSpec(entries=entries, scenes=scenes, seeds=REAL_GPU_SEEDS, steps=REAL_GPU_STEPS,
+                     eval_count=6, name="real-gpu", notes=notes)
 
 
 FULL_SCENES = {"beer": ("beer", 6), "fox": ("fox", 9)}
@@ -260,8 +251,8 @@ def full(root: Path | None = None) -> BenchSpec:
                     "--strategy.cap-max", "{seedsplit:num_gaussians}"),
                    "control: Default at half the threshold, capped at Seed+Split's final count", seeds=once),
     )
-    return BenchSpec(entries=entries, scenes=tuple(scenes), seeds=FULL_SEEDS, steps=FULL_STEPS,
-                     eval_count=10, name="full", notes=tuple(notes))
+    return BenchSpec(entries=entries, scenes=scenes, seeds=FULL_SEEDS, steps=FULL_STEPS,
+                     eval_count=10, name="full", notes=notes)
 
 
 DYNAMIC_SEEDS = (0, 1, 2)

@@ -176,6 +176,15 @@ def psnr(img: Tensor, ref: Tensor, mask: Tensor | None = None) -> float:
     return -10.0 * math.log10(mse)
 
 
+def pooled_psnr(squared_error: float, count: int) -> float:
+    """PSNR of pixels pooled over several images, -10 log10(max(sum of squared error / count,
+    MSE_FLOOR)), from their summed per-pixel squared error; NaN for no pixels (a region that no
+    test image shows)."""
+    if count <= 0:
+        return float("nan")
+    return -10.0 * math.log10(max(squared_error / count, MSE_FLOOR))
+
+
 def photometric_loss(img: Tensor, ref: Tensor, ssim_lambda: float) -> tuple[Tensor, dict[str, Tensor]]:
     """3DGS loss: (1 - lambda) L1 + lambda (1 - SSIM). Returns (loss, terms)."""
     l1_term = l1(img, ref)
