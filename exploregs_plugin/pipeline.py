@@ -17,53 +17,48 @@ from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
 from exploregs_plugin.model.losses import DepthSpace, psnr
 from exploregs_plugin.model.optim import OptimizerConfig, batch_betas, batch_lr_scale, set_lr
+from exploregs_plugin.strategies.observation import ViewError, ViewObservation, observe_render
 from exploregs_plugin.rasterizer import BackendError, backend_line, backend_problem
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
 from exploregs_plugin.strategies.base import VIEW_ERRORS, VISIBILITY_STATS
 
 
-VIEW_ROWS = ("radii", "visibility")
-"""Per-Gaussian [N, 2] entries of a view's render info that the strategies read."""
-
-
-def gather_view_infos(world: World, infos: list[dict[str, Any]], n: int) -> list[dict[str, Any]]:
+def gather_observations(world: World, views: list[ViewObservation], n: int) -> list[ViewObservation]:
     """Every rank's views, in the order of the global batch, as the strategies read them.
 
-    Each view keeps what the densification statistics need: the gradient of its 2D means
-    (``means2d_grad`` [N, 2], None where none reached them), ``radii`` and (when the rasterizer
+    Each observation keeps what the densification statistics need: the gradient of its 2D means
+    (``means2d_grad`` [N, 2], None where none reached them), ``radii`` and (when the renderer
     made it) ``visibility`` [N, 2], ``camera_center`` [3], its size, ``n_cameras`` and, for
-    guided exploration, its error map (``view``). Every rank gets the same bits, own views
-    included, so every rank's strategy makes the same decisions. Tensors travel in all-gathers;
-    only the error maps (guided exploration) are pickled."""
-    device = infos[0]["means2d"].device
-    kept = [_kept_gradient(info["means2d"]) for info in infos]
+    guided exploration, its error map. Every rank gets the same bits, own views included, so
+    every rank's strategy makes the same decisions. Tensors travel in all-gathers; only the
+    error maps (guided exploration) are pickled."""
+    device = views[0].radii.device
+    kept = [view.screen_gradient() if view.gradient_kept() else None for view in views]
     grads = torch.stack([g if g is not None else torch.zeros(n, 2, device=device) for g in kept]).to(torch.float32)
     # per view: has_grad, width, height, n_cameras, camera centre (float64 keeps the centre's bits)
     header = torch.stack([torch.cat([
-        torch.tensor([float(g is not None), info["width"], info["height"], info.get("n_cameras", 1)],
-                     dtype=torch.float64, device=device),
-        info["camera_center"].detach().to(device, torch.float64).reshape(3)]) for info, g in zip(infos, kept)])
-    gathered = {"means2d_grad": torch.cat(world.all_gather(grads))}
-    for key in VIEW_ROWS:
-        if key in infos[0]:
-            gathered[key] = torch.cat(world.all_gather(torch.stack([info[key].detach() for info in infos])))
+        torch.tensor([float(g is not None), view.width, view.height, view.n_cameras], dtype=torch.float64, device=device),
+        view.camera_center.detach().to(device, torch.float64).reshape(3)]) for view, g in zip(views, kept)])
+    grads = torch.cat(world.all_gather(grads))
+    radii = torch.cat(world.all_gather(torch.stack([view.radii.detach() for view in views])))
+    visibility = None
+    if views[0].visibility is not None:
+        visibility = torch.cat(world.all_gather(torch.stack([view.visibility.detach() for view in views])))
     header = torch.cat(world.all_gather(header)).cpu()
-    centers = header[:, 4:7].to(device, infos[0]["camera_center"].dtype)
+    centers = header[:, 4:7].to(device, views[0].camera_center.dtype)
     errors = None
-    if "view" in infos[0]:
-        local = [{k: v.detach().cpu() if isinstance(v, Tensor) else v for k, v in info["view"].items()} for info in infos]
-        errors = [view for rank_views in world.all_gather_object(local) for view in rank_views]
-    views = []
-    for i, (has_grad, width, height, n_cameras) in enumerate(header[:, :4].tolist()):
-        view = {key: value[i] for key, value in gathered.items()}
-        if not has_grad:
-            view["means2d_grad"] = None
-        view.update(camera_center=centers[i], width=int(width), height=int(height), n_cameras=int(n_cameras))
-        if errors is not None:
-            view["view"] = {k: v.to(device) if isinstance(v, Tensor) else v for k, v in errors[i].items()}
-        views.append(view)
-    return views
+    if views[0].error is not None:
+        local = [view.error.to("cpu") for view in views]
+        errors = [error.to(device) for rank_errors in world.all_gather_object(local) for error in rank_errors]
+    return [
+        ViewObservation(
+            width=int(width), height=int(height), radii=radii[i], camera_center=centers[i],
+            means2d_grad=grads[i] if has_grad else None, n_cameras=int(n_cameras),
+            visibility=None if visibility is None else visibility[i], error=None if errors is None else errors[i],
+        )
+        for i, (has_grad, width, height, n_cameras) in enumerate(header[:, :4].tolist())
+    ]
 
 
 def resolve_batch_size(batch_size: int | None, world_size: int = 1) -> int:
@@ -75,11 +70,6 @@ def resolve_batch_size(batch_size: int | None, world_size: int = 1) -> int:
         raise ValueError(f"--batch-size {batch} cannot be shared by {world_size} ranks: use a multiple "
                          f"of {world_size}")
     return batch
-
-
-def _kept_gradient(means2d: Tensor) -> Tensor | None:
-    """The gradient of a view's 2D means if the strategy kept it (step_pre_backward), else None."""
-    return means2d.grad if (means2d.is_leaf or means2d.retains_grad) else None
 
 
 class NonFiniteError(RuntimeError):
@@ -222,8 +212,8 @@ class Pipeline:
         share = self.batch_size // self.world.size
         mine = range(self.world.rank * share, (self.world.rank + 1) * share)
         totals: dict[str, Tensor] = {}
-        infos = [self._train_view(step, indices[p], backgrounds[p], p == mine.start, totals) for p in mine]
-        step_info = self._step_observations(infos, totals)
+        views = [self._train_view(step, indices[p], backgrounds[p], p == mine.start, totals) for p in mine]
+        views = self._step_observations(views, totals)
         loss_value = float(totals["loss"])
         if not math.isfinite(loss_value):
             raise NonFiniteError(f"step {step}: the loss is {loss_value} (terms: " + ", ".join(
@@ -231,7 +221,7 @@ class Pipeline:
         means_lr = self._optimizer_step(step)
         self.check_finite(step)
         counts = self.strategy.step_post_backward(
-            self.params, self.optimizers, self.strategy_state, step, step_info, lr=means_lr,
+            self.params, self.optimizers, self.strategy_state, step, views, lr=means_lr,
             generator=self.generator,
         )
         return {
@@ -244,22 +234,23 @@ class Pipeline:
         }
 
     def _train_view(self, step: int, index: int, background: Tensor, first: bool,
-                    totals: dict[str, Tensor]) -> dict[str, Any]:
+                    totals: dict[str, Tensor]) -> ViewObservation:
         """Render one training view, back-propagate its share of the step's loss, add its values
-        to ``totals``; returns its render info (the strategy's observations of this view)."""
+        to ``totals``; returns what the strategy observes of this view."""
         batch = self.batch_size
         camera, target, extras = self.datamanager.train_item(index)
         target = self._target_on(background, target.to(self.device, non_blocking=True), extras)
         image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background)
-        self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, info)
-        loss, terms = view_loss(self.loss_terms, ViewLossInput(image, target, depth, extras, index))
+        error = None
         if VIEW_ERRORS in self.requires:  # guided exploration: where this view is still wrong
-            info["view"] = {"index": index, "viewmat": camera.viewmat, "K": camera.K, "target": target,
-                            "error": (image.detach() - target).abs().mean(dim=-1)}
+            error = ViewError(index, camera.viewmat, camera.K, target, (image.detach() - target).abs().mean(dim=-1))
+        # n_cameras = B: the strategies undo the 1/B of the batch's mean loss in the 2D-mean gradients
+        view = observe_render(info, n_cameras=batch, error=error)
+        self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, view)
+        loss, terms = view_loss(self.loss_terms, ViewLossInput(image, target, depth, extras, index))
         if batch > 1:
             loss = loss / batch  # the batch's mean loss (its gradient is the mean of the views')
             terms = {k: v / batch for k, v in terms.items()}
-            info["n_cameras"] = batch  # so the strategies undo the 1/B in the 2D-mean gradients
         if first and self.world.is_main:  # the regularisers enter once per step
             reg = self._regularisers()
             loss = loss + reg
@@ -269,7 +260,7 @@ class Pipeline:
                            **terms}.items():
             value = value.detach().reshape(()).to("cpu", torch.float64)
             totals[key] = totals[key] + value if key in totals else value
-        return info
+        return view
 
     def _target_on(self, background: Tensor, target: Tensor, extras: dict[str, Any]) -> Tensor:
         """The training image on this step's background. The dataset composited it on b0 with
@@ -284,14 +275,15 @@ class Pipeline:
         model_reg = self.model.regularization_loss()
         return reg if model_reg is None else reg + model_reg
 
-    def _step_observations(self, infos: list[dict[str, Any]], totals: dict[str, Tensor]) -> dict[str, Any]:
-        """What the strategy observes of the step: one view's info, or every view's in the order of
-        the global batch; across ranks, the gradients and totals are summed first (one all-reduce)."""
+    def _step_observations(self, views: list[ViewObservation], totals: dict[str, Tensor]) -> list[ViewObservation]:
+        """What the strategy observes of the step: every view in the order of the global batch;
+        across ranks, the gradients and totals are summed first (one all-reduce) and the
+        observations gathered (the one place they are reduced)."""
         if self.world.is_distributed:
             totals.setdefault("reg", torch.zeros((), dtype=torch.float64))  # rank 0 adds it: same keys everywhere
             self._all_reduce_gradients(totals)
-            return {"views": gather_view_infos(self.world, infos, self.model.num_gaussians)}
-        return infos[0] if self.batch_size == 1 else {"views": infos}
+            return gather_observations(self.world, views, self.model.num_gaussians)
+        return views
 
     def _optimizer_step(self, step: int) -> float:
         """Step every optimizer at this step's learning rates; returns the means' learning rate."""

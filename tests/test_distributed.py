@@ -30,7 +30,8 @@ from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.scripts.launch import free_port, ranks_threads
 from exploregs_plugin.scripts.train import parse_config
 from exploregs_plugin.strategies.budget import resolve_budget
-from exploregs_plugin.strategies.default import accumulate_grad_stats, visible_mask
+from exploregs_plugin.strategies.default import accumulate_grad_stats
+from exploregs_plugin.strategies.observation import observe_render
 from exploregs_plugin.trainer import Trainer
 
 WORKER = Path(__file__).with_name("distributed_worker.py")
@@ -146,8 +147,9 @@ def test_batched_statistics_count_views_not_steps(tiny_scene_dir):
         image, _, _, info = one.model.render(camera, 0, one.background)
         info["means2d"].retain_grad()
         photometric_loss(image, target, one.config.ssim_lambda)[0].backward()
-        accumulate_grad_stats(expected, info["means2d"].grad.unsqueeze(0),
-                              visible_mask(info, one.model.num_gaussians), info["width"], info["height"])
+        view = observe_render(info)
+        accumulate_grad_stats(expected, view.screen_gradient().unsqueeze(0), view.visible().unsqueeze(0),
+                              view.width, view.height)
     expected_grad, expected_count = expected["grad2d"], expected["count"]
     assert torch.equal(stats2["count"], expected_count) and expected_count.max() == 2
     torch.testing.assert_close(stats2["grad2d"], expected_grad, rtol=1e-5, atol=1e-9)

@@ -10,7 +10,8 @@ import torch
 
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.strategies import DefaultStrategy, StrategyError, ops
-from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_info
+from exploregs_plugin.strategies.observation import ViewObservation, observe_render
+from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_views
 
 W, H = 64, 48
 
@@ -42,7 +43,7 @@ def test_grad_statistic_is_ndc_norm_averaged_over_visible_views():
     grads = [torch.tensor([[1e-5, 0.0], [0.0, 2e-5], [3e-5, 4e-5]]), torch.tensor([[3e-5, 0.0], [9.0, 9.0], [0.0, 0.0]])]
     vis = [torch.tensor([True, True, True]), torch.tensor([True, False, True])]
     for step, (gr, v) in enumerate(zip(grads, vis), start=1):
-        s.step_post_backward(params, optimizers, state, step, synthetic_info(gr, v, W, H))
+        s.step_post_backward(params, optimizers, state, step, synthetic_views(gr, v, W, H))
     stats = state["stats"]
     assert torch.equal(stats["count"], torch.tensor([2.0, 1.0, 2.0]))
     expected = torch.tensor([
@@ -59,7 +60,7 @@ def test_nonfinite_gradients_are_skipped_and_counted():
     s = _strategy()
     state = s.initialize_state()
     gr = torch.tensor([[1e-5, 0.0], [float("nan"), 0.0], [float("inf"), 1.0], [1e-5, 1e-5]])
-    counts = s.step_post_backward(params, make_optimizers(params), state, 1, synthetic_info(gr, torch.ones(4, dtype=torch.bool), W, H))
+    counts = s.step_post_backward(params, make_optimizers(params), state, 1, synthetic_views(gr, torch.ones(4, dtype=torch.bool), W, H))
     assert counts["nonfinite_grads"] == 2
     assert torch.equal(state["stats"]["count"], torch.tensor([1.0, 0.0, 0.0, 1.0]))
     assert torch.isfinite(state["stats"]["grad2d"]).all()
@@ -70,11 +71,23 @@ def test_missing_retain_grad_is_a_clear_error():
     params = make_gaussians(2, g)
     s = _strategy()
     means2d = torch.zeros(2, 2, requires_grad=True) * 1.0  # non-leaf, grad not retained
-    info = {"means2d": means2d, "radii": torch.ones(2, 2, dtype=torch.int32), "width": W, "height": H}
+    view = ViewObservation(W, H, torch.ones(2, 2, dtype=torch.int32), torch.zeros(3), means2d=means2d)
     with pytest.raises(StrategyError, match="step_pre_backward"):
-        s.step_post_backward(params, make_optimizers(params), s.initialize_state(), 1, info)
-    s.step_pre_backward(params, {}, {}, 1, info)
+        s.step_post_backward(params, make_optimizers(params), s.initialize_state(), 1, [view])
+    s.step_pre_backward(params, {}, {}, 1, view)
     assert means2d.retains_grad
+
+
+def test_a_render_info_dict_is_refused_with_the_way_to_an_observation():
+    """Strategies receive a list of ViewObservation; a raw info dict (or an empty list) gets one
+    line naming the type and observe_render."""
+    g = torch.Generator().manual_seed(0)
+    params = make_gaussians(2, g)
+    s = _strategy()
+    view = synthetic_views(torch.zeros(2, 2), torch.ones(2, dtype=torch.bool), W, H)[0]
+    for bad in ({"means2d": view.means2d, "radii": view.radii, "width": W, "height": H}, view, []):
+        with pytest.raises(StrategyError, match="list of .*ViewObservation.*observe_render"):
+            s.step_post_backward(params, make_optimizers(params), s.initialize_state(), 1, bad)
 
 
 def _scene(n: int, seed: int, scene_scale: float):
@@ -111,7 +124,7 @@ def test_reset_opacity_and_size_prune_timing():
     state = s.initialize_state(scene_scale=1.0)
     def zero_info():
         n = params["means"].shape[0]
-        return synthetic_info(torch.zeros(n, 2), torch.ones(n, dtype=torch.bool), W, H)
+        return synthetic_views(torch.zeros(n, 2), torch.ones(n, dtype=torch.bool), W, H)
 
     big = (torch.exp(params["scales"].detach()).max(-1).values > 0.1)
     faint = torch.sigmoid(params["opacities"].detach()) < 0.005
@@ -139,7 +152,7 @@ def test_cap_max_limits_growth_to_highest_gradients():
     s = _strategy(cap_max=85, prune_scale3d=1e9)
     state = s.initialize_state()
     base = torch.linspace(1e-6, 4e-5, 80)
-    info = synthetic_info(base[:, None].expand(80, 2).contiguous(), torch.ones(80, dtype=torch.bool), W, H)
+    info = synthetic_views(base[:, None].expand(80, 2).contiguous(), torch.ones(80, dtype=torch.bool), W, H)
     counts = s.step_post_backward(params, optimizers, state, 10, info, generator=torch.Generator().manual_seed(0))
     assert counts["cloned"] + counts["split"] == 5
     assert params["means"].shape[0] == 85
@@ -149,7 +162,7 @@ def test_split_requires_a_generator():
     g, params = _scene(40, seed=3, scene_scale=1.0)
     s = _strategy()
     state = s.initialize_state()
-    info = synthetic_info(torch.full((40, 2), 1e-3), torch.ones(40, dtype=torch.bool), W, H)
+    info = synthetic_views(torch.full((40, 2), 1e-3), torch.ones(40, dtype=torch.bool), W, H)
     with pytest.raises(StrategyError, match="generator"):
         s.step_post_backward(params, make_optimizers(params), state, 10, info)
 
@@ -161,12 +174,12 @@ def test_all_pruned_then_empty_steps_do_not_crash():
     optimizers = make_optimizers(params)
     s = _strategy()
     state = s.initialize_state()
-    info = synthetic_info(torch.full((16, 2), 1e-3), torch.ones(16, dtype=torch.bool), W, H)
+    info = synthetic_views(torch.full((16, 2), 1e-3), torch.ones(16, dtype=torch.bool), W, H)
     gen = torch.Generator().manual_seed(0)
     counts = s.step_post_backward(params, optimizers, state, 10, info, generator=gen)
     assert counts["pruned"] >= 16 - counts["cloned"] - counts["split"]
     assert params["means"].shape[0] == 0
-    empty = synthetic_info(torch.zeros(0, 2), torch.zeros(0, dtype=torch.bool), W, H)
+    empty = synthetic_views(torch.zeros(0, 2), torch.zeros(0, dtype=torch.bool), W, H)
     for step in (11, 20, 30):
         s.step_post_backward(params, optimizers, state, step, empty, generator=gen)
     assert params["means"].shape[0] == 0
@@ -216,9 +229,9 @@ def test_parity_with_gsplat_default_strategy(monkeypatch):
     base = torch.exp(torch.empty(n).uniform_(-14.5, -9.5, generator=g))  # pixel grads ~ 5e-7..7e-5
     for step in range(31, 41):  # steps 31..39 accumulate, 40 refines (after the first reset)
         gr, vis = _grads(g, n, base)
-        info = synthetic_info(gr, vis, W, H)
+        info = synthetic_views(gr, vis, W, H)
         ginfo = {
-            "means2d": torch.zeros(1, n, 2, requires_grad=True), "radii": info["radii"][None],
+            "means2d": torch.zeros(1, n, 2, requires_grad=True), "radii": info[0].radii[None],
             "width": W, "height": H, "n_cameras": 1, "gaussian_ids": None,
         }
         ginfo["means2d"].grad = gr[None].clone()
@@ -263,8 +276,8 @@ def test_trainer_call_order_with_a_real_graph():
     focal, c = 40.0, torch.tensor([W / 2, H / 2])
     cam_z = params["means"][:, 2:3] + 3.0
     means2d = params["means"][:, :2] / cam_z * focal + c  # [N, 2] pixels, non-leaf
-    info = {"means2d": means2d, "radii": torch.full((5, 2), 2, dtype=torch.int32), "width": W, "height": H, "n_cameras": 1}
-    s.step_pre_backward(params, optimizers, state, 1, info)
+    view = ViewObservation(W, H, torch.full((5, 2), 2, dtype=torch.int32), torch.zeros(3), means2d=means2d)
+    s.step_pre_backward(params, optimizers, state, 1, view)
     target = torch.randn(5, 2, generator=g)
     loss = ((means2d - c - target) ** 2).sum() * 1e-6
     loss.backward()
@@ -272,7 +285,7 @@ def test_trainer_call_order_with_a_real_graph():
     for opt in optimizers.values():
         opt.step()
         opt.zero_grad()
-    counts = s.step_post_backward(params, optimizers, state, 1, info, lr=1e-3, generator=g)
+    counts = s.step_post_backward(params, optimizers, state, 1, [view], lr=1e-3, generator=g)
     assert counts["nonfinite_grads"] == 0
     scale = torch.tensor([W / 2, H / 2])
     assert torch.allclose(state["stats"]["grad2d"], (pixel_grad * scale).norm(dim=-1), rtol=1e-5)
@@ -283,7 +296,7 @@ def test_info_from_another_set_is_rejected():
     g = torch.Generator().manual_seed(0)
     params = make_gaussians(6, g)
     s = _strategy()
-    stale = synthetic_info(torch.zeros(3, 2), torch.ones(3, dtype=torch.bool), W, H)
+    stale = synthetic_views(torch.zeros(3, 2), torch.ones(3, dtype=torch.bool), W, H)
     with pytest.raises(StrategyError, match="6 Gaussians"):
         s.step_post_backward(params, make_optimizers(params), s.initialize_state(), 1, stale)
 
@@ -313,7 +326,8 @@ def test_default_with_the_project_rasterizer():
     for step in range(1, 6):
         n = params["means"].shape[0]
         image, _, _, info = render(params)
-        s.step_pre_backward(params, optimizers, state, step, info)
+        seen = observe_render(info)
+        s.step_pre_backward(params, optimizers, state, step, seen)
         (image - target).abs().mean().backward()
         for opt in optimizers.values():
             opt.step()
@@ -322,7 +336,7 @@ def test_default_with_the_project_rasterizer():
             stats = state["stats"]
             assert stats["grad2d"].shape == (n,) and torch.isfinite(stats["grad2d"]).all()
             assert stats["count"].max() == 3 and float(stats["grad2d"].max()) > 0.0  # steps 1-3
-        counts = s.step_post_backward(params, optimizers, state, step, info, lr=1e-3, generator=g)
+        counts = s.step_post_backward(params, optimizers, state, step, [seen], lr=1e-3, generator=g)
         grown += counts["cloned"] + counts["split"]
     assert grown > 0
     s.check_sanity(params, optimizers)
@@ -334,7 +348,7 @@ def test_state_is_checkpointable_and_validated(tmp_path):
     s = _strategy()
     state = s.initialize_state(scene_scale=2.0, scene_center=torch.tensor([1.0, 2.0, 3.0]))
     s.step_post_backward(params, make_optimizers(params), state, 1,
-                         synthetic_info(torch.full((5, 2), 1e-4), torch.ones(5, dtype=torch.bool), W, H))
+                         synthetic_views(torch.full((5, 2), 1e-4), torch.ones(5, dtype=torch.bool), W, H))
     torch.save(state, tmp_path / "state.pt")
     loaded = torch.load(tmp_path / "state.pt")
     assert loaded["scene_scale"] == 2.0 and torch.equal(loaded["stats"]["grad2d"], state["stats"]["grad2d"])

@@ -22,7 +22,7 @@ from exploregs_plugin.strategies.budget import SEED_FRACTION, SPLIT_FRACTION
 from exploregs_plugin.rasterizer.sh import SH_C0
 from exploregs_plugin.strategies.seeding import SEED_FLAG, SeedingMixin, seed_rows
 from exploregs_plugin.strategies.splitting import SplittingMixin, sample_split_indices
-from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_info
+from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_views
 
 W, H = 32, 32
 WINDOW = dict(refine_start_iter=2, refine_stop_iter=500, refine_every=10, reset_every=100)
@@ -30,7 +30,7 @@ WINDOW = dict(refine_start_iter=2, refine_stop_iter=500, refine_every=10, reset_
 
 def _info(params, grad=0.0, visible=True):
     n = params["means"].shape[0]
-    return synthetic_info(torch.full((n, 2), grad), torch.full((n,), visible, dtype=torch.bool), W, H)
+    return synthetic_views(torch.full((n, 2), grad), torch.full((n,), visible, dtype=torch.bool), W, H)
 
 
 def _run(strategy, params, optimizers, state, steps, gen, grad=0.0, visible=True):
@@ -174,7 +174,7 @@ def test_seeds_outside_every_view_are_counted():
     # The next view sees only the first seed.
     vis = torch.zeros(13, dtype=torch.bool)
     vis[10] = True
-    s.step_post_backward(params, optimizers, state, 11, synthetic_info(torch.zeros(13, 2), vis, W, H), generator=gen)
+    s.step_post_backward(params, optimizers, state, 11, synthetic_views(torch.zeros(13, 2), vis, W, H), generator=gen)
     assert s.exploration_summary(state) == {"seeds_alive": 3, "seeds_unseen": 2}
 
 

@@ -14,13 +14,13 @@ from exploregs_plugin.strategies import MCMCStrategy, RayPerturbationStrategy, S
 from exploregs_plugin.rasterizer.projection import covariances_3d
 from exploregs_plugin.strategies.perturbation import position_noise
 from exploregs_plugin.strategies.relocation import binomial_table, relocation_update
-from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers, synthetic_info
+from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers, synthetic_views
 
 WINDOW = dict(refine_start_iter=2, refine_stop_iter=500, refine_every=10, reset_every=100)
 
 
 def _info(n, camera_center=None):
-    return synthetic_info(torch.zeros(n, 2), torch.ones(n, dtype=torch.bool), 32, 32, camera_center)
+    return synthetic_views(torch.zeros(n, 2), torch.ones(n, dtype=torch.bool), 32, 32, camera_center)
 
 
 # ------------------------------------------------------------------------------ noise
@@ -84,7 +84,7 @@ def test_ray_strategy_moves_means_only_along_rays_after_each_step():
     with pytest.raises(StrategyError, match="lr="):
         s.step_post_backward(params, optimizers, state, 901, _info(50, cam), generator=torch.Generator())
     info = _info(50)
-    del info["camera_center"]
+    info[0].camera_center = None  # a view without its camera (the guard of ray noise)
     with pytest.raises(StrategyError, match="camera_center"):
         s.step_post_backward(params, optimizers, state, 902, info, lr=1e-4, generator=torch.Generator())
 

@@ -14,7 +14,7 @@ from exploregs_plugin.strategies import (
     StrategyPluginError,
     available_strategies,
 )
-from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_info
+from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_views
 
 
 def _fake_distribution(root, name: str, entry_points: str, module_source: str | None = None):
@@ -66,7 +66,7 @@ def test_entry_point_strategy_is_discovered(tmp_path, monkeypatch):
     assert strategy.fanciness == 2.0
     g = torch.Generator().manual_seed(0)
     params = make_gaussians(4, g)
-    info = synthetic_info(torch.zeros(4, 2), torch.ones(4, dtype=torch.bool), 8, 8)
+    info = synthetic_views(torch.zeros(4, 2), torch.ones(4, dtype=torch.bool), 8, 8)
     counts = strategy.step_post_backward(params, make_optimizers(params), strategy.initialize_state(), 1, info)
     assert counts["fancy"] == 1 and params["means"].shape[0] == 5
 

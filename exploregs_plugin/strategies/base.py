@@ -6,16 +6,18 @@ Call shape (the same as gsplat's, so strategies can be reused across trainers)::
     state = strategy.initialize_state(scene_scale)         # tensors + scalars only
     strategy.check_sanity(params, optimizers)
     # every step:
-    strategy.step_pre_backward(params, optimizers, state, step, info)   # retain means2d grad
+    strategy.step_pre_backward(params, optimizers, state, step, view)   # each view: retain means2d grad
     loss = loss + strategy.regularization_loss(params)                  # zero unless regularised
     loss.backward(); optimizer.step() for each; zero_grad()
-    counts = strategy.step_post_backward(params, optimizers, state, step, info,
+    counts = strategy.step_post_backward(params, optimizers, state, step, views,
                                          lr=means_lr, generator=gen)    # dict[str, int]
     # at each evaluation:
     strategy.exploration_summary(state)                                  # dict[str, int]
 
-Every hook has a default here, so a subclass overrides only what it changes; the pipeline calls
-each one unconditionally. ``initialize_state`` takes the scene centre (the mean training-camera
+``view`` is one rendered view's :class:`~exploregs_plugin.strategies.observation.ViewObservation` and
+``views`` the step's list of them (one per view of the global batch, in order). Every hook has a
+default here, so a subclass overrides only what it changes; the pipeline calls each one
+unconditionally. ``initialize_state`` takes the scene centre (the mean training-camera
 centre) as well as its scale.
 """
 
@@ -30,16 +32,14 @@ import torch
 from torch import Tensor
 
 from ..schedule import Schedule
+from .errors import StrategyError
+from .observation import ViewObservation, require_views
 from .ops import Optimizers, Params, num_gaussians
 
 REQUIRED_KEYS = ("means", "scales", "quats", "opacities")
 """Parameter keys every built-in strategy reads."""
 
 StrategyT = TypeVar("StrategyT", bound="Strategy")
-
-
-class StrategyError(ValueError):
-    """A strategy was configured or called in a way it cannot work with."""
 
 
 @dataclass
@@ -50,7 +50,8 @@ class StepContext:
     optimizers: Optimizers
     state: dict[str, Any]
     step: int
-    info: dict[str, Any]
+    views: list[ViewObservation]
+    """The step's rendered views, in the order of the global batch (one at batch 1)."""
     lr: float = 0.0
     generator: torch.Generator | None = None
 
@@ -81,11 +82,11 @@ class Strategy:
     """Opacity reset interval in steps. None: the run's schedule."""
 
     requires: ClassVar[frozenset[str]] = frozenset()
-    """What the strategy needs beyond the 2D-mean gradient, radii and visibility, which every
-    step gives; the pipeline asks the renderer for exactly this: ``VIEW_ERRORS`` (each step's view
-    in ``info["view"]``: {"index", "viewmat" [4, 4], "K" [3, 3], "error" [H, W] (mean |render -
-    target|), "target" [H, W, 3]}) and ``VISIBILITY_STATS`` (``info["visibility"]`` [N, 2]: each
-    Gaussian's summed compositing weight alpha T and alpha over the view's pixels)."""
+    """What the strategy needs beyond the 2D-mean gradient and radii, which every observation
+    carries; the pipeline asks the renderer for exactly this: ``VIEW_ERRORS`` (each view's
+    ``ViewObservation.error``: its index, camera, target and error map) and ``VISIBILITY_STATS``
+    (``ViewObservation.visibility`` [N, 2]: each Gaussian's summed compositing weight alpha T and
+    alpha over the view's pixels)."""
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         # A composed strategy requires what each of its parts does (a class that declares
@@ -185,9 +186,9 @@ class Strategy:
                 raise StrategyError(f"optimizer '{key}' does not hold params['{key}']")
 
     def step_pre_backward(
-        self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, info: dict[str, Any]
+        self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, view: ViewObservation
     ) -> None:
-        """Called after rendering, before ``loss.backward()``. Default: nothing."""
+        """Called after rendering each view, before ``loss.backward()``. Default: nothing."""
 
     def step_post_backward(
         self,
@@ -195,17 +196,18 @@ class Strategy:
         optimizers: Optimizers,
         state: dict[str, Any],
         step: int,
-        info: dict[str, Any],
+        views: list[ViewObservation],
         lr: float = 0.0,
         generator: torch.Generator | None = None,
     ) -> dict[str, int]:
         """Called after the optimizer step; returns counts of what it did (dict[str, int]).
 
-        Checks that the schedule is resolved and hands one :class:`StepContext` to
-        :meth:`post_backward`, which subclasses implement.
+        Checks that the schedule is resolved and ``views`` is a list of observations, and hands
+        one :class:`StepContext` to :meth:`post_backward`, which subclasses implement.
         """
         self.require_schedule()
-        return self.post_backward(StepContext(params, optimizers, state, step, info, lr, generator))
+        views = require_views(views, f"{type(self).__name__}.step_post_backward")
+        return self.post_backward(StepContext(params, optimizers, state, step, views, lr, generator))
 
     def post_backward(self, ctx: StepContext) -> dict[str, int]:
         """The strategy's work after each optimizer step. Default: nothing."""
@@ -219,19 +221,6 @@ class Strategy:
         """Current totals of what the strategy explored (not events), logged at each evaluation
         and written to metrics.json, e.g. Seeding's ``seeds_alive``. Default: none."""
         return {}
-
-
-def view_infos(info: dict[str, Any]) -> list[dict[str, Any]]:
-    """The views one step rendered, each with its own render info.
-
-    A step of several views (a batch, or the views of every rank of a data-parallel run) passes
-    ``info = {"views": [info_0, info_1, ...]}`` in the order of the global batch; a step of one
-    view passes that view's info itself, as gsplat's trainers do. Each view's info carries the
-    gradient of its 2D means either on ``info["means2d"].grad`` (the render's own tensor) or as
-    ``info["means2d_grad"]`` [N, 2] (a view rendered by another rank), and ``n_cameras``, the
-    number of views whose mean loss the gradient comes from."""
-    views = info.get("views")
-    return list(views) if views is not None else [info]
 
 
 def require_generator(generator: torch.Generator | None, who: str) -> torch.Generator:

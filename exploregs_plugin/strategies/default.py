@@ -22,7 +22,8 @@ import torch
 from torch import Tensor
 
 from . import ops
-from .base import StepContext, Strategy, StrategyError, require_generator, view_infos
+from .observation import ViewObservation
+from .base import StepContext, Strategy, StrategyError, require_generator
 from .geometry import max_world_scale
 from .ops import Optimizers, Params, Stats, num_gaussians
 
@@ -71,36 +72,6 @@ def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: 
     factor undoes the loss's mean over a batch of views, as gsplat does."""
     scale = torch.tensor([width / 2.0, height / 2.0], dtype=torch.float32, device=pixel_grads.device) * float(n_cameras)
     return (pixel_grads.detach().to(torch.float32) * scale).norm(dim=-1)
-
-
-def screen_gradient(info: dict[str, Any]) -> Tensor | None:
-    """dL/d(mean2d) of one view's info: ``info["means2d_grad"]`` when given (a view rendered by
-    another rank), else the retained gradient of ``info["means2d"]``; None when no gradient
-    reached the 2D means."""
-    if "means2d_grad" in info:
-        return info["means2d_grad"]
-    means2d = info.get("means2d")
-    if means2d is None:
-        raise StrategyError("info['means2d'] is required for the screen-space gradient statistic")
-    if not means2d.is_leaf and not means2d.retains_grad:
-        raise StrategyError(
-            "info['means2d'].grad is not retained: call strategy.step_pre_backward(...) before "
-            "loss.backward() so the screen-space gradient is kept"
-        )
-    return means2d.grad
-
-
-def visible_mask(info: dict[str, Any], n: int) -> Tensor:
-    """Which Gaussians each view saw: [C, N] bool, from ``radii`` (> 0 on both axes, the 3DGS
-    test) or else ``visible``."""
-    if "radii" in info:
-        radii = info["radii"]
-        if radii.dim() < 2 or tuple(radii.shape[-2:]) != (n, 2):
-            raise StrategyError(f"info['radii'] has shape {tuple(radii.shape)} but there are {n} Gaussians")
-        return (radii.reshape(-1, n, 2) > 0).all(dim=-1)
-    if "visible" in info:
-        return info["visible"].reshape(-1, n).to(torch.bool)
-    raise StrategyError("info needs 'radii' or 'visible' to know which Gaussians were seen")
 
 
 def grow_masks(
@@ -180,12 +151,12 @@ class DefaultStrategy(Strategy):
         """
         return None, {}
 
-    def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
-        """Read this step's render ``info`` before the Gaussian set changes (inside the window).
+    def observe(self, params: Params, state: dict[str, Any], view: ViewObservation) -> dict[str, int]:
+        """Read one of this step's views before the Gaussian set changes (inside the window).
 
         Default accumulates the gradient statistic; subclasses extend (super() first).
         """
-        return {"nonfinite_grads": self._update_stats(params, state, info)}
+        return {"nonfinite_grads": self._update_stats(params, state, view)}
 
     def explore(self, ctx: StepContext) -> dict[str, int]:
         """Exploration operators run here on every step, after densification and before the
@@ -194,20 +165,19 @@ class DefaultStrategy(Strategy):
 
     # ------------------------------------------------------------------ contract
     def step_pre_backward(
-        self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, info: dict[str, Any]
+        self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, view: ViewObservation
     ) -> None:
-        means2d = info.get("means2d")
-        if means2d is None:
-            raise StrategyError("info['means2d'] is required for the screen-space gradient statistic")
-        if means2d.requires_grad:
-            means2d.retain_grad()
+        if view.means2d is None:
+            raise StrategyError("the view's means2d is required for the screen-space gradient statistic")
+        if view.means2d.requires_grad:
+            view.means2d.retain_grad()
 
     def post_backward(self, ctx: StepContext) -> dict[str, int]:
         params, optimizers, state, step = ctx.params, ctx.optimizers, ctx.state, ctx.step
         counts = {"cloned": 0, "split": 0, "pruned": 0, "opacity_reset": 0, "nonfinite_grads": 0}
         in_window = step < self.refine_stop_iter
         if in_window:
-            for view in view_infos(ctx.info):
+            for view in ctx.views:
                 for key, value in self.observe(params, state, view).items():
                     counts[key] = counts.get(key, 0) + value
             if step > self.refine_start_iter and step % self.refine_every == 0:
@@ -223,28 +193,21 @@ class DefaultStrategy(Strategy):
         return counts
 
     # ------------------------------------------------------------------ steps
-    def _update_stats(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> int:
+    def _update_stats(self, params: Params, state: dict[str, Any], view: ViewObservation) -> int:
         n = num_gaussians(params)
         if n == 0:
             return 0
-        grad = screen_gradient(info)
+        view.check_rows(n)
+        grad = view.screen_gradient()
         if grad is None:
             return 0  # no gradient reached the 2D means this step (nothing visible)
-        if grad.dim() < 2 or tuple(grad.shape[-2:]) != (n, 2):
+        if tuple(grad.shape) != (n, 2):
             raise StrategyError(
-                f"info['means2d'].grad has shape {tuple(grad.shape)} but there are {n} Gaussians: "
-                f"the info must come from rendering the current Gaussian set"
+                f"the view's 2D-mean gradient has shape {tuple(grad.shape)} but there are {n} Gaussians: "
+                f"the observation must come from rendering the current Gaussian set"
             )
-        for key in ("width", "height"):
-            if key not in info:
-                raise StrategyError(f"info['{key}'] is required to convert gradients to NDC")
         return accumulate_grad_stats(
-            state["stats"],
-            grad.reshape(-1, n, 2),
-            visible_mask(info, n),
-            int(info["width"]),
-            int(info["height"]),
-            int(info.get("n_cameras", 1)),
+            state["stats"], grad.reshape(1, n, 2), view.visible().reshape(1, n), view.width, view.height, view.n_cameras
         )
 
     def _grow(

@@ -22,6 +22,7 @@ import torch.nn.functional as F
 from torch import Tensor
 
 from ..rasterizer.sh import rgb_to_sh0
+from .observation import ViewObservation
 from .base import VIEW_ERRORS, StrategyError
 from .default import DefaultStrategy
 from .geometry import random_unit_quats
@@ -175,18 +176,18 @@ class GuidedSeedingMixin(SeedingMixin):
         if self.guide_depth not in ("log", "inverse") or self.guide_scale <= 0:
             raise StrategyError("guide_depth must be 'log' or 'inverse' and guide_scale > 0")
 
-    def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
-        counts = super().observe(params, state, info)
-        view = info.get("view")
-        if view is None:
-            raise StrategyError(f"{type(self).__name__} needs info['view'] (the step's error map): the "
-                                f"pipeline passes it to strategies that require VIEW_ERRORS")
-        width, height = view["target"].shape[1], view["target"].shape[0]
+    def observe(self, params: Params, state: dict[str, Any], view: ViewObservation) -> dict[str, int]:
+        counts = super().observe(params, state, view)
+        seen = view.error
+        if seen is None:
+            raise StrategyError(f"{type(self).__name__} needs the view's error map: the pipeline gives it to "
+                                f"strategies that require VIEW_ERRORS")
+        width, height = seen.target.shape[1], seen.target.shape[0]
         cell = view_cell(self.guide_cell, width, height)
-        error, colour = coarse_view(view["error"].detach(), view["target"].detach(), cell)
-        state.setdefault("views", {})[int(view["index"])] = {
-            "error": error, "colour": colour, "viewmat": view["viewmat"].detach().to(error.device),
-            "K": view["K"].detach().to(error.device),
+        error, colour = coarse_view(seen.error.detach(), seen.target.detach(), cell)
+        state.setdefault("views", {})[int(seen.index)] = {
+            "error": error, "colour": colour, "viewmat": seen.viewmat.detach().to(error.device),
+            "K": seen.K.detach().to(error.device),
             "size": torch.tensor([float(width), float(height)], device=error.device),
             "cell": torch.tensor(float(cell), device=error.device),
         }

@@ -22,8 +22,9 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .observation import ViewObservation
 from .base import VISIBILITY_STATS, StrategyError
-from .default import DefaultStrategy, ndc_gradient_norms, screen_gradient, visible_mask
+from .default import DefaultStrategy, ndc_gradient_norms
 from .guided import GuidedSeedingMixin
 from .ops import Params, num_gaussians
 from .splitting import SplittingMixin, split_weights
@@ -61,27 +62,26 @@ class OcclusionSplittingMixin(SplittingMixin):
         if not 0.0 < self.occlusion_t_floor <= 1.0 or not 0.0 <= self.occlusion_decay < 1.0:
             raise StrategyError("occlusion_t_floor must be in (0, 1] and occlusion_decay in [0, 1)")
 
-    def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
-        counts = super().observe(params, state, info)
+    def observe(self, params: Params, state: dict[str, Any], view: ViewObservation) -> dict[str, int]:
+        counts = super().observe(params, state, view)
         n = num_gaussians(params)
         if n == 0:
             return counts
-        if "visibility" not in info:
-            raise StrategyError(f"{type(self).__name__} needs info['visibility'] (the renderer's visibility "
-                                f"statistics): declare VISIBILITY_STATS in its requires")
+        if view.visibility is None:
+            raise StrategyError(f"{type(self).__name__} needs the view's visibility statistics: declare "
+                                f"VISIBILITY_STATS in its requires")
         stats = state["stats"]
-        vis = info["visibility"].detach().to(params["means"].dtype)  # [N, 2]
+        vis = view.visibility.detach().to(params["means"].dtype)  # [N, 2]
         for key in (VIS_WEIGHT, VIS_ALPHA, OCC_ERROR):
             stats.setdefault(key, torch.zeros(n, device=params["means"].device))
         stats[VIS_WEIGHT] += vis[:, 0]
         stats[VIS_ALPHA] += vis[:, 1]
-        grad = screen_gradient(info)
+        grad = view.screen_gradient()
         if grad is None:
             return counts
-        norm = ndc_gradient_norms(grad.reshape(-1, n, 2)[0], int(info["width"]), int(info["height"]),
-                                  int(info.get("n_cameras", 1)))
+        norm = ndc_gradient_norms(grad, view.width, view.height, view.n_cameras)
         t_view = mean_transmittance(vis[:, 0], vis[:, 1]).clamp_min(self.occlusion_t_floor)
-        seen = visible_mask(info, n)[0] & torch.isfinite(norm) & (vis[:, 1] > 0)
+        seen = view.visible() & torch.isfinite(norm) & (vis[:, 1] > 0)
         error = stats[OCC_ERROR]
         error[seen] = self.occlusion_decay * error[seen] + (1.0 - self.occlusion_decay) * (norm / t_view)[seen]
         return counts

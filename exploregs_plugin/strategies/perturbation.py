@@ -17,7 +17,7 @@ from typing import Literal
 import torch
 from torch import Tensor
 
-from .base import StepContext, Strategy, StrategyError, view_infos
+from .base import StepContext, Strategy, StrategyError
 from .default import DefaultStrategy
 from ..rasterizer.projection import covariances_3d
 from .ops import num_gaussians
@@ -57,7 +57,7 @@ def position_noise(
     if mode != "ray":
         raise StrategyError(f"noise mode must be 'isotropic' or 'ray', got '{mode}'")
     if camera_center is None:
-        raise StrategyError("ray noise needs info['camera_center'] (the current training camera centre)")
+        raise StrategyError("ray noise needs camera_center (the current training camera centre)")
     ray = means.detach().to(dtype) - camera_center.to(dtype=dtype, device=means.device).reshape(1, 3)
     length = ray.norm(dim=-1, keepdim=True)
     direction = torch.where(length > _EPS, ray / length.clamp_min(_EPS), torch.zeros_like(ray))
@@ -94,7 +94,7 @@ class NoiseMixin(Strategy):
             ctx.rng("position noise"),
             mode=mode,
             # a step of several views perturbs along the rays of its first view
-            camera_center=view_infos(ctx.info)[0].get("camera_center"),
+            camera_center=ctx.views[0].camera_center,
             gate_k=self.noise_gate_k,
             gate_t=self.noise_gate_t,
         )

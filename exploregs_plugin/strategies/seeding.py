@@ -29,9 +29,10 @@ import torch
 from torch import Tensor
 
 from . import ops
+from .observation import ViewObservation
 from .base import StepContext, StrategyError
 from .budget import BudgetMixin
-from .default import DefaultStrategy, visible_mask
+from .default import DefaultStrategy
 from ..rasterizer.sh import rgb_to_sh0
 from .geometry import random_unit_quats
 from .ops import Optimizers, Params, num_gaussians
@@ -210,12 +211,12 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
         counts.setdefault("seeds_pruned", 0)  # same keys on every call, not only at refinements
         return counts
 
-    def observe(self, params: Params, state: dict[str, Any], info: dict[str, Any]) -> dict[str, int]:
-        counts = super().observe(params, state, info)
+    def observe(self, params: Params, state: dict[str, Any], view: ViewObservation) -> dict[str, int]:
+        counts = super().observe(params, state, view)
         stats = state["stats"]
         n = num_gaussians(params)
         if SEED_SEEN in stats and n > 0:
-            stats[SEED_SEEN] += visible_mask(info, n).sum(dim=0).to(stats[SEED_SEEN].dtype)
+            stats[SEED_SEEN] += view.visible().to(stats[SEED_SEEN].dtype)
         return counts
 
     def explore(self, ctx: StepContext) -> dict[str, int]:

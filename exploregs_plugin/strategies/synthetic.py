@@ -11,6 +11,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from .observation import ViewObservation
 from .ops import Params
 
 
@@ -65,10 +66,11 @@ def adam_steps(
             p.grad = None
 
 
-def synthetic_info(
+def synthetic_views(
     pixel_grads: Tensor, visible: Tensor, width: int, height: int, camera_center: Tensor | None = None
-) -> dict[str, Any]:
-    """A rasterizer-like info dict whose ``means2d.grad`` is ``pixel_grads``.
+) -> list[ViewObservation]:
+    """A step's views as the pipeline gives them to a strategy: one observation whose
+    ``means2d.grad`` is ``pixel_grads``.
 
     pixel_grads: [N, 2] dL/d(mean2d) in pixels; visible: [N] bool (radii are 3 where visible).
     """
@@ -76,12 +78,5 @@ def synthetic_info(
     means2d = torch.zeros(n, 2, requires_grad=True)
     means2d.grad = pixel_grads.clone()
     radii = torch.where(visible, 3, 0).to(torch.int32).unsqueeze(-1).expand(n, 2).contiguous()
-    return {
-        "means2d": means2d,
-        "radii": radii,
-        "visible": visible.clone(),
-        "width": width,
-        "height": height,
-        "n_cameras": 1,
-        "camera_center": torch.zeros(3) if camera_center is None else camera_center,
-    }
+    center = torch.zeros(3) if camera_center is None else camera_center
+    return [ViewObservation(width=width, height=height, radii=radii, camera_center=center, means2d=means2d)]

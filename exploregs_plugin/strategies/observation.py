@@ -1,0 +1,126 @@
+"""What a strategy observes of one rendered training view: :class:`ViewObservation`.
+
+A training step renders one or more views (a batch, or the views of every rank of a
+data-parallel run). The pipeline turns each view's render info into one observation
+(:func:`observe_render`), gathers the ranks' observations in the order of the global batch, and
+hands the strategy that list: one element at batch 1, B for a batch of B views. gsplat's flat
+``info`` dict is made from observations only where gsplat compatibility needs it
+(``exploregs_plugin/integrations/``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any
+
+from torch import Tensor
+
+from .errors import StrategyError
+
+
+@dataclass
+class ViewError:
+    """Where one training view is still wrong; filled only for a strategy that requires
+    ``VIEW_ERRORS`` (guided exploration)."""
+
+    index: int
+    """The view's index in the training set."""
+    viewmat: Tensor
+    """[4, 4] world-to-camera (OpenCV axes)."""
+    K: Tensor
+    """[3, 3] pinhole intrinsics in pixels."""
+    target: Tensor
+    """[H, W, 3] the training image (on this step's background)."""
+    error: Tensor
+    """[H, W] mean over channels of |render - target|."""
+
+    def to(self, device: Any) -> "ViewError":
+        """A detached copy on ``device`` (the form that travels between ranks)."""
+        return ViewError(self.index, *(t.detach().to(device) for t in (self.viewmat, self.K, self.target, self.error)))
+
+
+@dataclass
+class ViewObservation:
+    """One rendered view as the densification statistics read it.
+
+    The gradient of the loss with respect to the view's 2D means (pixels) is on
+    ``means2d.grad`` for a view this process rendered (``step_pre_backward`` retains it), or in
+    ``means2d_grad`` for one that travelled from another rank (None there when no gradient
+    reached the means)."""
+
+    width: int
+    height: int
+    radii: Tensor
+    """[N, 2] int32 screen radii in pixels; 0 where the Gaussian was not drawn."""
+    camera_center: Tensor
+    """[3] the camera centre in world coordinates (ray perturbation)."""
+    means2d: Tensor | None = None
+    """[N, 2] the render's 2D means (non-leaf; None for a view rendered by another rank)."""
+    means2d_grad: Tensor | None = None
+    """[N, 2] dL/d(mean2d) given explicitly (a gathered view); None: read ``means2d.grad``."""
+    n_cameras: int = 1
+    """How many views the loss averages: the gradient carries 1/n_cameras, which the NDC
+    statistic undoes (as gsplat does)."""
+    visibility: Tensor | None = None
+    """[N, 2] each Gaussian's summed alpha T and alpha over the view's pixels
+    (``VISIBILITY_STATS``); None when not asked for."""
+    error: ViewError | None = None
+    """The view's error map (``VIEW_ERRORS``); None when not asked for."""
+
+    @property
+    def num_gaussians(self) -> int:
+        return int(self.radii.shape[0])
+
+    def visible(self) -> Tensor:
+        """[N] bool: the Gaussians the view drew (both radii positive, the 3DGS test)."""
+        return (self.radii > 0).all(dim=-1)
+
+    def screen_gradient(self) -> Tensor | None:
+        """[N, 2] dL/d(mean2d) in pixels, or None when no gradient reached the 2D means."""
+        if self.means2d is None or self.means2d_grad is not None:
+            return self.means2d_grad
+        if not self.gradient_kept():
+            raise StrategyError(
+                "the view's means2d.grad is not retained: call strategy.step_pre_backward(...) before "
+                "loss.backward() so the screen-space gradient is kept"
+            )
+        grad = self.means2d.grad
+        # gsplat's rasterization differentiates a [1, N, 2] tensor (one camera)
+        return grad if grad is None or grad.dim() == 2 else grad.reshape(grad.shape[-2:])
+
+    def gradient_kept(self) -> bool:
+        """Whether the gradient of the render's own 2D means is kept (``step_pre_backward``)."""
+        return self.means2d is not None and (self.means2d.is_leaf or self.means2d.retains_grad)
+
+    def check_rows(self, n: int) -> None:
+        """Raise when the observation was not made from the current set of ``n`` Gaussians."""
+        if tuple(self.radii.shape) != (n, 2):
+            raise StrategyError(
+                f"the view's radii have shape {tuple(self.radii.shape)} but there are {n} Gaussians: the "
+                "observation must come from rendering the current Gaussian set"
+            )
+
+
+def observe_render(info: dict[str, Any], n_cameras: int = 1, error: ViewError | None = None) -> ViewObservation:
+    """The observation of one view from the info dict of ``exploregs_plugin.rasterizer.rasterize``
+    (every backend gives the same keys; ``visibility`` only when the settings asked for it)."""
+    return ViewObservation(
+        width=int(info["width"]),
+        height=int(info["height"]),
+        radii=info["radii"],
+        camera_center=info["camera_center"],
+        means2d=info["means2d"],
+        n_cameras=int(n_cameras),
+        visibility=info.get("visibility"),
+        error=error,
+    )
+
+
+def require_views(views: Any, who: str) -> list[ViewObservation]:
+    """``views`` checked to be what strategies receive: a non-empty list of observations."""
+    if isinstance(views, list) and views and all(isinstance(v, ViewObservation) for v in views):
+        return views
+    raise StrategyError(
+        f"{who} receives the step's views as a non-empty list of exploregs_plugin.strategies.observation.ViewObservation "
+        f"(got {type(views).__name__}); make one from a rasterizer info dict with observe_render(info)"
+    )
