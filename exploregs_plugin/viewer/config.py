@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Annotated, Any, Literal
+from typing import TYPE_CHECKING, Annotated, Any
 
 from exploregs_plugin.configs import unset
+from exploregs_plugin.viewer.outputs import OUTPUT_KINDS, OutputKind
 
 if TYPE_CHECKING:
     from exploregs_plugin.viewer.viewer import Viewer
-
-OutputKind = Literal["rgb", "depth", "alpha"]
-OUTPUT_KINDS: tuple[OutputKind, ...] = ("rgb", "depth", "alpha")
 
 
 @dataclass

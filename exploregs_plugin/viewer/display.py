@@ -16,7 +16,7 @@ from exploregs_plugin.io.ply import sh_degree_for_rest
 from exploregs_plugin.model.dynamic import params_at_time
 from exploregs_plugin.model.gaussians import render_camera
 from exploregs_plugin.rasterizer import RasterSettings
-from exploregs_plugin.viewer.config import OutputKind
+from exploregs_plugin.viewer.outputs import OutputKind
 from exploregs_plugin.viewer.snapshot import Snapshot
 
 

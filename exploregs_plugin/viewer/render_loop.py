@@ -20,7 +20,7 @@ import numpy as np
 import torch
 
 from exploregs_plugin.cameras import Camera
-from exploregs_plugin.viewer.config import OutputKind
+from exploregs_plugin.viewer.outputs import OutputKind
 from exploregs_plugin.viewer.conventions import render_size, viser_to_camera
 from exploregs_plugin.viewer.snapshot import Snapshot, SnapshotStore
 

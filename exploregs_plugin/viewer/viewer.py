@@ -14,7 +14,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 import torch
@@ -22,13 +22,16 @@ import viser
 from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
-from exploregs_plugin.viewer.config import OUTPUT_KINDS, ViewerConfig
+from exploregs_plugin.viewer.outputs import OUTPUT_KINDS
 from exploregs_plugin.viewer.conventions import camera_forward, camera_to_viser, camera_up, vertical_fov
 from exploregs_plugin.io.frames import to_uint8
 from exploregs_plugin.viewer.display import render_frame
 from exploregs_plugin.viewer.render_loop import BrowserCamera, Frame, RenderLoop, ViewSettings
 from exploregs_plugin.viewer.scene import ViewerScene, scene_centre
 from exploregs_plugin.viewer.snapshot import SnapshotStore
+
+if TYPE_CHECKING:  # the config builds the viewer (ViewerConfig.setup); this module needs only its type
+    from exploregs_plugin.viewer.config import ViewerConfig
 
 _RECENT_STEPS = 20
 """Train PSNR and seconds per iteration are averaged over this many recent steps."""
