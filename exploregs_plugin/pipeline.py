@@ -16,7 +16,7 @@ from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
 from exploregs_plugin.model.losses import DepthSpace, psnr
-from exploregs_plugin.model.optim import OptimizerConfig, batch_betas, batch_lr_scale, set_lr
+from exploregs_plugin.model.optim import OptimizerConfig, OptimizerSet, batch_betas, batch_lr_scale
 from exploregs_plugin.strategies.observation import ViewError, ViewObservation, observe_render
 from exploregs_plugin.rasterizer import BackendError, backend_line, backend_problem
 from exploregs_plugin.schedule import Schedule
@@ -155,9 +155,7 @@ class Pipeline:
         self.scene_extent = float(dm.scene_extent)
         self.background = dm.background.to(device)
         self.model = model_config.setup(*to_device((dm.points, dm.points_rgb), device), seed=seed)
-        self.optimizers = self._make_optimizers()
-        # a dynamic model's deformation field trains with its own optimizer, out of the strategies' reach
-        self.field_optimizer = self._make_field_optimizer()
+        self.optim = self._make_optimizer_set()
         self.loss_terms = loss_terms_of(config)
         self.strategy = config.strategy.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
@@ -173,12 +171,17 @@ class Pipeline:
             print(f"note: {dm.scene_name}: the frames carry times (a dynamic scene), which this static method "
                   "ignores: it trains every frame as one still scene (the exploregs-4d-* methods use them)", flush=True)
 
-    def _make_optimizers(self) -> dict[str, torch.optim.Adam]:
-        return self.config.optim.setup(self.params, self.scene_extent, self.batch_size, self.config.batch_rule)
+    def _make_optimizer_set(self) -> OptimizerSet:
+        """The Gaussians' Adams (the strategies re-index them with the rows) and the model's other
+        parameter groups (a deformation field's, out of the strategies' reach), stepped as one."""
+        gaussians = self.config.optim.setup(self.params, self.scene_extent, self.batch_size, self.config.batch_rule)
+        groups = self.model.extra_param_groups(self.scene_extent, self.schedule.max_steps, self.lr_scale)
+        return OptimizerSet(gaussians, self.means_lr_at, groups, batch_betas(self.batch_size, self.config.batch_rule))
 
-    def _make_field_optimizer(self) -> torch.optim.Optimizer | None:
-        return self.model.make_field_optimizer(self.scene_extent, self.lr_scale,
-                                               batch_betas(self.batch_size, self.config.batch_rule))
+    @property
+    def optimizers(self) -> dict[str, torch.optim.Adam]:
+        """One Adam per Gaussian parameter name: what the strategies see."""
+        return self.optim.gaussians
 
     def trained_tensors(self) -> list[tuple[str, nn.Parameter]]:
         """Every trained parameter by name: the Gaussians' and, for a dynamic model, the field's."""
@@ -287,18 +290,7 @@ class Pipeline:
 
     def _optimizer_step(self, step: int) -> float:
         """Step every optimizer at this step's learning rates; returns the means' learning rate."""
-        means_lr = self.means_lr_at(step)
-        set_lr(self.optimizers["means"], means_lr)
-        for optimizer in self.optimizers.values():
-            optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
-        if self.field_optimizer is not None:
-            lrs = self.model.field_lrs(step, self.schedule.max_steps, self.scene_extent, self.lr_scale)
-            for group in self.field_optimizer.param_groups:
-                group["lr"] = lrs[group["name"]]
-            self.field_optimizer.step()
-            self.field_optimizer.zero_grad(set_to_none=True)
-        return means_lr
+        return self.optim.step(step)
 
     def _step_background(self) -> Tensor:
         if not self.random_background:
@@ -342,14 +334,14 @@ class Pipeline:
     def state_dict(self) -> dict[str, Any]:
         state = {
             "params": {k: v.detach().clone() for k, v in self.params.items()},
-            "optimizers": {k: opt.state_dict() for k, opt in self.optimizers.items()},
+            **self.optim.state_dict(),  # "optimizers" and, with a field, "field_optimizer"
             "strategy_state": self.strategy_state,
             "generator": self.generator.get_state(),
             "datamanager": self.datamanager.state_dict(),
         }
-        if self.field_optimizer is not None:  # a dynamic model: its deformation field and optimizer
-            state["field"] = self.model.field_state()
-            state["field_optimizer"] = self.field_optimizer.state_dict()
+        field = self.model.field_state()
+        if field is not None:  # a dynamic model: its deformation field
+            state["field"] = field
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -360,17 +352,14 @@ class Pipeline:
             raise ValueError(f"checkpoint lacks parameters {sorted(missing)}")
         for name, value in state["params"].items():
             self.params[name] = nn.Parameter(value.to(self.device, copy=True))
-        self.optimizers = self._make_optimizers()
-        for name, opt in self.optimizers.items():
-            opt.load_state_dict(state["optimizers"][name])  # Adam's moments follow their parameter's device
-        if self.field_optimizer is not None:
+        if self.model.field_parameters():
             if "field" not in state:
                 raise ValueError("the checkpoint holds no deformation field: it was made by a static method")
-            self.model.load_field_state(state["field"])
-            self.field_optimizer = self._make_field_optimizer()
-            self.field_optimizer.load_state_dict(state["field_optimizer"])
+            self.model.load_field_state(state["field"])  # copied into the field's own tensors
         elif "field" in state:
             raise ValueError("the checkpoint holds a deformation field: load it with its dynamic (4D) method's config")
+        self.optim = self._make_optimizer_set()  # the Adams hold the loaded tensors
+        self.optim.load_state_dict(state)  # Adam's moments follow their parameter's device
         self.strategy_state = to_device(state["strategy_state"], self.device)
         # a generator state from another device type cannot be loaded: the stream is then
         # reseeded from it (deterministic, not bit-identical to an uninterrupted run)

@@ -330,7 +330,7 @@ class Trainer:
         return {max(1, round(total * (i + 1) / count)) for i in range(count)}
 
     def _lrs(self) -> dict[str, float]:
-        return {name: opt.param_groups[0]["lr"] for name, opt in self.pipeline.optimizers.items()}
+        return self.pipeline.optim.lrs()
 
     # ----------------------------------------------------------------------------- eval
     def run_eval(self, step: int) -> dict[str, Any]:

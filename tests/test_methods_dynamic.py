@@ -4,6 +4,7 @@ canonical Gaussians, checkpoint and resume, evaluation per frame and region, ren
 from __future__ import annotations
 
 import json
+import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -82,12 +83,19 @@ def test_strategies_change_canonical_gaussians_field_keeps_its_state(tmp_path, e
         state = next(iter(opt.state.values()))
         assert state["exp_avg"].shape[0] == pipeline.model.num_gaussians, name
     assert [p.shape for p in field_params] == shapes
-    field_state = pipeline.field_optimizer.state
+    field_state = pipeline.optim.shared.state
     assert all(field_state[p]["exp_avg"].shape == p.shape for p in field_params if p in field_state)
     steps = {int(field_state[p]["step"]) for p in field_params if p in field_state}
     # the field trains from the end of the warm-up (step 8 of 40) on every step
     assert steps == {40 - pipeline.model.start_step(40)}
-    assert pipeline.field_optimizer not in pipeline.optimizers.values()
+    assert pipeline.optim.shared not in pipeline.optimizers.values()
+    # its groups are part of the one optimizer set, each at its own decayed rate
+    lrs = pipeline.optim.lrs()
+    d = pipeline.model.config.deformation
+    extent = pipeline.scene_extent
+    assert set(lrs) == {"means", "scales", "quats", "opacities", "sh0", "shN", "grid", "mlp"}
+    assert d.grid_lr_final * extent < lrs["grid"] < d.grid_lr * extent
+    assert math.isclose(lrs["grid"] / (d.grid_lr * extent), lrs["mlp"] / (d.mlp_lr * extent), rel_tol=1e-9)
 
 
 def test_checkpoint_and_resume_of_a_dynamic_run_is_bit_identical(tmp_path, exploregs_cache, ctrl_c_after_step):

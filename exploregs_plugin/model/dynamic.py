@@ -23,7 +23,7 @@ from torch import Tensor, nn
 from exploregs_plugin.model.deformation import (SPACE_PLANES, TIME_PLANES, DeformationField, plane_tv,
                                                 robust_box, static_l1, time_smoothness)
 from exploregs_plugin.model.gaussians import GaussianModel, GaussianModelConfig
-from exploregs_plugin.model.optim import ADAM_EPS, exponential_lr
+from exploregs_plugin.model.optim import ParamGroup, exponential_lr
 
 def deform_params(params: Mapping[str, Tensor], field: DeformationField, time: float) -> dict[str, Tensor]:
     """The raw parameters at ``time`` in [0, 1]: canonical means, quaternions and log-scales plus
@@ -138,21 +138,18 @@ class DynamicGaussianModel(GaussianModel):
     def load_field_state(self, state: Mapping[str, Tensor]) -> None:
         self.deformation.load_state_dict(dict(state))  # copies into the field's tensors, on their device
 
-    def make_field_optimizer(self, scene_extent: float, lr_scale: float = 1.0,
-                             betas: tuple[float, float] = (0.9, 0.999)) -> torch.optim.Optimizer:
-        lrs = self.field_lrs(0, 1, scene_extent, lr_scale)
-        groups = [{"params": self.deformation.grid_parameters(), "lr": lrs["grid"], "name": "grid"},
-                  {"params": self.deformation.mlp_parameters(), "lr": lrs["mlp"], "name": "mlp"}]
-        return torch.optim.Adam(groups, eps=ADAM_EPS, betas=betas)
-
-    def field_lrs(self, step: int, max_steps: int, scene_extent: float, lr_scale: float = 1.0) -> dict[str, float]:
-        """Exponential decay from the end of the warm-up to the last step, x scene extent."""
+    def extra_param_groups(self, scene_extent: float, max_steps: int, lr_scale: float = 1.0) -> list[ParamGroup]:
+        """The field's planes ("grid") and decoder ("mlp"), each decaying exponentially from the
+        end of the warm-up to the last step, x scene extent."""
         d = self.config.deformation
         start = self.start_step(max_steps)
-        progress = (step - start) / max(max_steps - start, 1)
         scale = scene_extent * lr_scale
-        return {"grid": exponential_lr(d.grid_lr * scale, d.grid_lr_final * scale, progress),
-                "mlp": exponential_lr(d.mlp_lr * scale, d.mlp_lr_final * scale, progress)}
+
+        def decay(lr0: float, lr1: float):
+            return lambda step: exponential_lr(lr0 * scale, lr1 * scale, (step - start) / max(max_steps - start, 1))
+
+        return [ParamGroup("grid", self.deformation.grid_parameters(), decay(d.grid_lr, d.grid_lr_final)),
+                ParamGroup("mlp", self.deformation.mlp_parameters(), decay(d.mlp_lr, d.mlp_lr_final))]
 
     def start_step(self, max_steps: int) -> int:
         """The step at which the deformation is switched on."""

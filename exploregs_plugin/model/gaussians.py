@@ -13,6 +13,7 @@ from torch import Tensor, nn
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.configs import unset
+from exploregs_plugin.model.optim import ParamGroup
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
 from exploregs_plugin.rasterizer.sh import SH_C0, rgb_to_sh0  # noqa: F401 (SH_C0: the colour convention)
 
@@ -127,17 +128,13 @@ class GaussianModel(nn.Module):
         return self.params
 
     def field_parameters(self) -> list[tuple[str, nn.Parameter]]:
-        """Named parameters trained beside the Gaussians with their own optimizer (none here)."""
+        """Named parameters trained beside the Gaussians' rows (none here)."""
         return []
 
-    def make_field_optimizer(self, scene_extent: float, lr_scale: float = 1.0,
-                             betas: tuple[float, float] = (0.9, 0.999)) -> torch.optim.Optimizer | None:
-        """The optimizer of :meth:`field_parameters` (None: nothing to optimise)."""
-        return None
-
-    def field_lrs(self, step: int, max_steps: int, scene_extent: float, lr_scale: float = 1.0) -> dict[str, float]:
-        """Learning rate of each param group of the field optimizer, by group name, at ``step``."""
-        return {}
+    def extra_param_groups(self, scene_extent: float, max_steps: int, lr_scale: float = 1.0) -> list[ParamGroup]:
+        """The groups of :meth:`field_parameters` with their learning-rate schedules, which join the
+        Gaussians' optimizers in the run's ``OptimizerSet`` (none here)."""
+        return []
 
     def field_state(self) -> dict[str, Tensor] | None:
         """A copy of the field's parameters and buffers for a checkpoint (None: no field)."""

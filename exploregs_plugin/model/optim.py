@@ -1,9 +1,12 @@
-"""Adam optimizers with the 3DGS learning rates, one per parameter name."""
+"""Adam optimizers with the 3DGS learning rates: one per Gaussian parameter name, and the run's
+optimizer set (:class:`OptimizerSet`) that adds a model's other parameter groups."""
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import torch
 from torch import nn
@@ -97,3 +100,70 @@ def exponential_lr(lr0: float, lr1: float, progress: float) -> float:
 def set_lr(optimizer: torch.optim.Optimizer, lr: float) -> None:
     for group in optimizer.param_groups:
         group["lr"] = lr
+
+
+@dataclass
+class ParamGroup:
+    """Trained tensors beside the Gaussians' rows that share one learning-rate schedule (a
+    deformation field's planes, its decoder)."""
+
+    name: str
+    params: list[nn.Parameter]
+    lr_at: Callable[[int], float]
+    """The group's learning rate at a step (scene extent and batch factor included)."""
+
+
+class OptimizerSet:
+    """Every optimizer of a run, stepped together.
+
+    ``gaussians``: one Adam per Gaussian parameter name (so the strategies' ops resize one tensor
+    and its moments at a time); the means follow ``means_lr_at``, the others keep their rate.
+    The model's other parameter groups share one Adam, each group at its own ``lr_at``; a model
+    without such groups has none."""
+
+    def __init__(self, gaussians: dict[str, torch.optim.Adam], means_lr_at: Callable[[int], float],
+                 groups: list[ParamGroup], betas: tuple[float, float] = ADAM_BETAS) -> None:
+        self.gaussians = gaussians
+        self.means_lr_at = means_lr_at
+        self.groups = {group.name: group for group in groups}
+        self.shared: torch.optim.Adam | None = None
+        if groups:
+            self.shared = torch.optim.Adam([{"params": g.params, "lr": g.lr_at(0), "name": g.name} for g in groups],
+                                           eps=ADAM_EPS, betas=betas)
+
+    def step(self, step: int) -> float:
+        """Set this step's learning rates, step every Adam and zero its gradients; returns the
+        means' learning rate."""
+        means_lr = self.means_lr_at(step)
+        set_lr(self.gaussians["means"], means_lr)
+        for optimizer in self.gaussians.values():
+            optimizer.step()
+            optimizer.zero_grad(set_to_none=True)
+        if self.shared is not None:
+            for group in self.shared.param_groups:
+                group["lr"] = self.groups[group["name"]].lr_at(step)
+            self.shared.step()
+            self.shared.zero_grad(set_to_none=True)
+        return means_lr
+
+    def lrs(self) -> dict[str, float]:
+        """Each group's current learning rate by name (the Gaussians' and the model's others)."""
+        rates = {name: float(opt.param_groups[0]["lr"]) for name, opt in self.gaussians.items()}
+        if self.shared is not None:
+            rates.update({group["name"]: float(group["lr"]) for group in self.shared.param_groups})
+        return rates
+
+    def state_dict(self) -> dict[str, Any]:
+        """``optimizers``: the Gaussians' Adams by name; ``field_optimizer``: the shared Adam of the
+        model's other groups, when there are any (the key checkpoints have always used)."""
+        state: dict[str, Any] = {"optimizers": {k: opt.state_dict() for k, opt in self.gaussians.items()}}
+        if self.shared is not None:
+            state["field_optimizer"] = self.shared.state_dict()
+        return state
+
+    def load_state_dict(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state_dict` (Adam's moments follow their parameter's device)."""
+        for name, opt in self.gaussians.items():
+            opt.load_state_dict(state["optimizers"][name])
+        if self.shared is not None:
+            self.shared.load_state_dict(state["field_optimizer"])
