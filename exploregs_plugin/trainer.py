@@ -254,31 +254,11 @@ class Trainer:
                 for callback in self.callbacks:
                     callback.on_train_start(self)
                 for step in range(self.start_step, self.schedule.max_steps):
-                    for callback in self.callbacks:
-                        callback.before_step(self, step)
-                    # one agreement per step, so that the ranks stop and checkpoint at the same step
-                    stop_now, minutes_due = self.world.any_of(stop.requested, self._minutes_due())
-                    if stop_now:
-                        self.save_checkpoint(step)
-                        raise Stopped(stop.signum or signal.SIGTERM, step, self.last_checkpoint)
-                    if minutes_due and step > self.start_step:
-                        self.save_checkpoint(step)
-                    if threads is not None:
-                        threads.check()
+                    self._before_step(step, stop, threads)
                     start = time.perf_counter()
                     stats = self._train_step(step)
-                    stats["step_seconds"] = elapsed = time.perf_counter() - start
-                    self.train_seconds += elapsed
-                    for op, n in stats["counts"].items():
-                        self.op_totals[op] = self.op_totals.get(op, 0) + int(n)
-                    self._check_collapse(step, stats)
-                    logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
-                    for callback in self.callbacks:
-                        callback.after_step(self, step + 1, stats)
-                    if step + 1 in eval_steps:
-                        self.run_eval(step + 1)
-                    if step + 1 < self.schedule.max_steps and (step + 1) % self.config.checkpoint_every == 0:
-                        self.save_checkpoint(step + 1)
+                    stats["step_seconds"] = time.perf_counter() - start
+                    self._after_step(step, stats, eval_steps)
                 if self.schedule.max_steps not in eval_steps or not self.history:
                     self.run_eval(self.schedule.max_steps)
                 self.save_checkpoint(self.schedule.max_steps)
@@ -291,6 +271,35 @@ class Trainer:
             for callback in self.callbacks:
                 callback.close()
         return self.write_metrics()
+
+    def _before_step(self, step: int, stop: "_StopOnSignals", threads: "_FollowIdleCpus | None") -> None:
+        """Callbacks, then the ranks' one agreement on a stop request or a due wall-clock
+        checkpoint (so that they stop and checkpoint at the same step), then the thread count."""
+        for callback in self.callbacks:
+            callback.before_step(self, step)
+        stop_now, minutes_due = self.world.any_of(stop.requested, self._minutes_due())
+        if stop_now:
+            self.save_checkpoint(step)
+            raise Stopped(stop.signum or signal.SIGTERM, step, self.last_checkpoint)
+        if minutes_due and step > self.start_step:
+            self.save_checkpoint(step)
+        if threads is not None:
+            threads.check()
+
+    def _after_step(self, step: int, stats: dict[str, Any], eval_steps: set[int]) -> None:
+        """Totals, the collapse watch, logging, callbacks, then evaluation and the periodic
+        checkpoint due after ``step``."""
+        self.train_seconds += stats["step_seconds"]
+        for op, n in stats["counts"].items():
+            self.op_totals[op] = self.op_totals.get(op, 0) + int(n)
+        self._check_collapse(step, stats)
+        self.logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
+        for callback in self.callbacks:
+            callback.after_step(self, step + 1, stats)
+        if step + 1 in eval_steps:
+            self.run_eval(step + 1)
+        if step + 1 < self.schedule.max_steps and (step + 1) % self.config.checkpoint_every == 0:
+            self.save_checkpoint(step + 1)
 
     def _follows_idle_cpus(self) -> bool:
         """A CPU run whose thread count nobody set follows the CPUs other processes leave idle."""

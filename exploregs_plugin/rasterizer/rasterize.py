@@ -156,7 +156,7 @@ def _rasterize(
     means, quats, scales, opacities, sh_coeffs, viewmat, K, width, height, degree, colors, background,
     near_plane, far_plane, means_cov, means_sh, settings, compiled, threads,
 ):  # fmt: skip
-    dtype = means.dtype
+    """Project every Gaussian, colour the visible ones, composite them and finish the images."""
     viewmat, K = viewmat.to(means), K.to(means)  # the dtype and device of the means
     if compiled and (means_cov is None or means_cov is means) and not (viewmat.requires_grad or K.requires_grad):
         proj = project_cpp(means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane,
@@ -167,36 +167,9 @@ def _rasterize(
         )
     camera_center = -(viewmat[:3, :3].T @ viewmat[:3, 3])
     vis = torch.nonzero(proj.visible).squeeze(1)
-    if degree < 0:
-        rgb = colors.index_select(0, vis)
-    else:
-        src = means if means_sh is None else means_sh
-        if compiled and src is means and not camera_center.requires_grad:
-            rgb = sh_colors_cpp(sh_coeffs, means, vis, camera_center, degree, threads)
-        else:
-            rgb = sh_colors(sh_coeffs.index_select(0, vis), src.index_select(0, vis), camera_center, degree)
-    feats = torch.cat([rgb, proj.depths.index_select(0, vis)[:, None]], -1)  # [M, 4]
-    means2d_vis = proj.means2d.index_select(0, vis)
-    support = proj.support.index_select(0, vis)
-    depths_vis = proj.depths.detach().index_select(0, vis)
-    conics_vis, opac_vis = proj.conics.index_select(0, vis), proj.opacities.index_select(0, vis)
-    if compiled:
-        bins = CppBins(means2d_vis.detach(), support, depths_vis, width, height, settings.tile_size)
-        img, visibility = composite_cpp(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings, threads)
-    else:
-        bins = bin_gaussians(means2d_vis.detach(), support, depths_vis, width, height, settings.tile_size)
-        out, visibility = composite(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings)
-        ts = settings.tile_size
-        img = out.view(bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 2, 1, 3, 4)
-        img = img.reshape(bins.tiles_y * ts, bins.tiles_x * ts, -1)[:height, :width]
-    acc = img[..., 4:5]
-    image = img[..., :3]
-    if background is not None:
-        image = image + (1.0 - acc) * background.to(means)
-    depth = img[..., 3:4] / acc.clamp_min(ALPHA_DEPTH_MIN)
-    cpu = means.device.type == "cpu"
-    if cpu and settings.single_threaded_backward and torch.is_grad_enabled() and image.requires_grad:
-        image, acc, depth = _SingleThreadedBackward.apply(image, acc, depth)
+    rgb = _colours(means, means_sh, sh_coeffs, colors, degree, vis, camera_center, compiled, threads)
+    img, visibility, n_pairs = _composite_visible(proj, vis, rgb, width, height, settings, compiled, threads)
+    image, acc, depth = _finish(img, background, means, settings)
     info: dict[str, Any] = {
         "means2d": proj.means2d,
         "radii": proj.radii,
@@ -207,9 +180,53 @@ def _rasterize(
         "width": width,
         "height": height,
         "n_cameras": 1,
-        "n_pairs": bins.n_pairs,
+        "n_pairs": n_pairs,
     }
     if settings.visibility_stats:
-        info["visibility"] = torch.zeros(means.shape[0], 2, dtype=dtype, device=means.device).index_copy_(
+        info["visibility"] = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device).index_copy_(
             0, vis, visibility)
     return image, acc, depth, info
+
+
+def _colours(means, means_sh, sh_coeffs, colors, degree, vis, camera_center, compiled, threads) -> Tensor:
+    """[M, 3] colours of the visible rows ``vis``: the given ``colors``, or the SH evaluated in the
+    direction from the camera centre (through ``means_sh`` when the SH path has its own tensor)."""
+    if degree < 0:
+        return colors.index_select(0, vis)
+    src = means if means_sh is None else means_sh
+    if compiled and src is means and not camera_center.requires_grad:
+        return sh_colors_cpp(sh_coeffs, means, vis, camera_center, degree, threads)
+    return sh_colors(sh_coeffs.index_select(0, vis), src.index_select(0, vis), camera_center, degree)
+
+
+def _composite_visible(proj, vis, rgb, width, height, settings, compiled, threads) -> tuple[Tensor, Tensor, int]:
+    """Bin and alpha-composite the visible rows: ([H, W, 5] colour, depth and alpha, their
+    visibility sums [M, 2], the number of tile-Gaussian pairs)."""
+    feats = torch.cat([rgb, proj.depths.index_select(0, vis)[:, None]], -1)  # [M, 4]
+    means2d_vis = proj.means2d.index_select(0, vis)
+    support = proj.support.index_select(0, vis)
+    depths_vis = proj.depths.detach().index_select(0, vis)
+    conics_vis, opac_vis = proj.conics.index_select(0, vis), proj.opacities.index_select(0, vis)
+    if compiled:
+        bins = CppBins(means2d_vis.detach(), support, depths_vis, width, height, settings.tile_size)
+        img, visibility = composite_cpp(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings, threads)
+        return img, visibility, bins.n_pairs
+    bins = bin_gaussians(means2d_vis.detach(), support, depths_vis, width, height, settings.tile_size)
+    out, visibility = composite(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings)
+    ts = settings.tile_size
+    img = out.view(bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 2, 1, 3, 4)
+    return img.reshape(bins.tiles_y * ts, bins.tiles_x * ts, -1)[:height, :width], visibility, bins.n_pairs
+
+
+def _finish(img: Tensor, background: Tensor | None, means: Tensor, settings: RasterSettings
+            ) -> tuple[Tensor, Tensor, Tensor]:
+    """Image on the background, accumulated alpha, expected depth D / A (0 where nothing is drawn)."""
+    acc = img[..., 4:5]
+    image = img[..., :3]
+    if background is not None:
+        image = image + (1.0 - acc) * background.to(means)
+    depth = img[..., 3:4] / acc.clamp_min(ALPHA_DEPTH_MIN)
+    cpu = means.device.type == "cpu"
+    if cpu and settings.single_threaded_backward and torch.is_grad_enabled() and image.requires_grad:
+        image, acc, depth = _SingleThreadedBackward.apply(image, acc, depth)
+    return image, acc, depth
