@@ -476,6 +476,26 @@ def test_a_normal_run_never_trips_the_collapse_watch():
     assert reasons[-1] is not None and "the training loss grew to" in reasons[-1]
 
 
+def test_the_collapse_watch_can_be_switched_off(tmp_path):
+    from exploregs_plugin.collapse import CollapseError
+    from exploregs_plugin.scripts.train import parse_config
+
+    # the training PSNR of a batch step falling from 20 dB to 2 dB stops a run; with
+    # --no-collapse-watch the trainer trains on (for strategies whose setbacks the watch does not know)
+    falling = [{"psnr": p, "loss": 0.3, "counts": {}, "views": ()} for p in [20.0] * 5 + [2.0] * 5]
+    for flag, stops in (([], True), (["--no-collapse-watch"], False)):
+        trainer = parse_config(["exploregs-default", "--data", "builtin:tiny", "--max-steps", "10", "--quiet",
+                                "--no-tensorboard", "--run-dir", str(tmp_path / f"run{len(flag)}"), *flag]).setup()
+        assert trainer.config.collapse_watch is stops
+        try:
+            for step, stats in enumerate(falling):
+                trainer._check_collapse(step, stats)
+            stopped = False
+        except CollapseError:
+            stopped = True
+        assert stopped is stops
+
+
 def test_the_collapse_watch_judges_a_view_against_its_own_record():
     from exploregs_plugin.collapse import CollapseWatch
 

@@ -22,8 +22,14 @@ from torch import Tensor
 pytest.importorskip("gsplat", reason="gsplat is not installed (pip install gsplat==1.5.3)")
 from gsplat.strategy import DefaultStrategy as GsplatDefaultStrategy, MCMCStrategy  # noqa: E402
 
+import gsplat.strategy.ops  # noqa: E402
+
+from exploregs_plugin.cameras import Camera  # noqa: E402
 from exploregs_plugin.integrations import gsplat as integ  # noqa: E402
-from exploregs_plugin.strategies import StrategyError  # noqa: E402
+from exploregs_plugin.strategies import MCMCStrategy as OurMCMCStrategy  # noqa: E402
+from exploregs_plugin.strategies import RayPerturbationStrategy, StrategyError  # noqa: E402
+from exploregs_plugin.strategies.relocation import relocation_update  # noqa: E402
+from exploregs_plugin.strategies.synthetic import synthetic_views  # noqa: E402
 
 W = H = 64
 CAMERAS = 2
@@ -71,6 +77,19 @@ def make_params(layout: str, n: int = 300, seed: int = 0):
     return params, optimizers
 
 
+def viewmat(center, angle: float) -> Tensor:
+    """World-to-camera [4, 4] of a camera at ``center`` turned by ``angle`` about y: [R | -R c]."""
+    c, s_ = math.cos(angle), math.sin(angle)
+    rot = torch.tensor([[c, 0.0, s_], [0.0, 1.0, 0.0], [-s_, 0.0, c]])
+    out = torch.eye(4)
+    out[:3, :3], out[:3, 3] = rot, -rot @ torch.tensor(center)
+    return out
+
+
+VIEWMATS = torch.stack([viewmat((0.3, -0.2, -3.0), 0.2), viewmat((2.5, 0.5, 0.0), -1.2)])  # [C, 4, 4]
+CENTER = torch.tensor([0.3, -0.2, -3.0])  # the first camera's: the ray noise follows it
+
+
 def single_radius(pairs: Tensor) -> Tensor:
     """The pre-1.5 layout of a radius pair: the larger value, 0 when culled on either axis."""
     return torch.where((pairs > 0).all(-1), pairs.max(-1).values, torch.zeros_like(pairs[..., 0]))
@@ -91,7 +110,7 @@ def fake_render(params, step: int, radii: str, packed: bool):
         means2d, weights, pairs = means2d[visible], weights[visible], pairs[visible]
     single = single_radius(pairs)
     info = {"means2d": means2d, "radii": pairs if radii == "pairs" else single, "width": W, "height": H,
-            "n_cameras": CAMERAS, "gaussian_ids": ids}
+            "n_cameras": CAMERAS, "gaussian_ids": ids, "viewmats": VIEWMATS}
     installed = {**info, "radii": pairs if integ.RADII_PAIRS else single}
     # every parameter gets a gradient, so every Adam state exists
     loss = (means2d * weights).sum() + 1e-4 * sum((p**2).sum() for p in params.values())
@@ -347,3 +366,350 @@ def test_import_without_gsplat_is_one_clear_line(monkeypatch):
     with pytest.raises(ImportError, match=r"pip install gsplat==1\.5\.3") as err:
         importlib.import_module("exploregs_plugin.integrations.gsplat")
     assert "\n" not in str(err.value)
+
+
+# ------------------------------------------------------------------------------ ray perturbation
+NO_REFINE = dict(refine_start_iter=100, refine_stop_iter=200, refine_every=50)  # no refine at NOISE_STEPS
+NOISE_STEPS = (0, 1, 2, 250)  # 250: after the refine window, where the noise goes on
+LR = 1e-3  # make_params' Adam learning rate: what RayStrategy reads when no lr is passed
+
+
+def native_center() -> Tensor:
+    """The first camera's centre as our pipeline computes it (Camera.camera_center)."""
+    return Camera(VIEWMATS[0], torch.eye(3), W, H).camera_center
+
+
+def with_camera(info, camera: str):
+    """``info`` with the first camera under ``camera`` (one of integ.CAMERA_KEYS) instead of viewmats."""
+    info = {k: v for k, v in info.items() if k != "viewmats"}
+    if camera == "viewmats":
+        info["viewmats"] = VIEWMATS
+    elif camera == "camtoworlds":
+        c2w = torch.linalg.inv(VIEWMATS)
+        c2w[0, :3, 3] = native_center()  # exactly the native centre, so the noise can agree bit for bit
+        info["camtoworlds"] = c2w
+    else:
+        info["camera_center"] = native_center()
+    return info
+
+
+def off_ray(displacement: Tensor, means: Tensor, center: Tensor) -> Tensor:
+    """|d x r| / |r| per row in float64: the component of the displacement d off the ray r from
+    the camera centre to the Gaussian's position before the noise."""
+    ray = means.double() - center.double()
+    return torch.linalg.cross(displacement.double(), ray).norm(dim=-1) / ray.norm(dim=-1)
+
+
+def assert_only_along_rays(before: Tensor, after: Tensor) -> None:
+    """Some means moved, and every displacement is along its ray up to float32 rounding of the
+    new position (|d x r| / |r| <= 1e-6 (1 + |mean|))."""
+    d = after.double() - before.double()
+    assert (d.norm(dim=-1) > 0).any()
+    bound = 1e-6 * (1.0 + after.double().norm(dim=-1))
+    assert (off_ray(d, before, integ.camera_center({"viewmats": VIEWMATS})) <= bound).all()
+
+
+def native_and_gsplat(kind: str):
+    """Our native strategy and its gsplat counterpart, neither refining at NOISE_STEPS."""
+    if kind == "ray":
+        native = RayPerturbationStrategy(grow_grad2d=1e9, prune_opa=0.0, reset_every=1000, **NO_REFINE)
+        return native, integ.RayStrategy(**NO_REFINE, reset_every=1000, seed=7)
+    native = OurMCMCStrategy(noise_mode="ray", cap_max=10_000, reset_every=1000, **NO_REFINE)
+    return native, integ.MCMCRayStrategy(**NO_REFINE, seed=7)
+
+
+NOISE_CASES = [("gsplat", "pairs", False, "viewmats"), ("gsplat", "single", True, "camtoworlds"),
+               ("nerfstudio", "pairs", True, "camera_center"), ("nerfstudio", "single", False, "viewmats")]
+
+
+@pytest.mark.parametrize("kind", ["ray", "mcmc-ray"])
+@pytest.mark.parametrize("layout,radii,packed,camera", NOISE_CASES)
+def test_ray_noise_through_gsplat_moves_means_bit_for_bit_as_our_native_strategy(kind, layout, radii, packed, camera):
+    native, strategy = native_and_gsplat(kind)
+    params, optimizers = make_params(layout)
+    ref_params, ref_optimizers = make_params("gsplat")  # the same values in our layout
+    n = ref_params["means"].shape[0]
+    state = strategy.initialize_state()
+    ref_state = native.initialize_state()
+    generator = torch.Generator().manual_seed(7)  # what the gsplat strategy makes from seed=7
+    for step in NOISE_STEPS:
+        info, _, loss = fake_render(params, step, radii, packed)
+        info = with_camera(info, camera)
+        strategy.step_pre_backward(params, optimizers, state, step, info)
+        loss.backward()
+        before = params["means"].detach().clone()
+        extra = {"packed": packed} if kind == "ray" else {"lr": LR}  # each class's gsplat signature
+        counts = strategy.step_post_backward(params, optimizers, state, step, info, **extra)
+        views = synthetic_views(torch.zeros(n, 2), torch.ones(n, dtype=torch.bool), W, H, native_center())
+        ref_counts = native.step_post_backward(ref_params, ref_optimizers, ref_state, step, views, lr=LR,
+                                               generator=generator)
+        assert counts["perturbed"] == ref_counts["perturbed"] == n
+        assert torch.equal(params["means"], ref_params["means"])
+        assert_only_along_rays(before, params["means"].detach())
+        for p in params.values():
+            p.grad = None
+    assert params["opacities"].shape[1:] == ((1,) if layout == "nerfstudio" else ())
+
+
+def assert_ray_rows(step, n_before, reference, after, counts):
+    """gsplat's densification exactly (every other parameter, every moment, gsplat's statistics),
+    and the means moved only along their rays."""
+    ref_params, ref_opts, ref_state = reference
+    params, optimizers, state = after
+    assert counts["perturbed"] == params["means"].shape[0] == ref_params["means"].shape[0]
+    for key in params:
+        if key != "means":
+            assert torch.equal(params[key], ref_params[key]), key
+        for mine, ref in zip(_moments(optimizers, params, key), _moments(ref_opts, ref_params, key)):
+            assert torch.equal(mine, ref), key
+    for key, value in ref_state.items():
+        if isinstance(value, Tensor):
+            assert torch.equal(state[key], value), key
+    assert_only_along_rays(ref_params["means"].detach(), params["means"].detach())
+
+
+@pytest.mark.parametrize("layout,radii,packed", [("gsplat", "pairs", False), ("gsplat", "single", True),
+                                                 ("nerfstudio", "pairs", True)])
+def test_ray_strategy_keeps_gsplat_densification_and_moments_aligned(layout, radii, packed):
+    strategy = integ.RayStrategy(**SCHEDULE, seed=2)
+    sizes = []
+
+    def check(step, n_before, reference, after, counts):
+        assert_ray_rows(step, n_before, reference, after, counts)
+        sizes.append(after[0]["means"].shape[0])
+
+    train(strategy, layout, radii, packed, check=check)
+    assert len(set(sizes)) > 1  # gsplat's refine changed the set, and the rows stayed aligned
+
+
+def relocation_on_cpu(opacities, scales, ratios, binoms):
+    """gsplat's compute_relocation (a CUDA kernel) for the reference run on the CPU: eq. 9 by
+    our relocation_update, in the shapes gsplat's kernel returns."""
+    new_o, new_s = relocation_update(opacities.reshape(-1), scales, ratios.clamp(1, binoms.shape[0]), binoms.double())
+    return new_o.reshape(opacities.shape), new_s
+
+
+def _snapshot(params, optimizers):
+    return ({k: p.detach().clone() for k, p in params.items()},
+            {k: [m.clone() for m in _moments(optimizers, params, k)] for k in params})
+
+
+@pytest.mark.parametrize("layout", ["gsplat", "nerfstudio"])
+def test_mcmc_ray_relocates_and_grows_as_gsplat_with_moments_following_rows(layout, monkeypatch):
+    gsplat_relocate = MCMCStrategy._relocate_gs
+    monkeypatch.setattr(gsplat.strategy.ops, "compute_relocation", relocation_on_cpu)  # the reference's kernel
+    monkeypatch.setattr(MCMCStrategy, "_relocate_gs", lambda *a: pytest.fail("gsplat's CUDA path on a CPU"))
+    settings = dict(refine_start_iter=0, refine_every=2, refine_stop_iter=100, cap_max=310)
+    strategy = integ.MCMCRayStrategy(**settings, noise_lr=0.0, seed=1)  # no noise: rows stay recognisable
+    params, optimizers = make_params(layout)
+    info, _, loss = fake_render(params, 0, "pairs", False)
+    loss.backward()
+    for opt in optimizers.values():  # non-zero moments everywhere
+        opt.step()
+        opt.zero_grad(set_to_none=True)
+    state = strategy.initialize_state()
+    for step in (1, 2, 4):  # 1: noise only; 2, 4: relocation and growth (capped at 310 on step 2)
+        ref_params, ref_opts = copy.deepcopy((params, optimizers))
+        plain = MCMCStrategy(**settings)
+        torch.manual_seed(step)
+        ref_relocated = ref_added = 0
+        if step % 2 == 0:
+            binoms = plain.initialize_state()["binoms"]
+            ref_relocated = gsplat_relocate(plain, ref_params, ref_opts, binoms)
+            ref_added = plain._add_new_gs(ref_params, ref_opts, binoms)
+        (before, moments), n_old = _snapshot(params, optimizers), params["means"].shape[0]
+        dead = torch.sigmoid(before["opacities"].reshape(-1)) <= strategy.min_opacity
+        counts = strategy.step_post_backward(params, optimizers, state, step, info, lr=LR)
+        assert (counts["relocated"], counts["added"]) == (ref_relocated, ref_added)
+        n = params["means"].shape[0]
+        assert n == ref_params["means"].shape[0] <= strategy.cap_max
+        assert n == (310 if step > 1 else 300)
+        unchanged = torch.ones(n_old, dtype=torch.bool)
+        for key in params:
+            assert params[key].shape[1:] == before[key].shape[1:] and optimizers[key].param_groups[0]["params"][0] is params[key]
+            unchanged &= (params[key].detach()[:n_old] == before[key]).reshape(n_old, -1).all(-1)
+        if step % 2 == 0:
+            assert counts["relocated"] == int(dead.sum()) and (step != 2 or counts["relocated"] > 0)
+            assert not (unchanged & dead).any()  # every dead row took a live source's place
+        else:
+            assert unchanged.all()
+        for key in params:
+            now = _moments(optimizers, params, key)
+            for m, m_before in zip(now, moments[key]):
+                assert torch.equal(m[:n_old][unchanged], m_before[unchanged]), key  # kept rows keep theirs
+                assert step % 2 or not m[:n_old][dead].any(), key  # relocated rows start again
+                assert not m[n_old:].any(), key  # so do new rows
+    assert state["generator"] is not None
+
+
+
+# ------------------------------------------------------------------------------ camera, lr
+def test_camera_centre_from_each_info_key_and_one_line_errors():
+    center = torch.tensor([0.3, -0.2, -3.0])
+    c2w = torch.linalg.inv(VIEWMATS)
+    for info in ({"viewmats": VIEWMATS}, {"camtoworlds": c2w}, {"camera_center": center}, {"viewmats": VIEWMATS[None]}):
+        assert torch.allclose(integ.camera_center(info), center, atol=1e-5), info.keys()
+    with pytest.raises(StrategyError, match=r"info\['camtoworlds'\]") as err:
+        integ.camera_center({"viewmats": None, "radii": torch.ones(2, 3)})
+    assert "\n" not in str(err.value)
+    with pytest.raises(StrategyError, match=r"\[\.\.\., C, 4, 4\]"):
+        integ.camera_center({"viewmats": torch.eye(3)})
+    params, optimizers = make_params("gsplat", n=20)
+    strategy = integ.MCMCRayStrategy(**NO_REFINE)
+    state = strategy.initialize_state()
+    with pytest.raises(StrategyError, match="camtoworlds"):
+        strategy.step_post_backward(params, optimizers, state, 0, {}, lr=LR)
+    with pytest.raises(StrategyError, match="lr="):
+        strategy.step_post_backward(params, optimizers, state, 0, {"viewmats": VIEWMATS}, lr=0.0)
+    for bad in ({"noise_lr": -1.0}, {"noise_gate_t": 2.0}, {"noise_gate_k": math.inf}):
+        with pytest.raises(StrategyError):
+            integ.RayStrategy(**bad)
+        with pytest.raises(StrategyError):
+            integ.MCMCRayStrategy(**bad)
+
+
+# ------------------------------------------------------------------------------ a training loop
+def _scene(seed: int, n: int):
+    """Gaussians in gsplat's layout (sh degree 1) in the box [-1, 1]^3, and four cameras at
+    distance 3 around it (our rasterizer's OpenCV viewmats, 32 x 32 pixels)."""
+    from exploregs_plugin.strategies.synthetic import make_gaussians
+
+    params = make_gaussians(n, torch.Generator().manual_seed(seed), sh_degree=1, extent=0.8)
+    with torch.no_grad():
+        params["scales"].add_(1.5)  # 0.02 -> 0.09 x extent: a few pixels wide
+    K = torch.tensor([[40.0, 0.0, 16.0], [0.0, 40.0, 16.0], [0.0, 0.0, 1.0]])
+    cams = [viewmat((3.0 * math.sin(a), 0.0, -3.0 * math.cos(a)), a) for a in (0.0, 0.5, -0.5, 1.0)]  # facing the origin
+    return params, cams, K
+
+
+def render(params, view, K):
+    """Our rasterizer (pure-torch backend), and gsplat's info for one camera as rasterization()
+    gives it to simple_trainer: means2d [C, N, 2], radii [C, N, 2], width, height, n_cameras,
+    gaussian_ids (None: unpacked), plus the viewmats that our simple_trainer wrapper adds.
+
+    Our renderer differentiates 2D means [N, 2]; gsplat's strategies read the gradient of a
+    [C, N, 2] tensor, so ``info["means2d"]`` is a leaf of that shape whose gradient
+    :func:`gradient_to_info` fills from ours after ``loss.backward()``."""
+    from exploregs_plugin.rasterizer import RasterSettings, rasterize
+
+    sh = torch.cat([params["sh0"], params["shN"]], dim=1)
+    image, _, _, ours = rasterize(params["means"], params["quats"], torch.exp(params["scales"]),
+                                  torch.sigmoid(params["opacities"]), sh, view, K, 32, 32,
+                                  settings=RasterSettings(backend="torch"))
+    if ours["means2d"].requires_grad:
+        ours["means2d"].retain_grad()
+    info = {"means2d": ours["means2d"].detach()[None].requires_grad_(), "radii": ours["radii"][None], "width": 32,
+            "height": 32, "n_cameras": 1, "gaussian_ids": None, "viewmats": view[None], "ours": ours["means2d"]}
+    return image, info
+
+
+def gradient_to_info(info) -> None:
+    info["means2d"].grad = info.pop("ours").grad[None]
+
+
+@pytest.mark.parametrize("kind", ["seedsplit", "ray", "mcmc-ray"])
+def test_a_short_training_loop_with_our_renderer_improves_psnr(kind):
+    from exploregs_plugin.model.losses import psnr
+
+    truth, cams, K = _scene(0, 120)
+    with torch.no_grad():
+        targets = [render(truth, view, K)[0] for view in cams]
+    params, _, _ = _scene(1, 60)
+    optimizers = {k: torch.optim.Adam([{"params": p, "lr": lr, "name": k}], eps=1e-15)
+                  for (k, p), lr in zip(params.items(), (1.6e-3, 5e-3, 1e-3, 5e-2, 2.5e-3, 1e-4))}
+    window = dict(refine_start_iter=4, refine_stop_iter=24, refine_every=8)
+    if kind == "mcmc-ray":
+        strategy = integ.MCMCRayStrategy(**window, cap_max=90, seed=0)
+        state = strategy.initialize_state()
+    else:
+        cls = integ.SeedSplitStrategy if kind == "seedsplit" else integ.RayStrategy
+        extra = {"n_seed": 5, "n_split": 2, "split_every": 4} if kind == "seedsplit" else {}
+        strategy = cls(**window, reset_every=1000, grow_grad2d=1e-4, **extra, seed=0)
+        state = strategy.initialize_state(scene_scale=1.0)
+    strategy.check_sanity(params, optimizers)
+
+    def mean_psnr():
+        with torch.no_grad():
+            return sum(psnr(render(params, v, K)[0], t) for v, t in zip(cams, targets)) / len(cams)
+
+    start, counts = mean_psnr(), []
+    for step in range(32):
+        view = step % len(cams)
+        image, info = render(params, cams[view], K)
+        strategy.step_pre_backward(params, optimizers, state, step, info)
+        loss = (image - targets[view]).abs().mean()
+        loss.backward()
+        gradient_to_info(info)
+        for opt in optimizers.values():
+            opt.step()
+            opt.zero_grad(set_to_none=True)
+        if kind == "mcmc-ray":  # simple_trainer's two calls
+            counts.append(strategy.step_post_backward(params, optimizers, state, step, info, lr=1.6e-3))
+        else:
+            counts.append(strategy.step_post_backward(params, optimizers, state, step, info, packed=False))
+    end = mean_psnr()
+    assert end > start + 1.0, (start, end)
+    assert params["means"].shape[0] != 60  # the set changed on the way (rows and moments stayed aligned)
+    if kind == "seedsplit":
+        assert sum(c.get("random_split", 0) + c.get("seeded", 0) for c in counts) > 0
+    else:  # the noise ran on every step, with the set's size at that step
+        assert all(c["perturbed"] > 0 for c in counts) and counts[-1]["perturbed"] == params["means"].shape[0]
+    if kind == "mcmc-ray":
+        assert sum(c["added"] for c in counts) == params["means"].shape[0] - 60 > 0
+
+
+# ------------------------------------------------------------------------------ simple_trainer wrapper
+STAND_IN_TRAINER = """
+# simple_trainer.py's structure where the wrapper reaches in: gsplat's rasterization imported by
+# name, a Config whose strategy is Union[DefaultStrategy, MCMCStrategy], its configs dict
+# handed to tyro.extras.overridable_config_cli in __main__.
+from dataclasses import dataclass, field
+from typing import Union
+
+import torch
+import tyro
+from gsplat.rendering import rasterization
+from gsplat.strategy import DefaultStrategy, MCMCStrategy
+
+
+@dataclass
+class Config:
+    init_opa: float = 0.1
+    opacity_reg: float = 0.0
+    strategy: Union[DefaultStrategy, MCMCStrategy] = field(default_factory=DefaultStrategy)
+
+
+if __name__ == "__main__":
+    configs = {
+        "default": ("3DGS.", Config(strategy=DefaultStrategy(verbose=True))),
+        "mcmc": ("MCMC.", Config(init_opa=0.5, opacity_reg=0.01, strategy=MCMCStrategy(verbose=True))),
+    }
+    cfg = tyro.extras.overridable_config_cli(configs)
+    _, _, info = rasterization(None, None, None, None, None, torch.eye(4)[None], None, 8, 8)
+"""
+
+
+def test_simple_trainer_wrapper_adds_our_configs_and_the_camera(tmp_path, monkeypatch):
+    import gsplat.rendering
+
+    from exploregs_plugin.integrations import simple_trainer as wrapper
+
+    def fake_rasterization(means, quats, scales, opacities, colors, viewmats, Ks, width, height, **kwargs):
+        return None, None, {"width": width}  # gsplat's own info has no camera
+
+    monkeypatch.setattr(gsplat.rendering, "rasterization", fake_rasterization)
+    (tmp_path / "examples").mkdir()
+    script = tmp_path / "examples" / "simple_trainer.py"
+    script.write_text(STAND_IN_TRAINER, "utf8")
+    run = wrapper.run([str(script), "mcmc-ray", "--strategy.noise-lr", "1000", "--strategy.seed", "4"])
+    cfg, info = run["cfg"], run["info"]
+    assert isinstance(cfg.strategy, integ.MCMCRayStrategy) and isinstance(cfg.strategy, MCMCStrategy)
+    assert (cfg.strategy.noise_lr, cfg.strategy.seed, cfg.strategy.verbose) == (1000.0, 4, True)
+    assert (cfg.init_opa, cfg.opacity_reg) == (0.5, 0.01)  # simple_trainer's own mcmc settings
+    assert torch.equal(info["viewmats"], torch.eye(4)[None]) and info["width"] == 8
+    assert gsplat.rendering.rasterization is fake_rasterization  # put back after the run
+    cfg = wrapper.run([str(script), "seedsplit", "--strategy.n-split", "5"])["cfg"]
+    assert isinstance(cfg.strategy, integ.SeedSplitStrategy) and (cfg.strategy.n_split, cfg.init_opa) == (5, 0.1)
+    assert isinstance(wrapper.run([str(script), "default"])["cfg"].strategy, GsplatDefaultStrategy)
+    with pytest.raises(SystemExit, match="usage"):
+        wrapper.run(["seedsplit"])

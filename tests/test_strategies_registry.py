@@ -127,8 +127,12 @@ def test_built_in_names_select_the_named_methods_strategy_and_bad_names_are_one_
     config = parse_config(["exploregs-default", "--strategy", "seedsplit"])
     assert config.pipeline.strategy == get_method("exploregs-seedsplit").config.pipeline.strategy
     assert config.method_name == "exploregs-default"
+    from exploregs_plugin.strategies.registry import available_strategies
+
+    names = sorted(available_strategies())
+    assert {"default", "seedsplit", "mcmc", "gsplat-default", "gsplat-mcmc"} <= set(names)  # built in and entry points
     for argv, expected in ((["exploregs-default", "--strategy", "nope"], "unknown strategy 'nope'; registered "
-                            "strategies: default, guided, guided-occlusion, mcmc, occlusion, ray, seed, seedsplit, split"),
+                            f"strategies: {', '.join(names)}"),
                            (["exploregs-default", "--strategy"], "--strategy needs the name of a registered strategy"),
                            (["--strategy", "seed"], "--strategy NAME needs a method first")):
         with pytest.raises(SystemExit) as exit_:

@@ -30,12 +30,22 @@ Randomness. gsplat passes no generator, so each strategy owns one, seeded with `
 on the parameters' device at its first use (the device is unknown before, which is also why
 gsplat creates its own state tensors on the first step). gsplat's own split still draws from
 torch's global generator.
+
+Ray perturbation. :class:`RayStrategy` is gsplat's DefaultStrategy plus the 3DGS-MCMC position
+noise projected onto the viewing ray after every step (our ``RayPerturbationStrategy``);
+:class:`MCMCRayStrategy` is gsplat's MCMCStrategy (relocation of dead Gaussians, 5% growth to
+``cap_max``) whose isotropic noise is replaced by the same ray noise. Both call our operator
+(``position_noise`` in 'ray' mode, as ``NoiseMixin.perturb_positions`` does). gsplat's ``info`` holds
+no camera, so the trainer puts one in: ``camera_center`` [3], ``camtoworlds`` [C, 4, 4] or
+``viewmats`` [C, 4, 4] (see :func:`camera_center`; the first camera's rays are used, as in our
+pipeline for a step of several views).
 """
 
 from __future__ import annotations
 
 import contextlib
 import dataclasses
+import math
 import re
 from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
@@ -46,7 +56,7 @@ from torch import Tensor
 
 try:
     import gsplat
-    from gsplat.strategy import DefaultStrategy
+    from gsplat.strategy import DefaultStrategy, MCMCStrategy
 except ImportError as exc:  # one line, whatever part of gsplat failed to import
     raise ImportError(
         f"exploregs_plugin.integrations.gsplat needs gsplat: pip install gsplat==1.5.3 ({exc})"
@@ -56,16 +66,22 @@ from ..strategies import ops
 from ..strategies.base import StrategyError
 from ..strategies.budget import PAPER_N_SEED, PAPER_N_SPLIT, PAPER_SPLIT_EVERY
 from ..strategies.ops import Optimizers, Params, num_gaussians
+from ..strategies.perturbation import NoiseMixin, position_noise
+from ..strategies.relocation import N_MAX, binomial_table
 from ..strategies.seeding import SeedingMixin, seed_rows
 from ..strategies.splitting import draw_rows, split_weights
 
 __all__ = [
+    "CAMERA_KEYS",
     "ExplorationStrategy",
+    "MCMCRayStrategy",
     "RADII_PAIRS",
+    "RayStrategy",
     "SEED_PARAM_KEYS",
     "SeedSplitStrategy",
     "SeedStrategy",
     "SplitStrategy",
+    "camera_center",
     "radii_layout",
     "seed_params",
     "sh_rest_count",
@@ -114,6 +130,59 @@ def radii_layout(radii: Tensor, packed: bool, pairs: bool) -> Tensor:
     if pairs:
         return radii.unsqueeze(-1).expand(*radii.shape, 2)
     return torch.where((radii > 0).all(dim=-1), radii.max(dim=-1).values, torch.zeros_like(radii[..., 0]))
+
+
+CAMERA_KEYS: tuple[str, ...] = ("camera_center", "camtoworlds", "viewmats")
+"""Keys of ``info`` the ray noise reads the camera from, in this order: ``camera_center`` [3]
+(our renderer's info), ``camtoworlds`` [..., C, 4, 4] (simple_trainer's name for the training
+cameras), ``viewmats`` [..., C, 4, 4] (world-to-camera, the argument of gsplat's rasterization).
+gsplat's own info carries none of them."""
+
+
+def camera_center(info: Mapping[str, Any]) -> Tensor:
+    """The first camera's centre [3] in world coordinates, from the first of :data:`CAMERA_KEYS`
+    that ``info`` holds.
+
+    camera-to-world M = [R | c]: the centre is its translation column c (whatever the axis
+    convention, OpenCV or nerfstudio's OpenGL). World-to-camera V = [R | t] maps c to the origin,
+    R c + t = 0, so c = -R^T t (R is a rotation: R^-1 = R^T, no inverse to guard).
+    """
+    for key in CAMERA_KEYS:
+        value = info.get(key)
+        if value is None:
+            continue
+        if key == "camera_center":
+            return value.reshape(-1, 3)[0]
+        if value.dim() < 2 or value.shape[-2:] != (4, 4):
+            raise StrategyError(f"info['{key}'] must be [..., C, 4, 4], got {tuple(value.shape)}")
+        matrix = value.reshape(-1, 4, 4)[0]
+        return matrix[:3, 3] if key == "camtoworlds" else -(matrix[:3, :3].transpose(0, 1) @ matrix[:3, 3])
+    raise StrategyError(
+        "ray noise needs the training camera in info: set info['camtoworlds'] = camtoworlds [C, 4, 4] "
+        "(or info['viewmats'] [C, 4, 4], or info['camera_center'] [3]) after rendering; gsplat's info "
+        "has no camera"
+    )
+
+
+@contextlib.contextmanager
+def _flat_opacities(params: Params, optimizers: Optimizers) -> Iterator[None]:
+    """Opacities (and their Adam moments) as [N] inside the block, restored to [N, 1] after it.
+
+    Our ops and ``position_noise`` read opacities [N] (gsplat's layout); nerfstudio keeps [N, 1].
+    The reshape goes through ``ops.update_params_and_optimizers``, so the optimizer keeps pointing
+    at the parameter it steps.
+    """
+    shape = params["opacities"].shape[1:]
+    if shape.numel() != 1 or len(shape) == 0:
+        yield
+        return
+    ops.update_params_and_optimizers(lambda _, p: p.reshape(-1), lambda _, v: v.reshape(-1), params, optimizers,
+                                     names=["opacities"])
+    try:
+        yield
+    finally:
+        ops.update_params_and_optimizers(lambda _, p: p.reshape(-1, *shape), lambda _, v: v.reshape(-1, *shape),
+                                         params, optimizers, names=["opacities"])
 
 
 def _sources(params: Mapping[str, Tensor]) -> dict[str, str]:
@@ -166,6 +235,86 @@ def _field_set_to(obj: Any, name: str, value: Any) -> Iterator[None]:
         setattr(obj, name, saved)
 
 
+def _state_generator(state: dict[str, Any], device: torch.device, seed: int) -> torch.Generator:
+    """The strategy's own generator, kept in ``state["generator"]``; made on ``device`` with
+    ``seed`` at its first use (gsplat's trainers pass none)."""
+    generator = state.get("generator")
+    if generator is None:
+        generator = state["generator"] = torch.Generator(device=device).manual_seed(seed)
+    return generator
+
+
+def _means_lr(optimizers: Optimizers, lr: float | None) -> float:
+    """``lr`` if given, else the means optimizer's current learning rate (0.0 without one: the
+    ray noise then refuses to run and says to pass lr)."""
+    if lr is not None:
+        return float(lr)
+    optimizer = optimizers.get("means")
+    return float(optimizer.param_groups[0]["lr"]) if optimizer is not None else 0.0
+
+
+def _print_counts(verbose: bool, step: int, counts: Mapping[str, int], params: Params) -> None:
+    """gsplat-style progress line for steps that changed the set (the noise moves every step,
+    so ``perturbed`` alone prints nothing)."""
+    changed = {key: value for key, value in counts.items() if key != "perturbed" and value}
+    if verbose and changed:
+        done = ", ".join(f"{key} {value}" for key, value in changed.items())
+        print(f"Step {step}: {done}. Now having {num_gaussians(params)} GSs.")
+
+
+@dataclass
+class ExploreStep:
+    """What one ``step_post_backward`` hands to the exploration operators (gsplat's ``info``
+    as the trainer gave it)."""
+
+    params: Params
+    optimizers: Optimizers
+    state: dict[str, Any]
+    step: int
+    info: Mapping[str, Any]
+    lr: float
+    generator: torch.Generator
+
+
+def perturb_along_ray(strategy: Any, ctx: ExploreStep) -> int:
+    """Our ray perturbation on gsplat's parameters: ``position_noise`` in 'ray' mode,
+    eta = noise_lr lr sigmoid(-k (o - t)) Sigma z, projected onto the unit ray d from the camera
+    centre to each Gaussian, (eta . d) d, added to the means in place (as
+    ``NoiseMixin.perturb_positions`` does in our pipeline: the same draw from the generator and
+    the same guard). Returns how many Gaussians it moved.
+
+    ``strategy`` carries ``noise_lr``, ``noise_gate_k`` and ``noise_gate_t``. The camera comes
+    from :func:`camera_center`; nerfstudio's opacities [N, 1] are read as [N].
+    """
+    params = ctx.params
+    center = camera_center(ctx.info)
+    n = num_gaussians(params)
+    if n == 0:
+        return 0
+    if not (math.isfinite(ctx.lr) and ctx.lr > 0.0):
+        raise StrategyError(
+            f"{type(strategy).__name__} scales its noise by the means learning rate: pass lr=<current means lr> (> 0) "
+            f"or keep an optimizer for 'means', got lr {ctx.lr}"
+        )
+    eta = position_noise(
+        params["means"],
+        params["quats"],
+        params["scales"],
+        params["opacities"].reshape(-1),
+        strategy.noise_lr * ctx.lr,
+        ctx.generator,
+        mode="ray",
+        camera_center=center,
+        gate_k=strategy.noise_gate_k,
+        gate_t=strategy.noise_gate_t,
+    )
+    # A non-finite row (degenerate parameters) must not spread NaN into the means.
+    eta = torch.where(torch.isfinite(eta), eta, torch.zeros_like(eta))
+    with torch.no_grad():
+        params["means"].add_(eta.to(params["means"].dtype))
+    return n
+
+
 # ---------------------------------------------------------------------------- strategies
 ExplorationT = TypeVar("ExplorationT", bound="ExplorationStrategy")
 
@@ -173,7 +322,8 @@ ExplorationT = TypeVar("ExplorationT", bound="ExplorationStrategy")
 @dataclass
 class ExplorationStrategy(DefaultStrategy):
     """gsplat's DefaultStrategy plus a hook, :meth:`explore`, that runs after its densification
-    on every step before refine_stop_iter; no operator of its own (the subclasses add them)."""
+    on every step where :meth:`explores_at` says so (before refine_stop_iter unless a subclass
+    extends it); no operator of its own (the subclasses add them)."""
 
     seed: int = 0
     """Seed of the strategy's own torch.Generator (gsplat's trainers pass none)."""
@@ -197,11 +347,13 @@ class ExplorationStrategy(DefaultStrategy):
         """World-size prune threshold (x scene scale) for gsplat's prune at ``step``."""
         return self.prune_scale3d
 
-    def explore(
-        self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, generator: torch.Generator
-    ) -> dict[str, int]:
-        """Exploration operators, after gsplat's densification, on every step with
-        ``step < refine_stop_iter``; returns counts. Subclasses extend (super() first)."""
+    def explores_at(self, step: int) -> bool:
+        """Whether :meth:`explore` runs at ``step``: inside the refine window (subclasses extend)."""
+        return step < self.refine_stop_iter
+
+    def explore(self, ctx: ExploreStep) -> dict[str, int]:
+        """Exploration operators, after gsplat's densification, on every step where
+        :meth:`explores_at`; returns counts. Subclasses extend (super() first)."""
         return {}
 
     def refines_at(self, step: int) -> bool:
@@ -228,28 +380,25 @@ class ExplorationStrategy(DefaultStrategy):
         step: int,
         info: dict[str, Any],
         packed: bool = False,
+        lr: float | None = None,
     ) -> dict[str, int]:
         """gsplat's densification, then :meth:`explore`; returns the exploration counts (gsplat's
-        trainers ignore them)."""
+        trainers ignore them). ``lr``: the means learning rate, read only by the ray noise; None
+        (simple_trainer and splatfacto pass none to a DefaultStrategy) reads it from
+        ``optimizers["means"]``, which is what both give an MCMCStrategy."""
         if "radii" in info:
             radii = radii_layout(info["radii"], packed, RADII_PAIRS)
             if radii is not info["radii"]:
                 info = {**info, "radii": radii}
         with _field_set_to(self, "prune_scale3d", self.prune_scale3d_at(step)):
             super().step_post_backward(params, optimizers, state, step, info, packed=packed)
-        if step >= self.refine_stop_iter:
+        if not self.explores_at(step):
             return {}
-        counts = self.explore(params, optimizers, state, step, self._generator(state, params["means"].device))
-        if self.verbose and any(counts.values()):
-            done = ", ".join(f"{key} {value}" for key, value in counts.items())
-            print(f"Step {step}: {done}. Now having {num_gaussians(params)} GSs.")
+        generator = _state_generator(state, params["means"].device, self.seed)
+        ctx = ExploreStep(params, optimizers, state, step, info, _means_lr(optimizers, lr), generator)
+        counts = self.explore(ctx)
+        _print_counts(self.verbose, step, counts, params)
         return counts
-
-    def _generator(self, state: dict[str, Any], device: torch.device) -> torch.Generator:
-        generator = state.get("generator")
-        if generator is None:
-            generator = state["generator"] = torch.Generator(device=device).manual_seed(self.seed)
-        return generator
 
 
 @dataclass
@@ -268,13 +417,12 @@ class SplitStrategy(ExplorationStrategy):
         if self.split_every < 1:
             raise StrategyError(f"split_every must be >= 1, got {self.split_every}")
 
-    def explore(
-        self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, generator: torch.Generator
-    ) -> dict[str, int]:
-        counts = super().explore(params, optimizers, state, step, generator)
+    def explore(self, ctx: ExploreStep) -> dict[str, int]:
+        counts = super().explore(ctx)
         counts["random_split"] = 0
-        if self.n_split and step > self.refine_start_iter and step % self.split_every == 0:
-            counts["random_split"] = self.random_split(params, optimizers, state, generator)
+        step = ctx.step
+        if self.n_split and self.refine_start_iter < step < self.refine_stop_iter and step % self.split_every == 0:
+            counts["random_split"] = self.random_split(ctx.params, ctx.optimizers, ctx.state, ctx.generator)
         return counts
 
     def random_split(
@@ -320,13 +468,11 @@ class SeedStrategy(ExplorationStrategy):
             return self.seed_prune_scale3d
         return super().prune_scale3d_at(step)
 
-    def explore(
-        self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, generator: torch.Generator
-    ) -> dict[str, int]:
-        counts = super().explore(params, optimizers, state, step, generator)
+    def explore(self, ctx: ExploreStep) -> dict[str, int]:
+        counts = super().explore(ctx)
         counts["seeded"] = 0
-        if self.n_seed and self.refines_at(step):
-            counts["seeded"] = self.add_seeds(params, optimizers, state, generator)
+        if self.n_seed and self.refines_at(ctx.step):
+            counts["seeded"] = self.add_seeds(ctx.params, ctx.optimizers, ctx.state, ctx.generator)
         return counts
 
     def add_seeds(
@@ -354,3 +500,115 @@ class SeedStrategy(ExplorationStrategy):
 @dataclass
 class SeedSplitStrategy(SeedStrategy, SplitStrategy):
     """gsplat's DefaultStrategy + Random Splitting + Random Seeding (split first, then seeds)."""
+
+
+@dataclass
+class RayStrategy(ExplorationStrategy):
+    """gsplat's DefaultStrategy + ray perturbation (our ``RayPerturbationStrategy``): after every
+    step, 3DGS-MCMC's opacity-gated, covariance-shaped position noise projected onto the ray from
+    the training camera, so only depth is explored. The trainer puts the camera into ``info``
+    (:data:`CAMERA_KEYS`)."""
+
+    noise_lr: float = NoiseMixin.noise_lr
+    """Noise scale relative to the means learning rate (3DGS-MCMC: 5e5)."""
+    noise_gate_k: float = NoiseMixin.noise_gate_k
+    """Steepness k of the opacity gate sigmoid(-k (o - t))."""
+    noise_gate_t: float = NoiseMixin.noise_gate_t
+    """Opacity t at which the gate is one half."""
+
+    def __post_init__(self) -> None:
+        super().__post_init__()
+        _check_noise_fields(self)
+
+    def explores_at(self, step: int) -> bool:
+        return True  # the noise runs on every step of the run, as in our pipeline
+
+    def explore(self, ctx: ExploreStep) -> dict[str, int]:
+        counts = super().explore(ctx)
+        counts["perturbed"] = perturb_along_ray(self, ctx)
+        return counts
+
+
+def _check_noise_fields(strategy: Any) -> None:
+    if not (math.isfinite(strategy.noise_lr) and strategy.noise_lr >= 0.0):
+        raise StrategyError(f"noise_lr must be finite and >= 0, got {strategy.noise_lr}")
+    if not (math.isfinite(strategy.noise_gate_k) and 0.0 <= strategy.noise_gate_t <= 1.0):
+        raise StrategyError(
+            f"noise_gate_k must be finite and noise_gate_t in [0, 1], got {strategy.noise_gate_k}, {strategy.noise_gate_t}"
+        )
+
+
+@dataclass
+class MCMCRayStrategy(MCMCStrategy):
+    """gsplat's MCMCStrategy with ray noise: every ``refine_every`` steps inside the refine window
+    dead Gaussians (opacity <= ``min_opacity``) are relocated onto live ones and the set grows by
+    5% up to ``cap_max``, as gsplat does; after every step the positions get our noise along the
+    ray from the training camera instead of gsplat's isotropic noise.
+
+    Relocation and growth: on CUDA gsplat's own (``compute_relocation`` is a CUDA kernel, and
+    gsplat's ops draw from torch's global generator); on any other device our ops
+    (``ops.relocate``, ``ops.sample_add``: the same eq. 9 update, in float64, drawn from this
+    strategy's generator), so the strategy also runs on a CPU.
+    """
+
+    noise_gate_k: float = NoiseMixin.noise_gate_k
+    """Steepness k of the opacity gate sigmoid(-k (o - t)) (gsplat's MCMC: 100)."""
+    noise_gate_t: float = NoiseMixin.noise_gate_t
+    """Opacity t at which the gate is one half (gsplat's MCMC: 0.005)."""
+    seed: int = 0
+    """Seed of the strategy's own torch.Generator: the noise everywhere, relocation and growth
+    off CUDA."""
+
+    def __post_init__(self) -> None:
+        _check_noise_fields(self)
+        if self.cap_max < 0:
+            raise StrategyError(f"cap_max must be >= 0, got {self.cap_max}")
+
+    def initialize_state(self) -> dict[str, Any]:
+        """gsplat's state (``binoms``, float32 for its kernel), our float64 table for the ops off
+        CUDA (C(50, 25) ~ 1e14 is not exact in float32) and ``generator`` (None until the first
+        step)."""
+        state = super().initialize_state()
+        state["binoms_float64"] = binomial_table(N_MAX)
+        state["generator"] = None
+        return state
+
+    def step_post_backward(
+        self,
+        params: Params,
+        optimizers: Optimizers,
+        state: dict[str, Any],
+        step: int,
+        info: dict[str, Any],
+        lr: float,
+    ) -> dict[str, int]:
+        """gsplat's relocation and growth on its steps, then the ray noise; returns the counts."""
+        device = params["means"].device
+        state["binoms"] = state["binoms"].to(device)
+        generator = _state_generator(state, device, self.seed)
+        counts = {"relocated": 0, "added": 0}
+        if self.refine_start_iter < step < self.refine_stop_iter and step % self.refine_every == 0:
+            if device.type == "cuda":
+                counts["relocated"] = self._relocate_gs(params, optimizers, state["binoms"])
+                counts["added"] = self._add_new_gs(params, optimizers, state["binoms"])
+                torch.cuda.empty_cache()
+            else:
+                binoms = state["binoms_float64"]
+                with _flat_opacities(params, optimizers):
+                    counts["relocated"] = self.relocate_dead(params, optimizers, binoms, generator)
+                    counts["added"] = self.grow(params, optimizers, binoms, generator)
+        ctx = ExploreStep(params, optimizers, state, step, info, float(lr), generator)
+        counts["perturbed"] = perturb_along_ray(self, ctx)
+        _print_counts(self.verbose, step, counts, params)
+        return counts
+
+    def relocate_dead(self, params: Params, optimizers: Optimizers, binoms: Tensor, generator: torch.Generator) -> int:
+        """gsplat's rule (opacity <= min_opacity is dead) with our ``ops.relocate``."""
+        dead = torch.sigmoid(params["opacities"].detach()) <= self.min_opacity
+        return ops.relocate(params, optimizers, {}, dead, generator, binoms, self.min_opacity)
+
+    def grow(self, params: Params, optimizers: Optimizers, binoms: Tensor, generator: torch.Generator) -> int:
+        """gsplat's rule (N -> min(cap_max, floor(1.05 N))) with our ``ops.sample_add``."""
+        n = num_gaussians(params)
+        return ops.sample_add(params, optimizers, {}, max(0, min(self.cap_max, int(1.05 * n)) - n), generator,
+                              binoms, self.min_opacity)
