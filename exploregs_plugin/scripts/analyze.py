@@ -3,6 +3,7 @@
     eg-analyze grad-branches --data builtin:default --max-steps 300 --every 25
     eg-analyze grad-directions --run RUN
     eg-analyze blending --run RUN --view 0 --pixel 70 50
+    eg-analyze nearside --run RUN --checkpoints all
 """
 
 from __future__ import annotations
@@ -21,6 +22,10 @@ from exploregs_plugin.analysis.blending import (
 )
 from exploregs_plugin.analysis.branches import CURVES, branch_gradients
 from exploregs_plugin.analysis.directions import REFERENCES, branch_cosines
+from exploregs_plugin.analysis.nearside import DEPTH_TOLERANCE
+from exploregs_plugin.analysis.nearside_report import (
+    cancellation_rows, gaussian_rows, pixel_rows, plot_nearside, scene_views,
+)
 from exploregs_plugin.analysis.probing import TrainSpec, train_and_probe
 from exploregs_plugin.analysis.sampling import pipeline_view, probe_steps, train_problems
 from exploregs_plugin.analysis.tensorboard import pipeline_branch_norms
@@ -81,6 +86,30 @@ class Blending:
     """Largest depth rank shown in the scene-wide profile."""
     out: Path = Path("outputs/analysis/blending")
     """Output folder: blending_pixel.*, blending_ranks.*, blending_visibility.* (png, csv, json)."""
+    device: str = "auto"
+    """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
+
+
+@dataclass
+class Nearside:
+    """The near-side trap: how many training views see the occluded region, and the transmittance
+    and densification statistic of the Gaussians there (needs depth and region masks: built-in scenes)."""
+
+    run: Path | None = None
+    """A run folder or a checkpoint file (required)."""
+    checkpoints: Literal["latest", "all", "none"] = "latest"
+    """Gaussian statistics at the latest checkpoint only, at each checkpoint of the run, or not at all
+    (pixels only: a few renders)."""
+    tol: float = DEPTH_TOLERANCE
+    """Relative depth agreement for 'seen' and 'on the surface' (the scene generator's 2%)."""
+    cancellation_views: tuple[int, ...] = ()
+    """Training views (indices) in which to compare each Gaussian's net screen-space gradient with the
+    sum of its per-pixel parts, at the latest checkpoint (a scene-wide pass per view: seconds each)."""
+    train_pixels: bool = True
+    """Also split the training views' occluded pixels (the slower part: every view against every view)."""
+    out: Path = Path("outputs/analysis/nearside")
+    """Output folder: nearside_pixels.csv, nearside_references.csv, nearside_gaussians.csv,
+    nearside_cancellation.csv, nearside.json, nearside.png."""
     device: str = "auto"
     """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
 
@@ -248,26 +277,68 @@ def blending(args: Blending) -> dict[str, Any]:
     return {"pixel": pixel_rows, "ranks": rank_rows, "visibility": vis_rows, "xy": (x, y), "threshold": threshold}
 
 
+def nearside(args: Nearside) -> dict[str, Any]:
+    if args.run is None:
+        raise ValueError("nearside needs a run: eg-analyze nearside --run RUN_DIR")
+    if not 0.0 < args.tol < 1.0:
+        raise ValueError(f"--tol must be in (0, 1), got {args.tol}")
+    loaded = load_run(args.run, args.device)
+    pipeline = loaded.pipeline
+    train, test = scene_views(pipeline.datamanager, "train"), scene_views(pipeline.datamanager, "test")
+    bad = [v for v in args.cancellation_views if not 0 <= v < len(train.cameras)]
+    if bad:
+        raise ValueError(f"--cancellation-views {bad} out of range: the train split has {len(train.cameras)} views")
+    pixels, references = [], []
+    for split, views in (("test", test), ("train", train))[: 2 if args.train_pixels else 1]:
+        rows, refs = pixel_rows(pipeline, split, views, train, args.tol)
+        pixels, references = pixels + rows, references + refs
+    if not any(r["split"] == "test" for r in references):
+        raise ValueError("the test views have no occluded pixels: there is nothing to measure")
+    targets = {"all": list_checkpoints(loaded.run_dir), "latest": [loaded.checkpoint], "none": []}[args.checkpoints]
+    gaussians: list[dict[str, Any]] = []
+    for ckpt in targets:
+        at = loaded if ckpt == loaded.checkpoint else load_run(ckpt, args.device)
+        gaussians += gaussian_rows(at.pipeline, at.step, train, _densify_threshold(at.pipeline), args.tol)
+    plots.write_csv(args.out / "nearside_pixels.csv", pixels)
+    if gaussians:
+        plots.write_csv(args.out / "nearside_gaussians.csv", gaussians)
+    plots.write_csv(args.out / "nearside_references.csv", references)
+    cancellation = cancellation_rows(pipeline, loaded.step, train, list(args.cancellation_views), args.tol)
+    if cancellation:
+        plots.write_csv(args.out / "nearside_cancellation.csv", cancellation)
+    result = {"run": str(loaded.run_dir), "step": loaded.step, "method": loaded.config.method_name,
+              "tol": args.tol, "threshold_ndc": _densify_threshold(pipeline), "pixels": pixels,
+              "references": references, "gaussians": gaussians, "cancellation": cancellation}  # fmt: skip
+    plots.write_json(args.out / "nearside.json", result)
+    plot_nearside(pixels, gaussians, args.out / "nearside.png",
+                  title=_run_label(pipeline, loaded.config.method_name, loaded.step))
+    unseen = next(r for r in pixels if r["split"] == "test" and r["view"] == "all" and r["part"] == "occluded")
+    print(f"occluded test pixels seen by no training view: {unseen['share_pixels']:.1%} of the pixels, "
+          f"{unseen['share_sq_error']:.1%} of the squared error -> {args.out}")
+    return result
+
+
 COMMANDS = {
     "grad-branches": (GradBranches, grad_branches),
     "grad-directions": (GradDirections, grad_directions),
     "blending": (Blending, blending),
+    "nearside": (Nearside, nearside),
 }
 
 
-def main(args: GradBranches | GradDirections | Blending) -> dict[str, Any]:
+def main(args: GradBranches | GradDirections | Blending | Nearside) -> dict[str, Any]:
     for cls, fn in COMMANDS.values():
         if isinstance(args, cls):
             return fn(args)
     raise ValueError(f"unknown analysis arguments {type(args).__name__}")
 
 
-def parse(argv: list[str] | None = None) -> GradBranches | GradDirections | Blending:
+def parse(argv: list[str] | None = None) -> GradBranches | GradDirections | Blending | Nearside:
     descriptions = {name: (cls.__doc__ or "").strip() for name, (cls, _) in COMMANDS.items()}
     union = tyro.extras.subcommand_type_from_defaults({name: cls() for name, (cls, _) in COMMANDS.items()},
                                                       descriptions)  # fmt: skip
     return tyro.cli(union, args=argv, description="Blur-Trap diagnostics: gradient branches, their "
-                    "directions, alpha-blending attenuation (figures + CSV/JSON).")  # fmt: skip
+                    "directions, alpha-blending attenuation, the near-side trap (figures + CSV/JSON).")  # fmt: skip
 
 
 def entrypoint() -> None:
