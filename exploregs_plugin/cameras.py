@@ -6,7 +6,7 @@ Conventions (docs/architecture.md#conventions): OpenCV axes (x right, y down, z 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
@@ -28,6 +28,9 @@ class Camera:
     name: str = ""
     time: float | None = None
     """Normalised time in [0, 1] of a frame of a dynamic scene (None: a static scene's view)."""
+    near: float = 0.01
+    """Gaussians whose camera depth z is not in (near, far) are not drawn."""
+    far: float = 1e10
 
     @property
     def camera_center(self) -> Tensor:
@@ -37,8 +40,7 @@ class Camera:
 
     def to(self, *args: Any, **kwargs: Any) -> "Camera":
         """The camera with viewmat and K moved like ``Tensor.to`` (a dtype, a device, or both)."""
-        return Camera(self.viewmat.to(*args, **kwargs), self.K.to(*args, **kwargs), self.width, self.height,
-                      self.name, self.time)
+        return replace(self, viewmat=self.viewmat.to(*args, **kwargs), K=self.K.to(*args, **kwargs))
 
     def scaled(self, factor: float) -> "Camera":
         """The same camera for an image resized by ``factor`` (e.g. 0.5 halves each side)."""
@@ -49,4 +51,4 @@ class Camera:
         K[0, :] *= sx
         K[1, :] *= sy
         K[2, :] = torch.tensor([0.0, 0.0, 1.0], dtype=K.dtype, device=K.device)
-        return Camera(self.viewmat, K, width, height, self.name, self.time)
+        return replace(self, K=K, width=width, height=height)

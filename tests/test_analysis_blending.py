@@ -74,7 +74,7 @@ def test_two_layer_dc_dalpha_and_back_layer_transmittance():
     for ch in range(3):
         opac.grad = None
         image, *_ = rasterize(params["means"], params["quats"], torch.exp(params["scales"]), opac, sh,
-                              camera.viewmat, camera.K, W, H, sh_degree=0, background=bg)  # fmt: skip
+                              camera, sh_degree=0, background=bg)  # fmt: skip
         image[Y, X, ch].backward()
         g = data["alphas"] / opac.detach()
         assert torch.allclose(opac.grad, want[:, ch] * g, atol=1e-12)
@@ -99,8 +99,7 @@ def test_screen_gradients_are_in_ndc_units():
     sh = torch.cat([params["sh0"], params["shN"]], 1)
     means = params["means"].clone().requires_grad_(True)
     image, _, _, info = rasterize(means, params["quats"], torch.exp(params["scales"]),
-                                  torch.sigmoid(params["opacities"]), sh, camera.viewmat, camera.K, W, H,
-                                  sh_degree=0)  # fmt: skip
+                                  torch.sigmoid(params["opacities"]), sh, camera, sh_degree=0)  # fmt: skip
     info["means2d"].retain_grad()
     _l1(image, target).backward()
     g = info["means2d"].grad
@@ -112,7 +111,7 @@ def test_composited_pairs_match_trace_pixel():
     s = random_scene(60, 24, 20, torch.Generator().manual_seed(4), scale_range=(0.05, 0.3), dtype=F64)
     params = {"means": s.means, "quats": s.quats, "scales": torch.log(s.scales),
               "opacities": torch.logit(s.opacities), "sh0": s.sh_coeffs[:, :1], "shN": s.sh_coeffs[:, 1:]}
-    camera = Camera(s.viewmat, s.K, s.width, s.height)
+    camera = s.camera
     pairs = composited_pairs(params, camera)
     checked = 0
     for y in range(0, s.height, 3):
@@ -145,14 +144,13 @@ def test_per_pixel_gradient_parts_sum_to_the_screen_space_gradient():
     s = random_scene(50, 20, 16, torch.Generator().manual_seed(8), scale_range=(0.05, 0.3), dtype=F64)
     params = {"means": s.means, "quats": s.quats, "scales": torch.log(s.scales),
               "opacities": torch.logit(s.opacities), "sh0": s.sh_coeffs[:, :1], "shN": s.sh_coeffs[:, 1:]}
-    camera = Camera(s.viewmat, s.K, s.width, s.height)
+    camera = s.camera
     bg = torch.tensor([0.1, 0.6, 0.3], dtype=F64)
     target = torch.rand(s.height, s.width, 3, generator=torch.Generator().manual_seed(1), dtype=F64)
     grad_c = image_gradient(ViewProblem(params, camera, target, 3, _l1, bg))
     pairs = composited_pairs(params, camera, sh_degree=3, background=bg, image_grad=grad_c)
     means = s.means.clone().requires_grad_(True)
-    image, _, _, info = rasterize(means, s.quats, s.scales, s.opacities, s.sh_coeffs, s.viewmat, s.K, s.width,
-                                  s.height, background=bg)  # fmt: skip
+    image, _, _, info = rasterize(means, s.quats, s.scales, s.opacities, s.sh_coeffs, s.camera, background=bg)  # fmt: skip
     info["means2d"].retain_grad()
     _l1(image, target).backward()
     summed = torch.zeros(50, 2, dtype=F64).index_add_(0, pairs["ids"], pairs["grad_px"])
@@ -195,7 +193,7 @@ def test_rasterizer_visibility_sums_equal_the_blended_pairs(workers):
     s = random_scene(80, 40, 32, torch.Generator().manual_seed(5), scale_range=(0.05, 0.3), dtype=F64)
     params = {"means": s.means, "quats": s.quats, "scales": torch.log(s.scales),
               "opacities": torch.logit(s.opacities), "sh0": s.sh_coeffs[:, :1], "shN": s.sh_coeffs[:, 1:]}
-    pairs = composited_pairs(params, Camera(s.viewmat, s.K, s.width, s.height))
+    pairs = composited_pairs(params, s.camera)
     weight = torch.zeros(80, dtype=F64).index_add_(0, pairs["ids"], pairs["T_before"] * pairs["alphas"])
     alpha = torch.zeros(80, dtype=F64).index_add_(0, pairs["ids"], pairs["alphas"])
     settings = RasterSettings(visibility_stats=True, workers=workers, chunk_elements=2048)

@@ -48,7 +48,7 @@ def _mse(image, target):
 def _loss_with_paths(params, camera, target, m2d, mcov, msh):
     sh = torch.cat([params["sh0"], params["shN"]], 1)
     image, *_ = rasterize(m2d, params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), sh,
-                          camera.viewmat, camera.K, camera.width, camera.height, sh_degree=3,
+                          camera, sh_degree=3,
                           means_cov=mcov, means_sh=msh)  # fmt: skip
     return _mse(image, target).item()
 

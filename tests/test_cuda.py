@@ -29,8 +29,7 @@ def _render(scene, device, settings, background=None):
     params = [t.detach().to(device).requires_grad_(True)
               for t in (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh_coeffs)]
     bg = None if background is None else background.to(device)
-    image, alpha, depth, info = rasterize(*params, scene.viewmat.to(device), scene.K.to(device), scene.width,
-                                          scene.height, background=bg, settings=settings)
+    image, alpha, depth, info = rasterize(*params, scene.camera.to(device), background=bg, settings=settings)
     info["means2d"].retain_grad()
     gen = torch.Generator().manual_seed(1)
     weights = [torch.randn(t.shape, generator=gen).to(device) for t in (image, alpha, depth)]

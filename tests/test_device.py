@@ -16,6 +16,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from exploregs_plugin.cameras import Camera
 from exploregs_plugin.bench.raster_scenes import random_scene
 from exploregs_plugin.device import DeviceError, make_generator, resolve_device, restore_generator, to_device
 from exploregs_plugin.evaluation import evaluate
@@ -81,7 +82,7 @@ def test_gsplat_backend_problems_say_what_to_do():
         assert "sigma-radius" in backend_problem(odd, torch.device("cuda"))
     s = random_scene(20, 32, 24, torch.Generator().manual_seed(0))
     with pytest.raises(BackendError, match="--model.raster.backend torch"):
-        rasterize(s.means, s.quats, s.scales, s.opacities, s.sh_coeffs, s.viewmat, s.K, 32, 24,
+        rasterize(s.means, s.quats, s.scales, s.opacities, s.sh_coeffs, Camera(s.viewmat, s.K, 32, 24),
                   means_cov=s.means.clone(), settings=gsplat)
 
 
@@ -89,14 +90,14 @@ def test_rasterizer_follows_the_device_of_its_inputs():
     s = random_scene(300, 64, 48, torch.Generator().manual_seed(0))
     params = [t.clone().requires_grad_(True) for t in (s.means, s.quats, s.scales, s.opacities, s.sh_coeffs)]
     settings = RasterSettings(workers=1)
-    image, alpha, depth, info = rasterize(*params, s.viewmat, s.K, s.width, s.height,
+    image, alpha, depth, info = rasterize(*params, s.camera,
                                           background=torch.ones(3), settings=settings)
     (image.sum() + alpha.sum() + depth.sum()).backward()
     expected = [p.grad.clone() for p in params]
     for p in params:
         p.grad = None
     with foreign_default_device():
-        image2, alpha2, depth2, _ = rasterize(*params, s.viewmat, s.K, s.width, s.height,
+        image2, alpha2, depth2, _ = rasterize(*params, s.camera,
                                               background=torch.ones(3, device="cpu"), settings=settings)
         (image2.sum() + alpha2.sum() + depth2.sum()).backward()
     assert image2.device.type == "cpu" and torch.equal(image2, image) and torch.equal(depth2, depth)

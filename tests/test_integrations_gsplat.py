@@ -594,7 +594,7 @@ def render(params, view, K):
 
     sh = torch.cat([params["sh0"], params["shN"]], dim=1)
     image, _, _, ours = rasterize(params["means"], params["quats"], torch.exp(params["scales"]),
-                                  torch.sigmoid(params["opacities"]), sh, view, K, 32, 32,
+                                  torch.sigmoid(params["opacities"]), sh, Camera(view, K, 32, 32),
                                   settings=RasterSettings(backend="torch"))
     if ours["means2d"].requires_grad:
         ours["means2d"].retain_grad()

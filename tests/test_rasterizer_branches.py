@@ -27,7 +27,7 @@ def _weights(s):
 def _branch_grads(s):
     """Gradients of a weighted image sum through the 2D-mean, covariance and SH paths."""
     m1, m2, m3 = (s.means.clone().requires_grad_() for _ in range(3))
-    img, *_ = rasterize(m1, s.quats, s.scales, s.opacities, s.sh_coeffs, s.viewmat, s.K, s.width, s.height,
+    img, *_ = rasterize(m1, s.quats, s.scales, s.opacities, s.sh_coeffs, s.camera,
                         means_cov=m2, means_sh=m3)  # fmt: skip
     (img * _weights(s)).sum().backward()
     return m1.grad, m2.grad, m3.grad
@@ -37,7 +37,7 @@ def test_branches_sum_to_total_and_directions():
     s = _scene()
     g_mean, g_cov, g_sh = _branch_grads(s)
     m = s.means.clone().requires_grad_()
-    img, _, _, info = rasterize(m, s.quats, s.scales, s.opacities, s.sh_coeffs, s.viewmat, s.K, s.width, s.height)
+    img, _, _, info = rasterize(m, s.quats, s.scales, s.opacities, s.sh_coeffs, s.camera)
     (img * _weights(s)).sum().backward()
     assert torch.allclose(g_mean + g_cov + g_sh, m.grad, rtol=1e-10, atol=1e-12)
 
@@ -76,8 +76,7 @@ def test_branches_equal_finite_differences_of_reference():
                 else:
                     args = (s.means,)
                     kw[path] = moved
-                img, *_ = reference_rasterize(*args, s.quats, s.scales, s.opacities, s.sh_coeffs, s.viewmat, s.K,
-                                              s.width, s.height, **kw)  # fmt: skip
+                img, *_ = reference_rasterize(*args, s.quats, s.scales, s.opacities, s.sh_coeffs, s.camera, **kw)  # fmt: skip
                 vals.append((img * w).sum().item())
             fd = (vals[0] - vals[1]) / (2 * h)
             an = (g[i] * direction).sum().item()
@@ -88,7 +87,7 @@ def test_branches_equal_finite_differences_of_reference():
 def test_means2d_gradient_is_the_screen_space_gradient():
     s = _scene()
     m = s.means.clone().requires_grad_()
-    img, _, _, info = rasterize(m, s.quats, s.scales, s.opacities, s.sh_coeffs, s.viewmat, s.K, s.width, s.height)
+    img, _, _, info = rasterize(m, s.quats, s.scales, s.opacities, s.sh_coeffs, s.camera)
     info["means2d"].retain_grad()
     (img * _weights(s)).sum().backward()
     g2d = info["means2d"].grad
@@ -123,7 +122,7 @@ def test_trace_pixel_and_dc_dalpha_identity():
         # dC/dalpha from autograd: alpha = o G, so dC/do = dC/dalpha * alpha / o where unclamped
         for ch in range(3):
             o = s.opacities.clone().requires_grad_()
-            im, *_ = rasterize(s.means, s.quats, s.scales, o, s.sh_coeffs, s.viewmat, s.K, s.width, s.height,
+            im, *_ = rasterize(s.means, s.quats, s.scales, o, s.sh_coeffs, s.camera,
                                background=bg)  # fmt: skip
             im[y, x, ch].backward()
             free = tr["alphas"] < 0.99

@@ -31,8 +31,7 @@ def _outputs_and_grads(scene: GaussianScene, settings: RasterSettings, dtype=tor
     fixed random weighting of all outputs."""
     params = [t.detach().to(dtype).clone().requires_grad_() for t in
               (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh_coeffs)]  # fmt: skip
-    image, alpha, depth, info = rasterize(*params, scene.viewmat.to(dtype), scene.K.to(dtype), scene.width,
-                                          scene.height, settings=settings, **kw)  # fmt: skip
+    image, alpha, depth, info = rasterize(*params, scene.camera.to(dtype), settings=settings, **kw)  # fmt: skip
     info["means2d"].retain_grad()
     wts = torch.randn(scene.height, scene.width, 5, generator=torch.Generator().manual_seed(7), dtype=F64).to(dtype)
     loss = (image * wts[..., :3]).sum() + (alpha * wts[..., 3:4]).sum() + (depth * wts[..., 4:]).sum()
@@ -134,7 +133,7 @@ def test_hard_cases_match_the_float64_reference(antialiased):
     got, got_g, _ = _outputs_and_grads(scene, settings, dtype=F64)
     params = [t.detach().clone().requires_grad_() for t in
               (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh_coeffs)]  # fmt: skip
-    ref = reference_rasterize(*params, scene.viewmat, scene.K, scene.width, scene.height, settings=settings)
+    ref = reference_rasterize(*params, scene.camera, settings=settings)
     wts = torch.randn(scene.height, scene.width, 5, generator=torch.Generator().manual_seed(7), dtype=F64)
     ((ref[0] * wts[..., :3]).sum() + (ref[1] * wts[..., 3:4]).sum() + (ref[2] * wts[..., 4:]).sum()).backward()
     assert got["image"].abs().sum() > 0

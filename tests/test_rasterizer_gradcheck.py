@@ -76,7 +76,7 @@ def test_gradcheck_float64_all_parameters():
     bg = torch.tensor([0.3, 0.6, 0.1], dtype=F64)
 
     def f(means, quats, scales, opacities, sh):
-        img, alpha, depth, _ = rasterize(means, quats, scales, opacities, sh, s.viewmat, s.K, s.width, s.height,
+        img, alpha, depth, _ = rasterize(means, quats, scales, opacities, sh, s.camera,
                                          background=bg)  # fmt: skip
         return torch.cat([img, alpha, depth], -1)
 

@@ -4,10 +4,12 @@ on random scenes and on the nasty inputs real scenes produce."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import pytest
 import torch
 
+from exploregs_plugin.cameras import Camera
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
 from exploregs_plugin.rasterizer.reference import reference_rasterize
 from exploregs_plugin.bench.raster_scenes import GaussianScene, random_scene
@@ -22,7 +24,7 @@ def _run(fn, scene: GaussianScene, dtype, **kw):
     params = [t.detach().to(dtype).clone().requires_grad_() for t in
               (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh_coeffs)]  # fmt: skip
     extra = {k: (v.to(dtype) if isinstance(v, torch.Tensor) else v) for k, v in kw.items()}
-    out = fn(*params, scene.viewmat.to(dtype), scene.K.to(dtype), scene.width, scene.height, **extra)
+    out = fn(*params, scene.camera.to(dtype), **extra)
     gen = torch.Generator().manual_seed(7)
     wts = torch.randn(scene.height, scene.width, 5, generator=gen, dtype=F64).to(dtype)
     loss = (out[0] * wts[..., :3]).sum() + (out[1] * wts[..., 3:4]).sum() + (out[2] * wts[..., 4:]).sum()
@@ -142,6 +144,15 @@ def test_far_away_gaussians():
     img, alpha, depth, info = rasterize(*s.args())
     assert info["visible"][:5].all()
     assert_matches_reference(s)
+    # the camera's depth range decides: with far below their depth they are culled, in both renderers
+    near_view = replace(s.camera, far=1e4)
+    _, _, _, info = rasterize(*s.args()[:5], near_view)
+    assert not info["visible"][:5].any() and info["visible"][5:].any()
+    ref_img, *_ = reference_rasterize(*s.args()[:5], near_view)
+    img, *_ = rasterize(*s.args()[:5], near_view)
+    assert torch.allclose(img, ref_img, atol=1e-10)
+    with pytest.raises(TypeError, match="'camera' must be an exploregs_plugin.cameras.Camera, got Tensor"):
+        rasterize(*s.args()[:5], s.viewmat)
 
 
 def test_scales_from_1e_6_to_1e3_and_anisotropy():
@@ -165,16 +176,15 @@ def test_zero_and_near_zero_quaternions():
     q = s.quats.clone().requires_grad_()
     ident = s.quats.clone()
     ident[0] = torch.tensor([1.0, 0.0, 0.0, 0.0], dtype=F64)
-    img0, *_ = rasterize(s.means, q, s.scales, s.opacities, s.sh_coeffs, s.viewmat, s.K, s.width, s.height)
-    img1, *_ = rasterize(s.means, ident, s.scales, s.opacities, s.sh_coeffs, s.viewmat, s.K, s.width, s.height)
+    img0, *_ = rasterize(s.means, q, s.scales, s.opacities, s.sh_coeffs, s.camera)
+    img1, *_ = rasterize(s.means, ident, s.scales, s.opacities, s.sh_coeffs, s.camera)
     assert torch.allclose(img0, img1, atol=1e-12)
     img0.sum().backward()
     assert torch.isfinite(q.grad).all() and (q.grad[0] == 0).all()
     # for float32, a near-zero quaternion still normalises to a rotation
     s32 = s.to(torch.float32)
     q32 = s32.quats.clone().requires_grad_()
-    img, *_ = rasterize(s32.means, q32, s32.scales, s32.opacities, s32.sh_coeffs, s32.viewmat, s32.K, s32.width,
-                        s32.height)  # fmt: skip
+    img, *_ = rasterize(s32.means, q32, s32.scales, s32.opacities, s32.sh_coeffs, s32.camera)  # fmt: skip
     img.sum().backward()
     assert torch.isfinite(q32.grad).all()
 
@@ -202,7 +212,7 @@ def test_no_gaussians():
     e = torch.zeros(0, 3, dtype=F64, requires_grad=True)
     q = torch.zeros(0, 4, dtype=F64)
     img, alpha, depth, info = rasterize(e, q, e.detach(), torch.zeros(0, dtype=F64), torch.zeros(0, 16, 3, dtype=F64),
-                                        torch.eye(4, dtype=F64), torch.eye(3, dtype=F64), 20, 10)  # fmt: skip
+                                        Camera(torch.eye(4, dtype=F64), torch.eye(3, dtype=F64), 20, 10))  # fmt: skip
     assert img.shape == (10, 20, 3) and alpha.shape == depth.shape == (10, 20, 1)
     assert (img == 0).all() and info["means2d"].shape == (0, 2) and info["radii"].shape == (0, 2)
     img.sum().backward()
@@ -231,11 +241,11 @@ def test_single_opaque_gaussian():
 def test_bad_input_names_the_argument():
     s = _base(n=3)
     with pytest.raises(ValueError, match="quats"):
-        rasterize(s.means, s.quats[:, :3], s.scales, s.opacities, s.sh_coeffs, s.viewmat, s.K, 8, 8)
+        rasterize(s.means, s.quats[:, :3], s.scales, s.opacities, s.sh_coeffs, Camera(s.viewmat, s.K, 8, 8))
     with pytest.raises(ValueError, match="sh_degree"):
         rasterize(*s.args(), sh_degree=4)
     with pytest.raises(ValueError, match="colors"):
-        rasterize(s.means, s.quats, s.scales, s.opacities, None, s.viewmat, s.K, 8, 8)
+        rasterize(s.means, s.quats, s.scales, s.opacities, None, Camera(s.viewmat, s.K, 8, 8))
 
 
 def test_windowed_reference_is_a_crop_and_threads_are_restored():

@@ -8,6 +8,7 @@ import os
 import pytest
 import torch
 
+from exploregs_plugin.cameras import Camera
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.strategies import DefaultStrategy, StrategyError, ops
 from exploregs_plugin.strategies.observation import ViewObservation, observe_render
@@ -316,7 +317,7 @@ def test_default_with_the_project_rasterizer():
 
     def render(p):
         return rasterize(p["means"], p["quats"], torch.exp(p["scales"]) * 4, torch.sigmoid(p["opacities"]),
-                         torch.cat([p["sh0"], p["shN"]], 1), view, K, size, size)
+                         torch.cat([p["sh0"], p["shN"]], 1), Camera(view, K, size, size))
 
     with torch.no_grad():
         target = render(target_params)[0]

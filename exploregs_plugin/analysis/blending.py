@@ -60,7 +60,7 @@ def pixel_blending(view: ViewProblem, x: int, y: int) -> dict[str, Tensor]:
     means, quats, scales, opacities, sh = activated(view.params)
     camera = view.camera
     trace = trace_pixel(
-        means, quats, scales, opacities, sh, camera.viewmat, camera.K, camera.width, camera.height, x, y,
+        means, quats, scales, opacities, sh, camera, x, y,
         sh_degree=view.sh_degree, background=view.background, settings=view.settings,
     )  # fmt: skip
     grads = screen_gradients(view, pixel=(x, y))
@@ -90,8 +90,6 @@ def composited_pairs(
     sh_degree: int = 0,
     background: Tensor | None = None,
     image_grad: Tensor | None = None,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
 ) -> dict[str, Tensor]:
     """Every (pixel, Gaussian) pair the compositor blends in one view, with its depth rank.
 
@@ -113,7 +111,7 @@ def composited_pairs(
     # many small [P, M] ops: OpenMP barriers cost far more than they save (100x on a busy 2-core box)
     with torch.no_grad(), single_threaded_ops():
         proj = project_gaussians(means, quats, scales, opacities, camera.viewmat.to(dtype), camera.K.to(dtype),
-                                 width, height, near_plane, far_plane, settings)  # fmt: skip
+                                 width, height, camera.near, camera.far, settings)  # fmt: skip
         order = torch.nonzero(proj.visible).squeeze(1)
         order = order[torch.argsort(proj.depths[order], stable=True)]
         mx, my = proj.means2d[order, 0], proj.means2d[order, 1]

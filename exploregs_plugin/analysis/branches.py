@@ -109,7 +109,7 @@ def render_branches(
     leaves = tuple(means.clone().requires_grad_(True) for _ in BRANCHES)
     with torch.enable_grad():
         image, _, depth, info = rasterize(
-            leaves[0], quats, scales, opacities, sh, camera.viewmat, camera.K, camera.width, camera.height,
+            leaves[0], quats, scales, opacities, sh, camera,
             sh_degree=sh_degree, background=background, means_cov=leaves[1], means_sh=leaves[2],
             settings=settings,
         )  # fmt: skip

@@ -57,7 +57,7 @@ def flush_denormal_effect(repeats: int = 5) -> dict[str, float]:
     settings = RasterSettings(workers=1)
 
     def fb():
-        img, *_ = rasterize(*params, s.viewmat, s.K, s.width, s.height, settings=settings)
+        img, *_ = rasterize(*params, s.camera, settings=settings)
         img.sum().backward()
 
     out = {}

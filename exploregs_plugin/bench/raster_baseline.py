@@ -12,6 +12,7 @@ import math
 import torch
 from torch import Tensor
 
+from exploregs_plugin.cameras import Camera
 from exploregs_plugin.rasterizer.projection import project_gaussians
 from exploregs_plugin.rasterizer.settings import RasterSettings
 from exploregs_plugin.rasterizer.sh import sh_colors
@@ -24,18 +25,16 @@ def rasterize_baseline(
     scales: Tensor,
     opacities: Tensor,
     sh_coeffs: Tensor,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
+    camera: Camera,
     *,
     background: Tensor | None = None,
     settings: RasterSettings | None = None,
 ) -> tuple[Tensor, Tensor]:
-    """image [H, W, 3] and alpha [H, W, 1] (full SH degree, near/far 0.01/1e10)."""
+    """image [H, W, 3] and alpha [H, W, 1] (full SH degree), with the arguments of ``rasterize``."""
     s = settings or RasterSettings()
     dtype = means.dtype
-    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, 0.01, 1e10, s)
+    viewmat, K, width, height = camera.viewmat, camera.K, camera.width, camera.height
+    proj = project_gaussians(means, quats, scales, opacities, viewmat, K, width, height, camera.near, camera.far, s)
     vis = torch.nonzero(proj.visible).squeeze(1)
     degree = math.isqrt(sh_coeffs.shape[1]) - 1
     centre = -(viewmat[:3, :3].T @ viewmat[:3, 3])

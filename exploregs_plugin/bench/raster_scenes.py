@@ -7,6 +7,8 @@ from dataclasses import dataclass
 import torch
 from torch import Tensor
 
+from exploregs_plugin.cameras import Camera
+
 
 @dataclass
 class GaussianScene:
@@ -29,10 +31,13 @@ class GaussianScene:
     width: int
     height: int
 
+    @property
+    def camera(self) -> Camera:
+        return Camera(self.viewmat, self.K, self.width, self.height)
+
     def args(self) -> tuple:
         """Positional arguments of ``rasterize``."""
-        return (self.means, self.quats, self.scales, self.opacities, self.sh_coeffs, self.viewmat, self.K,
-                self.width, self.height)  # fmt: skip
+        return (self.means, self.quats, self.scales, self.opacities, self.sh_coeffs, self.camera)
 
     def to(self, dtype: torch.dtype) -> "GaussianScene":
         f = lambda t: t.detach().to(dtype)  # noqa: E731

@@ -92,7 +92,7 @@ def _windows(w: int, h: int) -> list[tuple[int, int, int, int]]:
 
 def _rasterize(method: str, params, scene: GaussianScene, settings: RasterSettings):
     """(image, alpha, depth, info) of ``method`` on the scene's camera."""
-    args = (*params, scene.viewmat.to(params[0]), scene.K.to(params[0]), scene.width, scene.height)
+    args = (*params, scene.camera.to(params[0]))
     if method == "baseline":
         return rasterize_baseline(*args, settings=replace(settings, backend="torch"))
     return rasterize(*args, settings=replace(settings, backend=BACKEND[method]))
@@ -170,7 +170,7 @@ def _errors(method, params, scene, settings, wts) -> tuple[tuple[float, float], 
     diffs = []
     loss64 = 0.0
     for x, y, w, h in wins:
-        ref, *_ = reference_rasterize(*p64, s64.viewmat, s64.K, s64.width, s64.height, window=(x, y, w, h))
+        ref, *_ = reference_rasterize(*p64, s64.camera, window=(x, y, w, h))
         diffs.append((img[y : y + h, x : x + w].detach().double() - ref.detach()).abs().reshape(-1))
         loss64 = loss64 + (ref * wts[y : y + h, x : x + w].double()).sum()
     loss64.backward()

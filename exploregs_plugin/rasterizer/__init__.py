@@ -2,7 +2,8 @@
 paths, on any device; a compiled CPU compositor and gsplat's CUDA kernels as further backends
 (``RasterSettings.backend``: auto, torch, cpp, gsplat; see ``backends.py``).
 
-``rasterize(means, quats, scales, opacities, sh_coeffs, viewmat, K, width, height, ...)``
+``rasterize(means, quats, scales, opacities, sh_coeffs, camera, ...)`` (``camera``: an
+``exploregs_plugin.cameras.Camera``, its viewmat, K, size and depth range)
 returns ``image [H, W, 3], alpha [H, W, 1], depth [H, W, 1], info`` where info holds
 "means2d" [N, 2] (non-leaf; call ``retain_grad()`` for the screen-space gradient), "radii"
 [N, 2] int32 (0 = culled), "visible" [N] bool, "depths" [N], "conics" [N, 3],

@@ -9,6 +9,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from ..cameras import Camera
 from .backends import backend_problem, resolve_backend
 from .composite import composite, enter_single_threaded, exit_single_threaded, single_threaded_ops, thread_budget
 from .cpp_backend import CppBins, composite_cpp, project_cpp, sh_colors_cpp
@@ -104,16 +105,11 @@ def rasterize(
     scales: Tensor,
     opacities: Tensor,
     sh_coeffs: Tensor | None,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
+    camera: Camera,
     *,
     sh_degree: int | None = None,
     colors: Tensor | None = None,
     background: Tensor | None = None,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
     means_cov: Tensor | None = None,
     means_sh: Tensor | None = None,
     settings: RasterSettings | None = None,
@@ -122,7 +118,8 @@ def rasterize(
 
     means: [N, 3]; quats: [N, 4] wxyz (unnormalised; zero = identity); scales: [N, 3] activated;
     opacities: [N] in [0, 1]; sh_coeffs: [N, K, 3] (K = 1, 4, 9, 16) or None with colors [N, 3];
-    viewmat: [4, 4] world-to-camera (OpenCV); K: [3, 3]; background: [3] (None = black).
+    camera: its viewmat [4, 4] world-to-camera (OpenCV), K [3, 3], width, height and depth range
+    (near, far); background: [3] (None = black).
     means_cov / means_sh: [N, 3] tensors fed to the covariance (Jacobian) path and the SH
     view-direction path instead of ``means`` (the expected depth follows the ``means`` path).
 
@@ -130,6 +127,11 @@ def rasterize(
     nothing is drawn) and info (see the package docstring).
     """
     settings = settings or RasterSettings()
+    if not isinstance(camera, Camera):
+        raise TypeError(f"rasterize: argument 'camera' must be an exploregs_plugin.cameras.Camera, got "
+                        f"{type(camera).__name__}")
+    viewmat, K, width, height = camera.viewmat, camera.K, camera.width, camera.height
+    near_plane, far_plane = float(camera.near), float(camera.far)
     degree = _validate(
         means, quats, scales, opacities, sh_coeffs, colors, viewmat, K, width, height,
         sh_degree, means_cov, means_sh, background,

@@ -13,6 +13,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..cameras import Camera
 from .settings import RasterSettings
 
 _SH = {
@@ -59,16 +60,11 @@ def reference_rasterize(
     scales: Tensor,
     opacities: Tensor,
     sh_coeffs: Tensor | None,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
+    camera: Camera,
     *,
     sh_degree: int | None = None,
     colors: Tensor | None = None,
     background: Tensor | None = None,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
     means_cov: Tensor | None = None,
     means_sh: Tensor | None = None,
     settings: RasterSettings | None = None,
@@ -81,6 +77,8 @@ def reference_rasterize(
     camera model is unchanged); None = the whole image.
     """
     s = settings or RasterSettings()
+    viewmat, K, width, height = camera.viewmat, camera.K, camera.width, camera.height
+    near_plane, far_plane = float(camera.near), float(camera.far)
     dt = means.dtype
     mc = means if means_cov is None else means_cov
     ms = means if means_sh is None else means_sh

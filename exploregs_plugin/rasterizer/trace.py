@@ -9,6 +9,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..cameras import Camera
 from .projection import project_gaussians
 from .rasterize import _validate
 from .settings import RasterSettings
@@ -55,18 +56,13 @@ def trace_pixel(
     scales: Tensor,
     opacities: Tensor,
     sh_coeffs: Tensor | None,
-    viewmat: Tensor,
-    K: Tensor,
-    width: int,
-    height: int,
+    camera: Camera,
     x: int,
     y: int,
     *,
     sh_degree: int | None = None,
     colors: Tensor | None = None,
     background: Tensor | None = None,
-    near_plane: float = 0.01,
-    far_plane: float = 1e10,
     settings: RasterSettings | None = None,
 ) -> dict[str, Tensor]:
     """Traces pixel column ``x``, row ``y`` (its centre is at (x + 0.5, y + 0.5)).
@@ -79,6 +75,8 @@ def trace_pixel(
     "T_final" [] (transmittance after the last).
     """
     settings = settings or RasterSettings()
+    viewmat, K, width, height = camera.viewmat, camera.K, camera.width, camera.height
+    near_plane, far_plane = float(camera.near), float(camera.far)
     degree = _validate(
         means, quats, scales, opacities, sh_coeffs, colors, viewmat, K, width, height,
         sh_degree, None, None, background,
