@@ -187,6 +187,11 @@ def test_real_gpu_preset_at_tiny_scale_matches_counts_through_result_references(
     # the same entries on the tiny scene, 30 steps: the dependent runs wait and take the counts
     tiny = replace(spec, scenes=(BenchScene("tiny", "builtin:tiny", ("--schedule.min-refine-every", "10")),),
                    seeds=(0,), steps=30, eval_count=1, device="cpu")
+    # a report before anything ran: the runs that wait for another one are not run, not failed
+    from exploregs_plugin.bench import runner
+
+    early = runner.execute(tiny, tmp_path / "early", RunOptions(train=False))
+    assert {r.status for r in early} == {"missing"} and any(e.depends_on() for e in tiny.entries)
     logs: list[str] = []
     payload = run_bench(tiny, tmp_path / "out", RunOptions(log=logs.append))
     assert all(r["status"] == "done" for r in payload["runs"]), logs

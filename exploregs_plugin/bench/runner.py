@@ -162,7 +162,8 @@ def run_one(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry
     record = RunRecord(scene.name, entry.name, seed, run_dir)
     config = prepared if prepared is not None else _config_or_error(spec, results, scene, entry, seed)
     if isinstance(config, BenchSpecError):
-        record.status, record.error = "failed", str(config)
+        if options.train:  # a report alone leaves a run that waits for another one "not run"
+            record.status, record.error = "failed", str(config)
         return record
     fingerprint = config_fingerprint(config)
     state = read_json(run_dir / STATE_NAME) or {}
