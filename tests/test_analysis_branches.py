@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 
+import pytest
 import torch
 
 from exploregs_plugin.rasterizer import RasterSettings
@@ -14,6 +15,7 @@ from exploregs_plugin.analysis.branches import (
 from exploregs_plugin.analysis.directions import abs_cosine, branch_cosines, nonzero_rows, optical_axis
 from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
 from exploregs_plugin.cameras import Camera
+from exploregs_plugin.analysis.branch_ablation import render_detached
 from exploregs_plugin.model.gaussians import render_params
 from exploregs_plugin.rasterizer import rasterize
 from exploregs_plugin.bench.raster_scenes import random_scene
@@ -203,7 +205,7 @@ def test_switching_off_the_2d_mean_branch_keeps_the_densification_statistic():
 
     grads = branch_gradients(ViewProblem(params, camera, target, 3, _mse))
     ablated = {k: v.clone().requires_grad_(True) for k, v in params.items()}
-    image2, _, _, info2 = render_params(ablated, camera, 3, None, detach_paths=("mean2d",), settings=reference)
+    image2, _, _, info2 = render_detached(ablated, camera, 3, None, ("mean2d",), settings=reference)
     assert info2["means2d"].requires_grad
     info2["means2d"].retain_grad()
     _mse(image2, target).backward()
@@ -213,3 +215,26 @@ def test_switching_off_the_2d_mean_branch_keeps_the_densification_statistic():
     # What reaches the mean is the total less the 2D-mean branch.
     torch.testing.assert_close(ablated["means"].grad, full_means - grads.mean2d, rtol=1e-9, atol=1e-12)
     assert float(grads.mean2d.norm()) > 0
+
+
+def test_the_branch_ablation_method_renders_through_its_detached_paths():
+    from exploregs_plugin.analysis.branch_ablation import BranchAblationModel, BranchAblationModelConfig
+    from exploregs_plugin.method_configs import get_method
+
+    assert isinstance(get_method("exploregs-branch-ablation").config.pipeline.model, BranchAblationModelConfig)
+    g = torch.Generator().manual_seed(0)
+    points, rgb = torch.randn(30, 3, generator=g) * 0.3, torch.rand(30, 3, generator=g)
+    camera = Camera(torch.eye(4), torch.tensor([[40.0, 0, 16], [0, 40.0, 16], [0, 0, 1]]), 32, 32)
+    camera.viewmat[2, 3] = 3.0
+    grads = {}
+    for paths in ((), ("cov",), ("mean2d", "cov", "sh")):
+        model = BranchAblationModelConfig(detach_paths=paths).setup(points, rgb)
+        assert isinstance(model, BranchAblationModel)
+        image, *_ = model.render(camera, 3)
+        image.square().sum().backward()
+        grads[paths] = model.params["means"].grad
+    # every path off: nothing reaches the means; one path off: a different, non-zero gradient
+    assert grads[("mean2d", "cov", "sh")] is None
+    assert float(grads[("cov",)].norm()) > 0 and not torch.allclose(grads[("cov",)], grads[()])
+    with pytest.raises(ValueError, match="unknown position paths"):
+        BranchAblationModelConfig(detach_paths=("depth",)).setup(points, rgb)

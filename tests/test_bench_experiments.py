@@ -30,7 +30,12 @@ def test_branch_ablation_covers_every_subset_once(tmp_path):
     assert BRANCH_ABLATION[0].name == "all-branches"
     no_cov = configs["no-cov"]
     assert no_cov.pipeline.model.detach_paths == ("cov",) and no_cov.max_steps == 5
-    assert no_cov.method_name == "exploregs-default"
+    assert no_cov.method_name == "exploregs-branch-ablation"
+    # the variant is Default with only its model's render changed: the same strategy and schedule
+    from exploregs_plugin.method_configs import get_method
+
+    default = get_method("exploregs-default").config
+    assert no_cov.pipeline.strategy == default.pipeline.strategy and no_cov.schedule == default.schedule
 
 
 def test_every_entry_builds_the_config_of_its_method(tmp_path):

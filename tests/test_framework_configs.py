@@ -56,3 +56,20 @@ def test_schedule_keeps_the_3dgs_shape():
     assert ScheduleConfig(min_refine_every=10).resolve(120).refine_every == 10
     with pytest.raises(ValueError, match="max_steps"):
         ScheduleConfig().resolve(0)
+
+
+def test_a_config_saved_before_a_field_moved_loads_or_says_where_it_went(tmp_path):
+    # runs saved before the branch ablation left the core model config carry detach_paths: ()
+    # (the bench resumes them); a run that switched a path off is told where the switch is now
+    from exploregs_plugin.method_configs import get_method
+
+    saved = tmp_path / "config.yml"
+    save_config(get_method("exploregs-default").config, saved)
+    text = saved.read_text()
+    old = text.replace("    init_scale: 1.0\n", "    init_scale: 1.0\n    detach_paths:\n      _type: tuple\n      value: []\n", 1)
+    assert old != text
+    saved.write_text(old)
+    assert load_config(saved) == get_method("exploregs-default").config
+    saved.write_text(old.replace("      value: []\n", "      value:\n      - cov\n", 1))
+    with pytest.raises(ValueError, match=r"field 'detach_paths' \(\('cov',\)\) is gone: .*exploregs-branch-ablation"):
+        load_config(saved)

@@ -5,7 +5,8 @@ Modules: ``branches`` (per-path gradients of the means), ``directions`` (cosines
 and the optical axis), ``blending`` (per-pixel and per-depth-rank transmittance and screen-space
 gradient), ``plots`` (figures and tables), ``sampling`` (views and iterations), ``probing`` (a
 short run that stops to probe, through a training callback), ``tensorboard`` (the branch-gradient
-training callback). The ablation specs live in ``exploregs_plugin.bench.experiments``, the
+training callback), ``branch_ablation`` (the model variant with position paths switched off, method
+``exploregs-branch-ablation``). The ablation specs live in ``exploregs_plugin.bench.experiments``, the
 degraded depth maps of the depth-supervision experiments in
 ``exploregs_plugin.data.depth_supervision``.
 """

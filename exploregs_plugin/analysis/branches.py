@@ -21,7 +21,7 @@ from exploregs_plugin.rasterizer import RasterSettings, rasterize
 from exploregs_plugin.rasterizer.composite import single_threaded_ops
 
 BRANCHES = ("mean2d", "cov", "sh")
-"""Names of the three position paths (the same names as ``GaussianModelConfig.detach_paths``)."""
+"""Names of the three position paths (the same names as ``BranchAblationModelConfig.detach_paths``)."""
 CURVES = BRANCHES + ("total",)
 NORM_FLOOR = 1e-30  # guards |g| in cosines and ratios
 

@@ -24,7 +24,7 @@ def _branch_ablation(description: str) -> tuple[BenchEntry, ...]:
     for k in range(len(PATHS) + 1):
         for off in combinations(PATHS, k):
             name = "all-branches" if not off else "no-" + "-".join(off)
-            out.append(BenchEntry(name, "exploregs-default", ("--model.detach-paths", *off), description))
+            out.append(BenchEntry(name, "exploregs-branch-ablation", ("--model.detach-paths", *off), description))
     return tuple(out)
 
 

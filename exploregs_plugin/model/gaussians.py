@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Annotated, Literal, Mapping
+from typing import Mapping
 
 import numpy as np
 
@@ -12,13 +12,11 @@ import torch
 from torch import Tensor, nn
 
 from exploregs_plugin.cameras import Camera
-from exploregs_plugin.configs import unset
 from exploregs_plugin.model.optim import ParamGroup
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
 from exploregs_plugin.rasterizer.sh import SH_C0, rgb_to_sh0  # noqa: F401 (SH_C0: the colour convention)
 
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
-PositionPath = Literal["mean2d", "cov", "sh"]
 
 
 def knn_mean_distance(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
@@ -50,9 +48,6 @@ class GaussianModelConfig:
     """Opacity of every initial Gaussian."""
     init_scale: float = 1.0
     """Initial scale = this x mean distance to the 3 nearest neighbouring points."""
-    detach_paths: Annotated[tuple[PositionPath, ...], unset("none")] = ()
-    """Position-gradient paths to switch off (the branch ablation): mean2d, cov (2D covariance),
-    sh (SH view direction). Renders and densification's 2D gradient are unchanged."""
     raster: RasterSettings = field(default_factory=RasterSettings)
     """Rasterizer constants."""
 
@@ -155,52 +150,26 @@ class GaussianModel(nn.Module):
         camera: Camera,
         sh_degree: int | None = None,
         background: Tensor | None = None,
-        detach_paths: tuple[PositionPath, ...] | None = None,
     ) -> tuple[Tensor, Tensor, Tensor, dict]:
         """Render from ``camera`` (at its time, for a dynamic scene): image [H, W, 3], alpha
         [H, W, 1], depth [H, W, 1], info."""
         return render_params(
             self.params_at(camera.time), camera, sh_degree if sh_degree is not None else self.config.sh_degree,
-            background, self.config.detach_paths if detach_paths is None else detach_paths,
-            self.config.raster,
+            background, self.config.raster,
         )
 
 
 def render_params(
-    params: dict[str, Tensor],
+    params: Mapping[str, Tensor],
     camera: Camera,
     sh_degree: int,
     background: Tensor | None,
-    detach_paths: tuple[PositionPath, ...] = (),
     settings: RasterSettings | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     """Activate raw parameters and rasterize them (shared by the model, viewer and exports)."""
-    means = params["means"]
-    unknown = set(detach_paths) - {"mean2d", "cov", "sh"}
-    if unknown:
-        raise ValueError(f"unknown position paths {sorted(unknown)}; choose from mean2d, cov, sh")
-    # Each path gets its own view of the means so any subset can be switched off (detached)
-    # while the forward pass stays identical. A switched-off 2D-mean path still goes through a
-    # fresh leaf that requires grad: the projected means then keep their screen-space gradient,
-    # which is the densification statistic, not a position-gradient branch; only its flow
-    # into params["means"] is cut.
-    means_2d = means.detach().requires_grad_(means.requires_grad) if "mean2d" in detach_paths else means
-    means_cov = means.detach() if "cov" in detach_paths else means
-    means_sh = means.detach() if "sh" in detach_paths else means
     sh = torch.cat([params["sh0"], params["shN"]], dim=1)
-    return rasterize(
-        means_2d,
-        params["quats"],
-        torch.exp(params["scales"]),
-        torch.sigmoid(params["opacities"]),
-        sh,
-        camera,
-        sh_degree=sh_degree,
-        background=background,
-        means_cov=means_cov,
-        means_sh=means_sh,
-        settings=settings,
-    )
+    return rasterize(params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
+                     sh, camera, sh_degree=sh_degree, background=background, settings=settings)
 
 
 def render_camera(

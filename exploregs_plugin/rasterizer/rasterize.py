@@ -140,7 +140,7 @@ def rasterize(
     if backend == "gsplat":
         if (means_cov is not None and means_cov is not means) or (means_sh is not None and means_sh is not means):
             raise BackendError("separate tensors for the covariance and SH paths of the means (the branch "
-                               "ablation's --model.detach-paths) need --model.raster.backend torch or cpp")
+                               "ablation, exploregs-branch-ablation --model.detach-paths) need --model.raster.backend torch or cpp")
         return rasterize_gsplat(means, quats, scales, opacities, sh_coeffs, colors, degree, viewmat, K, int(width),
                                 int(height), background, near_plane, far_plane, settings)
     problem = backend_problem(settings, means.device) if settings.backend == "cpp" else None
