@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.strategies import MCMCStrategy, RayPerturbationStrategy, StrategyError, ops
+from exploregs_plugin.strategies import MCMCStrategy, RayPerturbationStrategy, StrategyError
 from exploregs_plugin.rasterizer.projection import covariances_3d
 from exploregs_plugin.strategies.perturbation import position_noise
 from exploregs_plugin.strategies.relocation import binomial_table, relocation_update

@@ -63,6 +63,7 @@ except ImportError as exc:  # one line, whatever part of gsplat failed to import
     ) from None
 
 from ..strategies import ops
+from .patching import attribute_set_to
 from ..strategies.base import StrategyError
 from ..strategies.budget import PAPER_N_SEED, PAPER_N_SPLIT, PAPER_SPLIT_EVERY
 from ..strategies.ops import Optimizers, Params, num_gaussians
@@ -224,17 +225,6 @@ def seed_params(rows: Mapping[str, Tensor], params: Mapping[str, Tensor]) -> dic
     return out
 
 
-@contextlib.contextmanager
-def _field_set_to(obj: Any, name: str, value: Any) -> Iterator[None]:
-    """``obj.name = value`` inside the block, the old value restored after it (also on error)."""
-    saved = getattr(obj, name)
-    setattr(obj, name, value)
-    try:
-        yield
-    finally:
-        setattr(obj, name, saved)
-
-
 def _state_generator(state: dict[str, Any], device: torch.device, seed: int) -> torch.Generator:
     """The strategy's own generator, kept in ``state["generator"]``; made on ``device`` with
     ``seed`` at its first use (gsplat's trainers pass none)."""
@@ -390,7 +380,7 @@ class ExplorationStrategy(DefaultStrategy):
             radii = radii_layout(info["radii"], packed, RADII_PAIRS)
             if radii is not info["radii"]:
                 info = {**info, "radii": radii}
-        with _field_set_to(self, "prune_scale3d", self.prune_scale3d_at(step)):
+        with attribute_set_to(self, "prune_scale3d", self.prune_scale3d_at(step)):
             super().step_post_backward(params, optimizers, state, step, info, packed=packed)
         if not self.explores_at(step):
             return {}

@@ -29,6 +29,8 @@ from collections.abc import Iterator
 import torch
 from torch import Tensor
 
+from .patching import attribute_set_to
+
 from ..rasterizer.projection import covariances_3d
 from ..strategies.base import StrategyError
 from ..strategies.relocation import binomial_table, relocation_update
@@ -74,11 +76,7 @@ def cpu_stand_ins(device: torch.device) -> Iterator[None]:
         yield
         return
     gsplat_ops = importlib.import_module("gsplat.strategy.ops")
-    saved = {name: getattr(gsplat_ops, name) for name in STAND_INS}
-    gsplat_ops.compute_relocation = relocation_cpu
-    gsplat_ops.quat_scale_to_covar_preci = covariance_cpu
-    try:
+    with contextlib.ExitStack() as stack:
+        for name, stand_in in zip(STAND_INS, (relocation_cpu, covariance_cpu)):
+            stack.enter_context(attribute_set_to(gsplat_ops, name, stand_in))
         yield
-    finally:
-        for name, function in saved.items():
-            setattr(gsplat_ops, name, function)

@@ -21,17 +21,17 @@ DefaultStrategy)`` or ``MCMCStrategy``), which our classes subclass; its code is
 
 from __future__ import annotations
 
-import contextlib
 import dataclasses
 import functools
 import inspect
 import runpy
 import sys
-from collections.abc import Callable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 from ..strategies.base import StrategyError
+from .patching import attribute_set_to
 from .gsplat import MCMCRayStrategy, RayStrategy, SeedSplitStrategy, SeedStrategy, SplitStrategy
 
 ENTRIES: dict[str, tuple[str, type, str]] = {
@@ -74,16 +74,6 @@ def with_camera(rasterization: Callable[..., Any]) -> Callable[..., Any]:
     return rasterization_with_camera
 
 
-@contextlib.contextmanager
-def _replaced(owner: Any, name: str, value: Any) -> Iterator[None]:
-    saved = getattr(owner, name)
-    setattr(owner, name, value)
-    try:
-        yield
-    finally:
-        setattr(owner, name, saved)
-
-
 def run(argv: Sequence[str]) -> dict[str, Any]:
     """Run the simple_trainer script ``argv[0]`` as ``__main__`` with ``argv[1:]`` as its command
     line; returns its globals."""
@@ -104,8 +94,8 @@ def run(argv: Sequence[str]) -> dict[str, Any]:
     sys.argv = [str(script), *argv[1:]]
     sys.path.insert(0, str(script.parent))  # simple_trainer imports datasets/ and utils.py beside it
     try:
-        with _replaced(tyro.extras, "overridable_config_cli", overridable_with_ours), \
-                _replaced(gsplat.rendering, "rasterization", with_camera(gsplat.rendering.rasterization)):
+        with attribute_set_to(tyro.extras, "overridable_config_cli", overridable_with_ours), \
+                attribute_set_to(gsplat.rendering, "rasterization", with_camera(gsplat.rendering.rasterization)):
             return runpy.run_path(str(script), run_name="__main__")
     finally:
         sys.argv, sys.path[:] = saved_argv, saved_path

@@ -125,8 +125,8 @@ def main(argv: list[str]) -> dict | None:
     try:
         records = execute(spec, cmd.out, options)
     except KeyboardInterrupt:
-        print(f"eg-bench: interrupted; run the same command again to continue (finished runs are reused, "
-              f"the interrupted one resumes from its checkpoint)", file=sys.stderr)
+        print("eg-bench: interrupted; run the same command again to continue (finished runs are reused, "
+              "the interrupted one resumes from its checkpoint)", file=sys.stderr)
         raise SystemExit(130) from None
     payload = report(cmd.out, spec, records, command=shlex.join(["eg-bench", *argv]))
     failed = sum(r.status == "failed" for r in records)

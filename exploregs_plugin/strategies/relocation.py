@@ -72,7 +72,6 @@ def _comb_rows(n: Tensor, binoms: Tensor) -> Tensor:
 
     Pascal's rule C(n, j) = C(n-1, j-1) + C(n-1, j) needs only rows n-1 <= n_max-1 of the table.
     """
-    n_max = binoms.shape[0]
     prev = binoms[n - 1]  # [M, n_max]: C(n-1, k), k = 0..n_max-1
     shifted = torch.cat([prev[:, 1:], prev.new_zeros(prev.shape[0], 1)], dim=-1)  # C(n-1, j)
     return prev + shifted  # index j-1 holds C(n-1, j-1) + C(n-1, j) = C(n, j)

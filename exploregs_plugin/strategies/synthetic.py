@@ -1,12 +1,10 @@
-"""Synthetic Gaussians, optimizers and rasterizer ``info`` dicts.
+"""Synthetic Gaussians, optimizers and the views a strategy observes (``ViewObservation``).
 
 Used by the strategy tests and handy for third-party strategy authors: every strategy can be
 exercised without a renderer by feeding it a synthetic screen-space gradient.
 """
 
 from __future__ import annotations
-
-from typing import Any
 
 import torch
 from torch import Tensor
