@@ -9,6 +9,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import pytest
+import torch
 
 SHARED_SCENES = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
 """Real captured scenes next to the repository (tests that use them skip when absent)."""
@@ -84,3 +85,13 @@ def raster_backend(request: pytest.FixtureRequest, monkeypatch: pytest.MonkeyPat
         pytest.skip(f"the cpp backend cannot build here: {cpp_problem()}")
     monkeypatch.setattr(rasterize_module, "resolve_backend", lambda settings, device: request.param)
     return request.param
+
+
+@pytest.fixture()
+def one_thread():
+    """torch at one thread for the test (restored after): on tensors of a few hundred rows one
+    thread is fastest, and much faster than two on a CPU that another process keeps busy."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)

@@ -40,14 +40,7 @@ SEED_STEPS = {3, 6}  # where gsplat refines; step 6 also prunes by world size (6
 SH_REST = 15
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    """Tensors of a few hundred rows: one thread is fastest, and much faster than two on a CPU
-    that another process keeps busy."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 # ------------------------------------------------------------------------------ synthetic scene

@@ -35,13 +35,7 @@ SCHEDULE_FIELDS = {"refine_start_iter", "refine_stop_iter", "refine_every", "res
 NOT_EXPOSED = {"absgrad", "key_for_gradient"}  # no absolute gradients in our renderers; 2DGS
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    # small tensors: one thread is faster on a machine shared with a benchmark
-    threads = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(threads)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _views(n: int, g: torch.Generator, sizes: list[tuple[int, int]], n_cameras: int) -> list[ViewObservation]:

@@ -42,12 +42,7 @@ def ns():
     return importlib.import_module("exploregs_plugin.integrations.nerfstudio")
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 class _NoLpips(torch.nn.Module):

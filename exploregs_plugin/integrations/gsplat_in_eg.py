@@ -243,10 +243,7 @@ class GsplatDefaultStrategy(GsplatStrategy):
         self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, view: ViewObservation
     ) -> None:
         """Keep the gradient of the view's 2D means (gsplat: ``retain_grad``)."""
-        if view.means2d is None:
-            raise StrategyError("gsplat's DefaultStrategy needs the view's means2d (its gradient statistic)")
-        if view.means2d.requires_grad:
-            view.means2d.retain_grad()
+        view.keep_gradient("gsplat's DefaultStrategy")
 
     def post_backward(self, ctx: StepContext) -> dict[str, int]:
         counts = {"cloned": 0, "split": 0, "pruned": 0, "opacity_reset": 0}

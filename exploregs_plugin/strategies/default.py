@@ -167,10 +167,7 @@ class DefaultStrategy(Strategy):
     def step_pre_backward(
         self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int, view: ViewObservation
     ) -> None:
-        if view.means2d is None:
-            raise StrategyError("the view's means2d is required for the screen-space gradient statistic")
-        if view.means2d.requires_grad:
-            view.means2d.retain_grad()
+        view.keep_gradient(type(self).__name__)
 
     def post_backward(self, ctx: StepContext) -> dict[str, int]:
         params, optimizers, state, step = ctx.params, ctx.optimizers, ctx.state, ctx.step

@@ -88,6 +88,14 @@ class ViewObservation:
         # gsplat's rasterization differentiates a [1, N, 2] tensor (one camera)
         return grad if grad is None or grad.dim() == 2 else grad.reshape(grad.shape[-2:])
 
+    def keep_gradient(self, who: str) -> None:
+        """Retain the gradient of the render's 2D means (the densification statistic reads it
+        after ``loss.backward()``); ``who`` names the strategy in the error."""
+        if self.means2d is None:
+            raise StrategyError(f"{who} needs the view's means2d for the screen-space gradient statistic")
+        if self.means2d.requires_grad:
+            self.means2d.retain_grad()
+
     def gradient_kept(self) -> bool:
         """Whether the gradient of the render's own 2D means is kept (``step_pre_backward``)."""
         return self.means2d is not None and (self.means2d.is_leaf or self.means2d.retains_grad)
