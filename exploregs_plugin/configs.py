@@ -62,24 +62,27 @@ def _import_type(spec: str) -> Any:
     return obj
 
 
-_BRANCH_ABLATION = ("the branch ablation's switch is a field of the method exploregs-branch-ablation "
-                    "(eg-train exploregs-branch-ablation --model.detach-paths ...)")
 REMOVED_FIELDS: dict[str, dict[str, tuple[Any, str]]] = {
-    "exploregs_plugin.model.gaussians:GaussianModelConfig": {"detach_paths": ((), _BRANCH_ABLATION)},
-    "exploregs_plugin.model.dynamic:DynamicGaussianModelConfig": {"detach_paths": ((), _BRANCH_ABLATION)},
+    "exploregs_plugin.model.gaussians:GaussianModelConfig": {
+        "detach_paths": ((), "the branch ablation's switch is a field of the method exploregs-branch-ablation "
+                             "(eg-train exploregs-branch-ablation --model.detach-paths ...)"),
+    },
 }
-"""Fields a config class no longer has, by its saved type: (the value that meant "off", where the
-setting went). A saved config with that value loads (the field is dropped); any other value is
-refused with one line that says where it went."""
+"""Fields a config class no longer has, by the class that had them (its subclasses' saved configs
+included): (the value that meant "off", where the setting went). A saved config with that value
+loads (the field is dropped); any other value is refused with one line that says where it went."""
 
 
-def _without_removed(spec: str, value: dict[str, Any]) -> dict[str, Any]:
-    for name, (off, moved) in REMOVED_FIELDS.get(spec, {}).items():
-        if name in value:
-            old = config_from_dict(value[name])
-            if old != off:
-                raise ValueError(f"config for {spec}: field {name!r} ({old!r}) is gone: {moved}")
-            value = {k: v for k, v in value.items() if k != name}
+def _without_removed(cls: type, names: set[str], spec: str, value: dict[str, Any]) -> dict[str, Any]:
+    """``value`` without the removed fields of ``cls`` and its bases that ``cls`` does not have
+    again (``names``: its fields)."""
+    for base in cls.__mro__:
+        for name, (off, moved) in REMOVED_FIELDS.get(f"{base.__module__}:{base.__qualname__}", {}).items():
+            if name in value and name not in names:
+                old = config_from_dict(value[name])
+                if old != off:
+                    raise ValueError(f"config for {spec}: field {name!r} ({old!r}) is gone: {moved}")
+                value = {k: v for k, v in value.items() if k != name}
     return value
 
 
@@ -102,7 +105,7 @@ def config_from_dict(value: Any) -> Any:
     if not dataclasses.is_dataclass(cls):
         raise ValueError(f"config type {spec!r} is not a dataclass")
     names = {f.name for f in dataclasses.fields(cls) if f.init}
-    value = _without_removed(spec, value)
+    value = _without_removed(cls, names, spec, value)
     unknown = set(value) - names - {_TYPE_KEY}
     if unknown:
         raise ValueError(f"config for {spec} has unknown fields: {sorted(unknown)}")

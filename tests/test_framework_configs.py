@@ -73,3 +73,18 @@ def test_a_config_saved_before_a_field_moved_loads_or_says_where_it_went(tmp_pat
     saved.write_text(old.replace("      value: []\n", "      value:\n      - cov\n", 1))
     with pytest.raises(ValueError, match=r"field 'detach_paths' \(\('cov',\)\) is gone: .*exploregs-branch-ablation"):
         load_config(saved)
+    # a subclass's saved config is migrated the same way (the 4D model), and a class that has the
+    # field again keeps it (the branch-ablation model, which round-trips its detached paths)
+    save_config(get_method("exploregs-4d-default").config, saved)
+    text = saved.read_text()
+    old = text.replace("    init_scale: 1.0\n", "    init_scale: 1.0\n    detach_paths:\n      _type: tuple\n      value: []\n", 1)
+    assert old != text and "DynamicGaussianModelConfig" in old
+    saved.write_text(old)
+    assert load_config(saved) == get_method("exploregs-4d-default").config
+    from dataclasses import replace
+
+    ablation = get_method("exploregs-branch-ablation").config
+    ablation = replace(ablation, pipeline=replace(ablation.pipeline, model=replace(ablation.pipeline.model,
+                                                                                    detach_paths=("cov",))))
+    save_config(ablation, saved)
+    assert load_config(saved).pipeline.model.detach_paths == ("cov",)
