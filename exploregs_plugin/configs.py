@@ -86,6 +86,70 @@ def _without_removed(cls: type, names: set[str], spec: str, value: dict[str, Any
     return value
 
 
+_SEEDING = {"n_seed": "n_seed", "seed_every": "every", "seed_box_mode": "box_mode", "seed_box_quantile": "box_quantile",
+            "seed_opacity_base": "opacity_base", "seed_opacity_gain": "opacity_gain",
+            "seed_prune_scale3d": "prune_scale3d", "seed_min_scale": "min_scale", "seed_prune_opa": "prune_opa",
+            "seed_grace": "grace", **{f"guide_{name}": f"guide_{name}" for name in
+                                      ("cell", "power", "near", "far", "depth", "opacity", "scale")}}
+_NOISE = {"noise_lr": "lr", "noise_gate_k": "gate_k", "noise_gate_t": "gate_t"}
+MOVED_FIELDS: dict[str, dict[str, str]] = {
+    "exploregs_plugin.strategies.exploration:ExplorationStrategy": {
+        **{old: f"seeding.{new}" for old, new in _SEEDING.items()},
+        "n_split": "splitting.n_split", "split_every": "splitting.every",
+        "occlusion_t_floor": "splitting.occlusion_t_floor", "occlusion_decay": "splitting.occlusion_decay",
+        **{old: f"noise.{new}" for old, new in _NOISE.items()},
+    },
+    "exploregs_plugin.strategies.mcmc:MCMCStrategy": {
+        **{old: f"noise.{new}" for old, new in _NOISE.items()}, "noise_mode": "noise.mode",
+    },
+}
+"""Fields that moved into a nested config, by the class that has the nested field now (its
+subclasses included): old name -> "field.name". The strategies' operators became nested configs
+(``--strategy.n-seed`` is ``--strategy.seeding.n-seed``); a saved config with the old flat fields
+loads into the nested ones, starting from the nested field's default."""
+
+
+def _field_default(cls: type, name: str) -> Any:
+    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    return f.default_factory() if f.default_factory is not dataclasses.MISSING else f.default
+
+
+def _with_moved(cls: type, names: set[str], value: dict[str, Any]) -> dict[str, Any]:
+    """``value`` with the flat fields that moved into a nested field of ``cls`` put there."""
+    for base in cls.__mro__:
+        for old, new in MOVED_FIELDS.get(f"{base.__module__}:{base.__qualname__}", {}).items():
+            head, _, leaf = new.partition(".")
+            if old not in value or old in names or head not in names:
+                continue  # not saved, still a field, or not a field of this class: refused below as unknown
+            value = dict(value)
+            nested = value.get(head)
+            if not isinstance(nested, dict):
+                nested = config_to_dict(_field_default(cls, head))
+            value[head] = {**nested, leaf: value.pop(old)}
+    return value
+
+
+def upgraded(value: Any) -> Any:
+    """A written config (``config_to_dict``'s layout) with the fields that moved since it was
+    written put where they are now (:data:`MOVED_FIELDS`), at every level; types that cannot be
+    imported are left as they are."""
+    if isinstance(value, list):
+        return [upgraded(v) for v in value]
+    if not isinstance(value, dict):
+        return value
+    value = {k: upgraded(v) for k, v in value.items()}
+    spec = value.get(_TYPE_KEY)
+    if not isinstance(spec, str) or ":" not in spec:
+        return value
+    try:
+        cls = _import_type(spec)
+    except ValueError:
+        return value
+    if not (isinstance(cls, type) and dataclasses.is_dataclass(cls)):
+        return value
+    return _with_moved(cls, {f.name for f in dataclasses.fields(cls) if f.init}, value)
+
+
 def config_from_dict(value: Any) -> Any:
     """Inverse of :func:`config_to_dict`."""
     if isinstance(value, list):
@@ -105,7 +169,7 @@ def config_from_dict(value: Any) -> Any:
     if not dataclasses.is_dataclass(cls):
         raise ValueError(f"config type {spec!r} is not a dataclass")
     names = {f.name for f in dataclasses.fields(cls) if f.init}
-    value = _without_removed(cls, names, spec, value)
+    value = _without_removed(cls, names, spec, _with_moved(cls, names, value))
     unknown = set(value) - names - {_TYPE_KEY}
     if unknown:
         raise ValueError(f"config for {spec} has unknown fields: {sorted(unknown)}")

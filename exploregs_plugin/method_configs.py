@@ -82,7 +82,7 @@ def builtin_methods() -> dict[str, MethodSpecification]:
         _method("exploregs-mcmc", "3DGS-MCMC: relocation of dead Gaussians, 5% growth to a cap, isotropic noise.",
                 s.MCMCStrategy()),
         _method("exploregs-mcmc-ray", "3DGS-MCMC with its position noise projected onto the viewing ray.",
-                s.MCMCStrategy(noise_mode="ray")),
+                s.MCMCStrategy(noise=s.PositionNoise(mode="ray"))),
         _method("exploregs-guided", "Default + guided seeding: seeds on the rays of the pixels with the highest recent error.",
                 s.GuidedSeedingStrategy(budget=budget)),
         _method("exploregs-occlusion", "Default + occlusion-aware splitting: split what blending hides and still errs.",
@@ -93,9 +93,10 @@ def builtin_methods() -> dict[str, MethodSpecification]:
         _dynamic_method("exploregs-4d-default", "4DGS (HexPlane deformation of canonical Gaussians) with 3DGS density control.",
                         s.DefaultStrategy()),
         _dynamic_method("exploregs-4d-split", "4DGS + Random Splitting (5 per step, as the paper's 4DGS experiment).",
-                        s.SplittingStrategy(n_split=DYNAMIC_N_SPLIT, split_every=1)),
+                        s.SplittingStrategy(splitting=s.RandomSplitting(n_split=DYNAMIC_N_SPLIT, every=1))),
         _dynamic_method("exploregs-4d-seedsplit", "4DGS + Random Seeding (20 per densification) + Random Splitting (5 per step).",
-                        s.SeedSplitStrategy(n_split=DYNAMIC_N_SPLIT, split_every=1, budget="paper")),
+                        s.SeedSplitStrategy(splitting=s.RandomSplitting(n_split=DYNAMIC_N_SPLIT, every=1),
+                                            budget="paper")),
     ]
     return {m.config.method_name: m for m in methods}
 

@@ -21,7 +21,7 @@ from exploregs_plugin.strategies.observation import ViewError, ViewObservation, 
 from exploregs_plugin.rasterizer import BackendError, backend_line, backend_problem
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
-from exploregs_plugin.strategies.base import VIEW_ERRORS, VISIBILITY_STATS
+from exploregs_plugin.strategies.requirements import VIEW_ERRORS, VISIBILITY_STATS
 
 
 def gather_observations(world: World, views: list[ViewObservation], n: int) -> list[ViewObservation]:
@@ -77,8 +77,8 @@ class NonFiniteError(RuntimeError):
 
 
 def renderer_for(model: GaussianModelConfig, requires: frozenset[str]) -> GaussianModelConfig:
-    """The model's config with its renderer asked for what the strategy requires (``requires``
-    of the strategy's class): visibility statistics cost a second accumulation per pixel, so
+    """The model's config with its renderer asked for what the strategy requires (its
+    ``requirements()``): visibility statistics cost a second accumulation per pixel, so
     they are computed only for a strategy that reads them."""
     if VISIBILITY_STATS in requires and not model.raster.visibility_stats:
         return replace(model, raster=replace(model.raster, visibility_stats=True))
@@ -140,7 +140,7 @@ class Pipeline:
             raise ValueError(f"the schedule was resolved for {schedule.views_per_step} views per step but the "
                              f"batch has {self.batch_size}: resolve it with views_per_step={self.batch_size}")
         self.lr_scale = batch_lr_scale(self.batch_size, config.batch_rule)
-        self.requires = type(config.strategy).requires
+        self.requires = config.strategy.requirements()
         model_config = renderer_for(config.model, self.requires)
         problem = backend_problem(model_config.raster, device)
         if problem is not None:

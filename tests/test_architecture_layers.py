@@ -77,7 +77,7 @@ def test_no_module_imports_from_a_layer_above_it():
 
 def test_the_checker_resolves_relative_and_function_level_imports():
     # seedsplit imports its siblings relatively; the bench worker imports the trainer inside a function
-    assert "exploregs_plugin.strategies.default" in _imports(PACKAGE / "strategies" / "seedsplit.py")
+    assert "exploregs_plugin.strategies.exploration" in _imports(PACKAGE / "strategies" / "seedsplit.py")
     assert "exploregs_plugin.trainer" in _imports(PACKAGE / "bench" / "worker.py")
     assert "exploregs_plugin.pipeline" in _imports(PACKAGE / "analysis" / "tensorboard.py")  # TYPE_CHECKING
 

@@ -58,9 +58,9 @@ def test_depth_and_split_entries(tmp_path):
     assert mono.noise_std == 0.05 and mono.bias_amplitude == 0.1 and mono.active
     assert not depth["seedsplit+depth"].depth_supervision.active
     split = {n: _config(e, tmp_path).pipeline.strategy for n, e in _by_name(SPLIT_ABLATION).items()}
-    n_splits = sorted(s.n_split for n, s in split.items() if n.startswith("split-"))
+    n_splits = sorted(s.splitting.n_split for n, s in split.items() if n.startswith("split-"))
     assert n_splits[0] == 0 and len(n_splits) >= 4
-    assert split["split-n40"].n_split == 40
+    assert split["split-n40"].splitting.n_split == 40
     assert split["default-grad0.0004"].grow_grad2d == 0.0004
 
 

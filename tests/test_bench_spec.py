@@ -28,7 +28,7 @@ def test_controls_are_default_with_seedings_prune_and_a_lower_threshold():
     relaxed = _config(spec, "default-relaxed-prune").pipeline.strategy
     plain = _config(spec, "default").pipeline.strategy
     assert type(relaxed) is DefaultStrategy and type(plain) is DefaultStrategy
-    assert relaxed.prune_scale3d == SeedingStrategy().seed_prune_scale3d == 10.0
+    assert relaxed.prune_scale3d == SeedingStrategy().seeding.prune_scale3d == 10.0
     assert plain.prune_scale3d == DefaultStrategy().prune_scale3d
     low = build_config(spec, spec.scenes[0], named_entries()["default-lowthresh"], 0, Path("/tmp/x")).pipeline.strategy
     assert low.grow_grad2d == LOWTHRESH_GROW_GRAD2D < plain.grow_grad2d
@@ -38,20 +38,20 @@ def test_controls_are_default_with_seedings_prune_and_a_lower_threshold():
 
 
 def test_build_config_applies_bench_fields_then_scene_options_then_entry_overrides():
-    spec = BenchSpec(entries=(BenchEntry("s50", "exploregs-seed", ("--strategy.n-seed", "50", "--data-factor", "3")),),
+    spec = BenchSpec(entries=(BenchEntry("s50", "exploregs-seed", ("--strategy.seeding.n-seed", "50", "--data-factor", "3")),),
                      scenes=(BenchScene("t", "builtin:tiny", ("--data-factor", "2", "--eval-count", "7")),),
                      seeds=(4,), steps=123, eval_count=3)
     c = _config(spec, "s50", seed=4)
-    assert c.pipeline.strategy.n_seed == 50 and type(c.pipeline.strategy) is SeedingStrategy
+    assert c.pipeline.strategy.seeding.n_seed == 50 and type(c.pipeline.strategy) is SeedingStrategy
     assert c.pipeline.datamanager.data == "builtin:tiny" and c.pipeline.datamanager.data_factor == 3  # entry wins
     assert (c.max_steps, c.seed, c.eval_count, c.quiet, c.tensorboard) == (123, 4, 7, True, False)
     assert c.run_dir == Path("/tmp/unused-run")
 
 
 def test_invalid_overrides_name_the_entry_and_argument():
-    spec = BenchSpec(entries=(BenchEntry("oops", "exploregs-seed", ("--strategy.n-seed", "many")),),
+    spec = BenchSpec(entries=(BenchEntry("oops", "exploregs-seed", ("--strategy.seeding.n-seed", "many")),),
                      scenes=(BenchScene("t", "builtin:tiny"),))
-    with pytest.raises(BenchSpecError, match=r"entry 'oops' overrides.*--strategy.n-seed"):
+    with pytest.raises(BenchSpecError, match=r"entry 'oops' overrides.*--strategy.seeding.n-seed"):
         _config(spec, "oops")
     with pytest.raises(BenchSpecError, match="unknown method"):
         entry_from_arg("x=exploregs-nothing")
@@ -87,27 +87,27 @@ def test_a_run_matches_its_config_whatever_its_folder_and_across_added_fields():
 def test_compose_cli_and_spec_file(tmp_path):
     spec = compose(methods=("default", "seed50=seed", "exploregs-mcmc"), scenes=("builtin:farside", "mine=/data/x",
                                                                                  "/data/fox/transforms.json"),
-                   seeds=(0, 1), steps=2000, overrides=("seed50:--strategy.n-seed 50",),
+                   seeds=(0, 1), steps=2000, overrides=("seed50:--strategy.seeding.n-seed 50",),
                    scene_options=("mine:--data-factor 4",))
     assert [e.name for e in spec.entries] == ["default", "seed50", "exploregs-mcmc"]
     assert spec.entry("seed50").method == "exploregs-seed"
-    assert spec.entry("seed50").overrides == ("--strategy.n-seed", "50")
+    assert spec.entry("seed50").overrides == ("--strategy.seeding.n-seed", "50")
     assert [(s.name, s.data, s.options) for s in spec.scenes] == [
         ("farside", "builtin:farside", ()), ("mine", "/data/x", ("--data-factor", "4")),
         ("fox", "/data/fox/transforms.json", ())]
     assert (spec.seeds, spec.steps, spec.name) == ((0, 1), 2000, "custom")
     with pytest.raises(BenchSpecError, match="not in the bench"):
-        compose(methods=("default",), scenes=("builtin:tiny",), overrides=("seed:--strategy.n-seed 5",))
+        compose(methods=("default",), scenes=("builtin:tiny",), overrides=("seed:--strategy.seeding.n-seed 5",))
     with pytest.raises(BenchSpecError, match="say what to run"):
         compose(methods=("default",))
 
     yml = tmp_path / "b.yml"
     yml.write_text("preset: quick\nsteps: 50\nseeds: [3]\nmethods:\n  - default\n"
-                   "  - {name: s5, method: seed, overrides: --strategy.n-seed 5}\n"
+                   "  - {name: s5, method: seed, overrides: --strategy.seeding.n-seed 5}\n"
                    "scenes:\n  - builtin:tiny\n  - {name: far, data: builtin:farside, data_factor: 2}\n")
     spec = compose(spec_file=yml, steps=60)
     assert [e.name for e in spec.entries] == ["default", "s5"]
-    assert spec.entry("s5").overrides == ("--strategy.n-seed", "5")
+    assert spec.entry("s5").overrides == ("--strategy.seeding.n-seed", "5")
     assert spec.scenes[1].options == ("--data-factor", "2") and (spec.steps, spec.seeds) == (60, (3,))
     assert spec.eval_count == preset("quick").eval_count and spec.name == "quick+custom"
     js = tmp_path / "b.json"
@@ -140,8 +140,8 @@ def test_full_preset_runs_the_compared_methods_three_times_and_the_rest_once(tmp
     assert all(s == 0 for _, _, s in runs[:first_repeat]) and first_repeat == 2 * 9
     # the overrides parse against each method, as eg-train would parse them
     official = _config(spec, "seedsplit-official").pipeline.strategy
-    assert (official.n_seed, official.seed_every, official.budget) == (10, 700, "cpu-small")
-    assert official.seed_box_mode == "cameras" and official.split_scale_factor == 1.6
+    assert (official.seeding.n_seed, official.seeding.every, official.budget) == (10, 700, "cpu-small")
+    assert official.seeding.box_mode == "cameras" and official.split_scale_factor == 1.6
     assert _config(spec, "seedsplit").pipeline.strategy.budget == "cpu-small"
     # the threshold for 120-pixel-high images (3DGS's at 720), half of it for the count control
     assert _config(spec, "default").pipeline.strategy.grow_grad2d == pytest.approx(0.0012)
@@ -190,10 +190,10 @@ def test_cli_dry_run_prints_the_plan_and_bad_input_is_one_line(capsys):
     from exploregs_plugin.scripts.bench import main
     from exploregs_plugin.scripts import run_cli
 
-    assert main(["standard", "--dry-run", "--steps", "400", "--override", "seed:--strategy.n-seed 5"]) is None
+    assert main(["standard", "--dry-run", "--steps", "400", "--override", "seed:--strategy.seeding.n-seed 5"]) is None
     err = capsys.readouterr().err
     assert "7 methods x 3 scenes x 3 seeds = 63 runs of 400 steps" in err
-    assert "seed [--strategy.n-seed 5]" in err and "estimate: ~" in err
+    assert "seed [--strategy.seeding.n-seed 5]" in err and "estimate: ~" in err
     with pytest.raises(SystemExit) as exit_:
         run_cli("eg-bench", main, ["--methods", "default", "--scenes", "builtin:tiny", "--override", "nocolon"])
     assert exit_.value.code == 2
@@ -203,11 +203,11 @@ def test_cli_dry_run_prints_the_plan_and_bad_input_is_one_line(capsys):
 def test_override_and_scene_option_flags_repeat(capsys):
     from exploregs_plugin.scripts.bench import main
 
-    assert main(["quick", "--dry-run", "--methods", "default", "seed", "--override", "seed:--strategy.n-seed 5",
+    assert main(["quick", "--dry-run", "--methods", "default", "seed", "--override", "seed:--strategy.seeding.n-seed 5",
                  "--override", "default:--strategy.grow-grad2d 0.0003", "--scene-option", "tiny:--data-factor 2",
                  "--scene-option", "tiny:--datamanager.test-every 4"]) is None
     err = capsys.readouterr().err
-    assert "seed [--strategy.n-seed 5]" in err and "default [--strategy.grow-grad2d 0.0003]" in err
+    assert "seed [--strategy.seeding.n-seed 5]" in err and "default [--strategy.grow-grad2d 0.0003]" in err
     assert "--data-factor 2 --datamanager.test-every 4" in err
 
 

@@ -60,7 +60,7 @@ def test_eg_train_method_help_is_one_line_per_flag_and_keeps_every_flag(capsys, 
     assert short.rstrip().endswith("eg-train METHOD --help-full")
     # another strategy's flags show with --strategy NAME
     swapped = _help(capsys, monkeypatch, lambda: parse_config(["exploregs-default", "--strategy", "mcmc", "--help"]))
-    assert "--strategy.noise-lr" in swapped and "--strategy.n-seed" not in swapped
+    assert "--strategy.noise.lr" in swapped and "--strategy.seeding.n-seed" not in swapped
 
 
 def test_eg_bench_help_says_what_unset_means(capsys, monkeypatch):

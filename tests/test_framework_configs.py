@@ -88,3 +88,102 @@ def test_a_config_saved_before_a_field_moved_loads_or_says_where_it_went(tmp_pat
                                                                                     detach_paths=("cov",))))
     save_config(ablation, saved)
     assert load_config(saved).pipeline.model.detach_paths == ("cov",)
+
+
+OLD_SEEDSPLIT = """\
+_type: exploregs_plugin.strategies.seedsplit:SeedSplitStrategy
+cap_max: null
+refine_start_iter: null
+refine_stop_iter: null
+refine_every: null
+reset_every: null
+prune_opa: 0.005
+grow_grad2d: 0.0012
+grow_scale3d: 0.01
+prune_scale3d: 0.1
+reset_opacity: 0.01
+split_scale_factor: 1.6
+budget: cpu-small
+n_split: null
+split_every: null
+n_seed: 10
+seed_every: 700
+seed_box_mode: cameras
+seed_box_quantile: 0.01
+seed_opacity_base: 0.2
+seed_opacity_gain: 0.5
+seed_prune_scale3d: 10.0
+seed_min_scale: 1.0e-06
+seed_prune_opa: 0.05
+seed_grace: null
+"""
+"""A strategy section as runs saved it before the operators became nested configs (the bench's
+seedsplit-official entry: flat fields, seeding's prefixed with seed_)."""
+
+OLD_MCMC_RAY = """\
+_type: exploregs_plugin.strategies.mcmc:MCMCStrategy
+cap_max: 30000
+refine_start_iter: null
+refine_stop_iter: null
+refine_every: null
+reset_every: null
+noise_lr: 1000.0
+noise_gate_k: 100.0
+noise_gate_t: 0.005
+min_opacity: 0.005
+growth_rate: 0.05
+opacity_reg: 0.01
+scale_reg: 0.01
+noise_mode: ray
+"""
+
+
+def _with_strategy(method: str, strategy_yaml: str) -> dict:
+    import yaml
+
+    from exploregs_plugin.configs import config_to_dict
+    from exploregs_plugin.method_configs import get_method
+
+    written = config_to_dict(get_method(method).config)
+    written["pipeline"]["strategy"] = yaml.safe_load(strategy_yaml)
+    return written
+
+
+def test_configs_saved_with_flat_strategy_fields_load_into_the_operators(tmp_path):
+    import yaml
+
+    from exploregs_plugin.configs import config_from_dict, upgraded
+    from exploregs_plugin.strategies import MCMCStrategy, PositionNoise, RandomSeeding, RandomSplitting, SeedSplitStrategy
+
+    strategy = config_from_dict(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT)).pipeline.strategy
+    assert strategy == SeedSplitStrategy(grow_grad2d=0.0012, budget="cpu-small", splitting=RandomSplitting(),
+                                         seeding=RandomSeeding(n_seed=10, every=700, box_mode="cameras"))
+    mcmc = config_from_dict(_with_strategy("exploregs-mcmc-ray", OLD_MCMC_RAY)).pipeline.strategy
+    assert mcmc == MCMCStrategy(noise=PositionNoise(mode="ray", lr=1000.0))
+    # the raw upgrade (what the bench compares a finished run's job file with) is the same move
+    raw = upgraded(yaml.safe_load(OLD_SEEDSPLIT))
+    assert raw["seeding"]["every"] == 700 and "seed_every" not in raw and raw["splitting"]["n_split"] is None
+    # a field that is neither a field nor a moved one is still refused by name
+    with pytest.raises(ValueError, match=r"unknown fields: \['seed_colour'\]"):
+        config_from_dict(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT + "seed_colour: red\n"))
+    # a saved nested config round-trips as it is
+    saved = tmp_path / "config.yml"
+    save_config(config_from_dict(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT)), saved)
+    assert load_config(saved).pipeline.strategy == strategy
+
+
+def test_the_bench_reuses_a_run_saved_with_flat_strategy_fields_only_for_the_same_settings(tmp_path):
+    import dataclasses
+
+    import yaml
+
+    from exploregs_plugin.bench.files import JOB_NAME
+    from exploregs_plugin.bench.runner import same_config
+    from exploregs_plugin.configs import config_from_dict
+
+    (tmp_path / JOB_NAME).write_text(yaml.safe_dump(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT), sort_keys=False))
+    same = config_from_dict(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT))
+    assert same_config(tmp_path, same)
+    strategy = same.pipeline.strategy
+    other = dataclasses.replace(strategy, seeding=dataclasses.replace(strategy.seeding, prune_opa=0.1))
+    assert not same_config(tmp_path, dataclasses.replace(same, pipeline=dataclasses.replace(same.pipeline, strategy=other)))

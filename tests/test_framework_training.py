@@ -326,10 +326,10 @@ def test_a_bad_value_is_one_line_with_the_valid_range(capsys):
     from exploregs_plugin.scripts.train import main
 
     with pytest.raises(SystemExit) as exit_:
-        run_cli("eg-train", main, ["exploregs-seed", "--strategy.n-seed", "-5"])
+        run_cli("eg-train", main, ["exploregs-seed", "--strategy.seeding.n-seed", "-5"])
     assert exit_.value.code == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert err == ["eg-train: error: --strategy: SeedingStrategy.n_seed must be >= 0 (0 disables seeding), got -5"]
+    assert err == ["eg-train: error: --strategy.seeding: RandomSeeding.n_seed must be >= 0 (0 disables seeding), got -5"]
     with pytest.raises(SystemExit) as exit_:
         run_cli("eg-train", main, ["--help"])
     assert exit_.value.code == 0

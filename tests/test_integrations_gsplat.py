@@ -27,7 +27,7 @@ import gsplat.strategy.ops  # noqa: E402
 from exploregs_plugin.cameras import Camera  # noqa: E402
 from exploregs_plugin.integrations import gsplat as integ  # noqa: E402
 from exploregs_plugin.strategies import MCMCStrategy as OurMCMCStrategy  # noqa: E402
-from exploregs_plugin.strategies import RayPerturbationStrategy, StrategyError  # noqa: E402
+from exploregs_plugin.strategies import PositionNoise, RayPerturbationStrategy, StrategyError  # noqa: E402
 from exploregs_plugin.strategies.relocation import relocation_update  # noqa: E402
 from exploregs_plugin.strategies.synthetic import synthetic_views  # noqa: E402
 
@@ -407,7 +407,7 @@ def native_and_gsplat(kind: str):
     if kind == "ray":
         native = RayPerturbationStrategy(grow_grad2d=1e9, prune_opa=0.0, reset_every=1000, **NO_REFINE)
         return native, integ.RayStrategy(**NO_REFINE, reset_every=1000, seed=7)
-    native = OurMCMCStrategy(noise_mode="ray", cap_max=10_000, reset_every=1000, **NO_REFINE)
+    native = OurMCMCStrategy(noise=PositionNoise(mode="ray"), cap_max=10_000, reset_every=1000, **NO_REFINE)
     return native, integ.MCMCRayStrategy(**NO_REFINE, seed=7)
 
 

@@ -43,8 +43,8 @@ def test_dynamic_methods_are_registered():
         config = get_method(name).config
         assert config.pipeline.datamanager.data == "builtin:dynamic"
         assert type(config.pipeline.model).__name__ == "DynamicGaussianModelConfig"
-    assert get_method("exploregs-4d-split").config.pipeline.strategy.n_split == 5
-    assert get_method("exploregs-4d-seedsplit").config.pipeline.strategy.n_split == 5
+    assert get_method("exploregs-4d-split").config.pipeline.strategy.splitting.n_split == 5
+    assert get_method("exploregs-4d-seedsplit").config.pipeline.strategy.splitting.n_split == 5
 
 
 def test_dynamic_run_trains_deforms_and_reports_frames(split_run):

@@ -19,10 +19,14 @@ SHORT_SCHEDULE = ScheduleConfig(min_refine_every=10)  # 3DGS's 100-step interval
 
 
 def train_method(name: str, run_dir, **strategy_fields) -> tuple[Trainer, dict]:
+    """Train ``name`` briefly; a dict value sets fields of the named operator
+    (``seeding={"n_seed": 17}``), any other value a field of the strategy."""
     from dataclasses import replace
 
     config = get_method(name).config
-    strategy = replace(config.pipeline.strategy, **strategy_fields)
+    strategy = config.pipeline.strategy
+    strategy = replace(strategy, **{k: replace(getattr(strategy, k), **v) if isinstance(v, dict) else v
+                                    for k, v in strategy_fields.items()})
     config = replace(config, data="builtin:tiny", max_steps=STEPS, run_dir=run_dir, quiet=True,
                      tensorboard=False, eval_count=1, save_eval_images=False, checkpoint_every=1000,
                      schedule=SHORT_SCHEDULE, pipeline=replace(config.pipeline, strategy=strategy))
@@ -39,7 +43,7 @@ def test_schedule_of_these_tests():
 
 
 def test_seeding_adds_exactly_n_seed_per_densification_step(tmp_path, tiny_scene_dir):
-    trainer, m = train_method("exploregs-seed", tmp_path, n_seed=17)
+    trainer, m = train_method("exploregs-seed", tmp_path, seeding={"n_seed": 17})
     counts = m["strategy_counts"]
     assert counts["seeded"] == 17  # one seeding step (10) in the window
     assert m["exploration"]["seeds_alive"] >= 0
@@ -48,7 +52,7 @@ def test_seeding_adds_exactly_n_seed_per_densification_step(tmp_path, tiny_scene
 
 
 def test_splitting_splits_n_split_every_step_of_the_window(tmp_path, tiny_scene_dir):
-    trainer, m = train_method("exploregs-split", tmp_path, n_split=5)
+    trainer, m = train_method("exploregs-split", tmp_path, splitting={"n_split": 5})
     counts = m["strategy_counts"]
     assert counts["random_split"] == 5 * 14  # steps 1..14
     assert counts.get("seeded", 0) == 0
@@ -58,7 +62,7 @@ def test_splitting_splits_n_split_every_step_of_the_window(tmp_path, tiny_scene_
 
 
 def test_seedsplit_does_both(tmp_path, tiny_scene_dir):
-    trainer, m = train_method("exploregs-seedsplit", tmp_path, n_seed=9, n_split=3)
+    trainer, m = train_method("exploregs-seedsplit", tmp_path, seeding={"n_seed": 9}, splitting={"n_split": 3})
     counts = m["strategy_counts"]
     assert counts["seeded"] == 9 and counts["random_split"] == 3 * 14
     assert m["num_gaussians"] == (m["initial_gaussians"] + counts["cloned"] + counts["split"]
@@ -86,7 +90,7 @@ def test_mcmc_grows_five_percent_and_never_deletes(tmp_path, tiny_scene_dir, nam
 
 
 def test_guided_seeds_land_on_training_rays_and_are_seen(tmp_path, tiny_scene_dir):
-    trainer, m = train_method("exploregs-guided", tmp_path, n_seed=12)
+    trainer, m = train_method("exploregs-guided", tmp_path, seeding={"n_seed": 12})
     counts = m["strategy_counts"]
     assert counts["seeded"] == 12
     assert m["num_gaussians"] == m["initial_gaussians"] + counts["cloned"] + counts["split"] + 12 - counts["pruned"]
@@ -96,11 +100,12 @@ def test_guided_seeds_land_on_training_rays_and_are_seen(tmp_path, tiny_scene_di
 
 
 def test_occlusion_aware_splitting_spends_the_split_budget(tmp_path, tiny_scene_dir):
-    trainer, m = train_method("exploregs-occlusion", tmp_path, n_split=5)
+    trainer, m = train_method("exploregs-occlusion", tmp_path, splitting={"n_split": 5})
     counts = m["strategy_counts"]
     assert counts["random_split"] == 5 * 14
     stats = trainer.pipeline.strategy_state["stats"]
     assert {"vis_weight", "vis_alpha", "occ_error"} <= set(stats)
     assert bool((stats["vis_weight"] <= stats["vis_alpha"] * (1 + 1e-5) + 1e-7).all())  # T <= 1
-    trainer, m = train_method("exploregs-guided-occlusion", tmp_path / "both", n_seed=7, n_split=2)
+    trainer, m = train_method("exploregs-guided-occlusion", tmp_path / "both", seeding={"n_seed": 7},
+                               splitting={"n_split": 2})
     assert m["strategy_counts"]["seeded"] == 7 and m["strategy_counts"]["random_split"] == 2 * 14

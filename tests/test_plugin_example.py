@@ -43,10 +43,24 @@ def test_plugin_method_and_strategy_are_found_and_train(installed_plugin, tmp_pa
     run_dir = tmp_path / "run"
     result = subprocess.run(
         train + ["example-opacity-budget", "--data", "builtin:tiny", "--max-steps", "12",
-                 "--strategy.budget", "150", "--run-dir", str(run_dir), "--quiet", "--no-tensorboard",
+                 "--strategy.limit.max-gaussians", "150", "--run-dir", str(run_dir), "--quiet", "--no-tensorboard",
                  "--eval-count", "1", "--no-save-eval-images"],
         capture_output=True, text=True, timeout=600)
     assert result.returncode == 0, result.stderr[-3000:]
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert metrics["method"] == "example-opacity-budget"
+    assert 0 < metrics["num_gaussians"] <= 150
+
+    # the plugin's operator composed after Seed+Split's two, picked by name for a built-in method
+    run_dir = tmp_path / "seedsplit"
+    result = subprocess.run(
+        train + ["exploregs-seedsplit", "--strategy", "seedsplit-budget", "--strategy.limit.max-gaussians", "150",
+                 "--strategy.splitting.n-split", "4", "--strategy.splitting.every", "1", "--data", "builtin:tiny",
+                 "--max-steps", "12", "--run-dir", str(run_dir), "--quiet", "--no-tensorboard", "--eval-count", "1",
+                 "--no-save-eval-images"],
+        capture_output=True, text=True, timeout=600)
+    assert result.returncode == 0, result.stderr[-3000:]
+    metrics = json.loads((run_dir / "metrics.json").read_text())
+    counts = metrics["strategy_counts"]
+    assert counts["random_split"] > 0 and counts["budget_pruned"] > 0 and "seeded" in counts
     assert 0 < metrics["num_gaussians"] <= 150

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from dataclasses import fields
 
 import pytest
 import torch
@@ -11,6 +12,7 @@ from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.strategies import (
     BUDGET_PRESETS,
     DefaultStrategy,
+    ExplorationStrategy,
     SeedingStrategy,
     SeedSplitStrategy,
     SplittingStrategy,
@@ -20,8 +22,8 @@ from exploregs_plugin.strategies import (
 )
 from exploregs_plugin.strategies.budget import SEED_FRACTION, SPLIT_FRACTION
 from exploregs_plugin.rasterizer.sh import SH_C0
-from exploregs_plugin.strategies.seeding import SEED_FLAG, SeedingMixin, seed_rows
-from exploregs_plugin.strategies.splitting import SplittingMixin, sample_split_indices
+from exploregs_plugin.strategies.seeding import SEED_FLAG, RandomSeeding, seed_rows
+from exploregs_plugin.strategies.splitting import RandomSplitting, sample_split_indices
 from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_views
 
 W, H = 32, 32
@@ -47,7 +49,7 @@ def test_seeding_counts_box_and_disable():
     optimizers = make_optimizers(params)
     lo = params["means"].detach().min(0).values
     hi = params["means"].detach().max(0).values
-    s = SeedingStrategy(n_seed=7, seed_every=10, grow_grad2d=1e9, prune_opa=0.0, **WINDOW)
+    s = SeedingStrategy(seeding=RandomSeeding(n_seed=7, every=10), grow_grad2d=1e9, prune_opa=0.0, **WINDOW)
     state = s.initialize_state()
     gen = torch.Generator().manual_seed(1)
     history = _run(s, params, optimizers, state, range(1, 41), gen)
@@ -60,7 +62,7 @@ def test_seeding_counts_box_and_disable():
     assert s.exploration_summary(state)["seeds_alive"] == 28
     assert int(state["stats"][SEED_FLAG].sum()) == 28
 
-    off = SeedingStrategy(n_seed=0, seed_every=10, **WINDOW)
+    off = SeedingStrategy(seeding=RandomSeeding(n_seed=0, every=10), **WINDOW)
     p2 = make_gaussians(50, torch.Generator().manual_seed(0))
     history = _run(off, p2, make_optimizers(p2), off.initialize_state(), range(1, 41), gen)
     assert all(c["seeded"] == 0 for c in history)
@@ -120,14 +122,14 @@ def test_cameras_box_is_the_extent_cube_around_the_cameras_centre_whatever_the_c
 
 
 def test_seeding_relaxes_size_prune_while_active():
-    s = SeedingStrategy(n_seed=5, seed_every=10, **WINDOW)
+    s = SeedingStrategy(seeding=RandomSeeding(n_seed=5, every=10), **WINDOW)
     assert s.size_prune_factor(200) == 10.0 and DefaultStrategy(**WINDOW).size_prune_factor(200) == 0.1
-    assert SeedingStrategy(n_seed=0, seed_every=10, **WINDOW).size_prune_factor(200) == 0.1
+    assert SeedingStrategy(seeding=RandomSeeding(n_seed=0, every=10), **WINDOW).size_prune_factor(200) == 0.1
 
 
 def test_seeding_hard_cases():
     gen = torch.Generator().manual_seed(0)
-    s = SeedingStrategy(n_seed=4, seed_every=10, **WINDOW)
+    s = SeedingStrategy(seeding=RandomSeeding(n_seed=4, every=10), **WINDOW)
     # N = 0: no box, no seeds, no crash.
     empty = make_gaussians(0, gen)
     state = s.initialize_state()
@@ -151,18 +153,18 @@ def test_seeding_hard_cases():
 def test_seeds_respect_cap_max():
     gen = torch.Generator().manual_seed(0)
     params = make_gaussians(20, gen)
-    s = SeedingStrategy(n_seed=10, seed_every=10, cap_max=25, grow_grad2d=1e9, prune_opa=0.0, **WINDOW)
+    s = SeedingStrategy(seeding=RandomSeeding(n_seed=10, every=10), cap_max=25, grow_grad2d=1e9, prune_opa=0.0, **WINDOW)
     history = _run(s, params, make_optimizers(params), s.initialize_state(), [10, 20], gen)
     assert [c["seeded"] for c in history] == [5, 0]
     assert params["means"].shape[0] == 25
 
 
-def _seeding_setup(n: int, **fields):
+def _seeding_setup(n: int, n_seed: int, prune_opa: float):
     """(generator, params, optimizers, strategy, state): n random Gaussians, a seeding strategy
     every 10 steps with ADC growth off."""
     gen = torch.Generator().manual_seed(0)
     params = make_gaussians(n, gen)
-    s = SeedingStrategy(seed_every=10, grow_grad2d=1e9, **WINDOW, **fields)
+    s = SeedingStrategy(seeding=RandomSeeding(n_seed=n_seed, every=10), grow_grad2d=1e9, prune_opa=prune_opa, **WINDOW)
     return gen, params, make_optimizers(params), s, s.initialize_state()
 
 
@@ -179,24 +181,24 @@ def test_seeds_outside_every_view_are_counted():
 
 
 def test_seed_probation_schedule():
-    s = SeedingStrategy(n_seed=3, seed_every=10, refine_start_iter=2, refine_stop_iter=10_000, refine_every=100,
+    s = SeedingStrategy(seeding=RandomSeeding(n_seed=3, every=10), refine_start_iter=2, refine_stop_iter=10_000, refine_every=100,
                         reset_every=200)
     # Default grace: half the reset interval. The prune at a reset step comes before that reset.
-    assert [s.seeds_judged_at(t) for t in (100, 200, 300, 400, 500)] == [True] * 5
+    assert [s.seeding.judged_at(s, t) for t in (100, 200, 300, 400, 500)] == [True] * 5
     s.reset_every = 3000
-    assert [s.seeds_judged_at(t) for t in (2900, 3000, 3100, 4400, 4500, 6000, 6100)] == [
+    assert [s.seeding.judged_at(s, t) for t in (2900, 3000, 3100, 4400, 4500, 6000, 6100)] == [
         True, True, False, False, True, True, False]
-    s.seed_grace = 0
-    assert s.seeds_judged_at(3100)
-    for bad in (dict(seed_prune_opa=-0.1), dict(seed_prune_opa=1.0), dict(seed_grace=-1)):
+    s.seeding.grace = 0
+    assert s.seeding.judged_at(s, 3100)
+    for bad in (dict(prune_opa=-0.1), dict(prune_opa=1.0), dict(grace=-1)):
         with pytest.raises(StrategyError):
-            SeedingStrategy(n_seed=3, seed_every=10, **WINDOW, **bad)
+            RandomSeeding(n_seed=3, every=10, **bad)
 
 
 def test_seed_probation_prunes_faded_seeds_only():
     gen, params, optimizers, s, state = _seeding_setup(10, n_seed=4, prune_opa=0.005)
     assert _run(s, params, optimizers, state, [10], gen)[0]["seeded"] == 4
-    # Two seeds and two original Gaussians fade to 0.02: under seed_prune_opa (0.05), over prune_opa.
+    # Two seeds and two original Gaussians fade to 0.02: under the seeds' prune_opa (0.05), over Default's.
     with torch.no_grad():
         params["opacities"][:] = torch.logit(torch.tensor(0.5))
         params["opacities"][[0, 1, 10, 11]] = torch.logit(torch.tensor(0.02))
@@ -206,11 +208,11 @@ def test_seed_probation_prunes_faded_seeds_only():
     assert torch.equal(params["means"].detach()[[0, 1, 10, 11]], kept)  # faded originals stay
     assert s.exploration_summary(state)["seeds_alive"] == 2 + 4  # the two left and the next batch
 
-    # Within the grace period after a reset nothing is judged; with seed_prune_opa = 0 never.
+    # Within the grace period after a reset nothing is judged; with the seeds' prune_opa = 0 never.
     with torch.no_grad():
         params["opacities"][10:] = torch.logit(torch.tensor(0.02))
     assert _run(s, params, optimizers, state, [110], gen)[0]["seeds_pruned"] == 0
-    off = SeedingStrategy(n_seed=4, seed_every=10, grow_grad2d=1e9, seed_prune_opa=0.0, **WINDOW)
+    off = SeedingStrategy(seeding=RandomSeeding(n_seed=4, every=10, prune_opa=0.0), grow_grad2d=1e9, **WINDOW)
     p2 = make_gaussians(10, gen)
     st2 = off.initialize_state()
     _run(off, p2, make_optimizers(p2), st2, [10], gen)
@@ -225,7 +227,7 @@ def test_random_split_splits_zero_gradient_gaussians():
     gen = torch.Generator().manual_seed(0)
     params = make_gaussians(30, gen)
     optimizers = make_optimizers(params)
-    s = SplittingStrategy(n_split=4, split_every=1, prune_opa=0.0, **WINDOW)
+    s = SplittingStrategy(splitting=RandomSplitting(n_split=4, every=1), prune_opa=0.0, **WINDOW)
     state = s.initialize_state()
     history = _run(s, params, optimizers, state, range(3, 8), gen, grad=0.0)
     assert [c["random_split"] for c in history] == [4] * 5
@@ -279,11 +281,11 @@ def test_random_split_children_drawn_from_parent():
     from exploregs_plugin.rasterizer.projection import covariances_3d
 
     cov = covariances_3d(parent["quats"], torch.exp(parent["scales"]))[0].double()
-    s = SplittingStrategy(n_split=1, split_every=1, prune_opa=0.0, grow_grad2d=1e9, **WINDOW)
+    s = SplittingStrategy(splitting=RandomSplitting(n_split=1, every=1), prune_opa=0.0, grow_grad2d=1e9, **WINDOW)
     offsets = []
     for step in range(400):  # re-split a fresh copy of the same parent many times
         p = torch.nn.ParameterDict({k: torch.nn.Parameter(v.clone()) for k, v in parent.items()})
-        s.random_split(p, make_optimizers(p), {"stats": {}}, gen)
+        s.splitting.random_split(s, p, make_optimizers(p), {"stats": {}}, gen)
         assert p["means"].shape[0] == 2
         assert torch.allclose(torch.exp(p["scales"].detach()), torch.exp(parent["scales"]).expand(2, 3) / 1.6, rtol=1e-5)
         offsets.append(p["means"].detach() - parent_mean)
@@ -298,13 +300,13 @@ def test_random_split_children_drawn_from_parent():
 def test_random_split_respects_cap_and_nonfinite():
     gen = torch.Generator().manual_seed(0)
     params = make_gaussians(10, gen)
-    s = SplittingStrategy(n_split=20, split_every=1, cap_max=13, prune_opa=0.0, **WINDOW)
+    s = SplittingStrategy(splitting=RandomSplitting(n_split=20, every=1), cap_max=13, prune_opa=0.0, **WINDOW)
     counts = _run(s, params, make_optimizers(params), s.initialize_state(), [3, 4], gen)
     assert [c["random_split"] for c in counts] == [3, 0]
     assert params["means"].shape[0] == 13
     # Non-finite gradients do not stop random splitting (its choice ignores gradients).
     p2 = make_gaussians(6, gen)
-    s2 = SplittingStrategy(n_split=20, split_every=1, prune_opa=0.0, **WINDOW)
+    s2 = SplittingStrategy(splitting=RandomSplitting(n_split=20, every=1), prune_opa=0.0, **WINDOW)
     c = _run(s2, p2, make_optimizers(p2), s2.initialize_state(), [3], gen, grad=float("nan"))[0]
     assert c["random_split"] == 6 and c["nonfinite_grads"] == 6
     assert p2["means"].shape[0] == 12 and all(torch.isfinite(v).all() for v in p2.values())
@@ -312,17 +314,20 @@ def test_random_split_respects_cap_and_nonfinite():
 
 # ------------------------------------------------------------------------------ composition
 def test_seedsplit_is_composed_not_copied():
-    # No behaviour is defined on Seed+Split itself: it is the two operators stacked on Default.
+    # No behaviour is defined on Seed+Split itself: it holds the two operators, in the order they run.
     own = {k for k, v in vars(SeedSplitStrategy).items() if callable(v) and not k.startswith("__")}
     assert own == set()
-    assert SeedSplitStrategy.__mro__[1:4] == (SeedingMixin, SplittingMixin, SplittingMixin.__mro__[1])
-    assert issubclass(SeedSplitStrategy, DefaultStrategy)
+    assert SeedSplitStrategy.__mro__[1:3] == (ExplorationStrategy, DefaultStrategy)
+    s = SeedSplitStrategy()
+    assert [(name, type(op)) for name, op in s.operators()] == [("splitting", RandomSplitting), ("seeding", RandomSeeding)]
+    assert [(name, type(op)) for name, op in SeedingStrategy().operators()] == [("seeding", RandomSeeding)]
+    assert DefaultStrategy().size_prune_factor(0) == 0.1 and not hasattr(DefaultStrategy(), "operators")
 
 
 def test_seedsplit_does_both_and_counts_them():
     gen = torch.Generator().manual_seed(0)
     params = make_gaussians(40, gen)
-    s = SeedSplitStrategy(n_seed=5, seed_every=10, n_split=3, split_every=1, prune_opa=0.0, grow_grad2d=1e9, **WINDOW)
+    s = SeedSplitStrategy(seeding=RandomSeeding(n_seed=5, every=10), splitting=RandomSplitting(n_split=3, every=1), prune_opa=0.0, grow_grad2d=1e9, **WINDOW)
     state = s.initialize_state()
     history = _run(s, params, make_optimizers(params), state, range(3, 21), gen)
     assert sum(c["random_split"] for c in history) == 3 * 18
@@ -338,8 +343,8 @@ def test_every_strategy_handles_all_pruned():
         params = make_gaussians(12, gen)
         with torch.no_grad():
             params["opacities"].fill_(-30.0)
-        s = cls(n_seed=3, seed_every=10, n_split=2, split_every=1, **WINDOW) if cls is SeedSplitStrategy else (
-            cls(n_seed=3, seed_every=10, **WINDOW) if cls is SeedingStrategy else cls(n_split=2, split_every=1, **WINDOW))
+        operators = {"seeding": RandomSeeding(n_seed=3, every=10), "splitting": RandomSplitting(n_split=2, every=1)}
+        s = cls(**{name: op for name, op in operators.items() if name in {f.name for f in fields(cls)}}, **WINDOW)
         state = s.initialize_state()
         # Step 10: the random split runs after the prune emptied the set; seeding finds no box.
         _run(s, params, make_optimizers(params), state, [10, 11, 20], gen)
@@ -350,10 +355,15 @@ def test_every_strategy_handles_all_pruned():
 def test_setup_resolves_budget_fields():
     schedule = ScheduleConfig().resolve(3000)
     paper = SeedSplitStrategy().setup(schedule)
-    assert (paper.n_seed, paper.seed_every, paper.n_split, paper.split_every) == (20, schedule.refine_every, 20, 1)
-    own = SeedSplitStrategy(n_seed=50).setup(schedule)
-    assert own.n_seed == 50
-    with pytest.raises(StrategyError, match="setup"):
+    assert (paper.seeding.n_seed, paper.seeding.every, paper.splitting.n_split, paper.splitting.every) == (
+        20, schedule.refine_every, 20, 1)
+    own = SeedSplitStrategy(seeding=RandomSeeding(n_seed=50)).setup(schedule)
+    assert own.seeding.n_seed == 50 and own.seeding.every == schedule.refine_every
+    # the operator configs the user passed are not changed in place (setup returns copies)
+    mine = SeedSplitStrategy()
+    mine.setup(schedule)
+    assert mine.seeding.n_seed is None and mine.splitting.every is None
+    with pytest.raises(StrategyError, match=r"seeding\.n_seed.*setup"):
         SeedingStrategy(**WINDOW).step_post_backward({}, {}, {}, 1, {})
     with pytest.raises(ValueError, match="unknown exploration budget"):
         SeedSplitStrategy(budget="huge")

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.strategies import MCMCStrategy, RayPerturbationStrategy, StrategyError
+from exploregs_plugin.strategies import MCMCStrategy, PositionNoise, RayPerturbationStrategy, StrategyError
 from exploregs_plugin.rasterizer.projection import covariances_3d
 from exploregs_plugin.strategies.perturbation import position_noise
 from exploregs_plugin.strategies.relocation import binomial_table, relocation_update
@@ -160,8 +160,8 @@ def test_mcmc_schedule_regulariser_and_errors():
     assert s.refine_stop_iter == 2500 and s.refine_every == schedule.refine_every
     with pytest.raises(StrategyError, match="cap_max"):
         MCMCStrategy(cap_max=None)
-    with pytest.raises(StrategyError, match="noise_mode"):
-        MCMCStrategy(noise_mode="sideways")
+    with pytest.raises(StrategyError, match="noise mode"):
+        MCMCStrategy(noise=PositionNoise(mode="sideways"))
     params = make_gaussians(20, torch.Generator().manual_seed(0))
     loss = s.regularization_loss(params)
     want = 0.01 * torch.sigmoid(params["opacities"]).mean() + 0.01 * torch.exp(params["scales"]).mean()

@@ -145,16 +145,20 @@ def test_strategies_declare_what_they_need_and_the_renderer_computes_just_that()
     from exploregs_plugin.model import GaussianModelConfig
     from exploregs_plugin.pipeline import renderer_for
     from exploregs_plugin.strategies import SeedSplitStrategy
-    from exploregs_plugin.strategies.base import VIEW_ERRORS, VISIBILITY_STATS, StrategyError
+    from exploregs_plugin.strategies.base import StrategyError
+    from exploregs_plugin.strategies.operator import Operator
+    from exploregs_plugin.strategies.requirements import VIEW_ERRORS, VISIBILITY_STATS
     from exploregs_plugin.strategies.guided import GuidedSeedingStrategy
     from exploregs_plugin.strategies.occlusion import GuidedOcclusionStrategy, OcclusionSplittingStrategy
 
-    # a composed strategy requires what each part does, whatever the order of its bases
-    assert GuidedOcclusionStrategy.requires == {VIEW_ERRORS, VISIBILITY_STATS}
-    assert OcclusionSplittingStrategy.requires == {VISIBILITY_STATS}
-    assert GuidedSeedingStrategy.requires == {VIEW_ERRORS} and SeedSplitStrategy.requires == frozenset()
+    # a composed strategy requires what each of its operators does
+    assert GuidedOcclusionStrategy().requirements() == {VIEW_ERRORS, VISIBILITY_STATS}
+    assert OcclusionSplittingStrategy().requirements() == {VISIBILITY_STATS}
+    assert GuidedSeedingStrategy().requirements() == {VIEW_ERRORS} and SeedSplitStrategy().requirements() == frozenset()
     model = GaussianModelConfig()
-    assert renderer_for(model, OcclusionSplittingStrategy.requires).raster.visibility_stats
-    assert renderer_for(model, GuidedSeedingStrategy.requires) is model and not model.raster.visibility_stats
-    with pytest.raises(StrategyError, match="requires names"):
-        type("Odd", (DefaultStrategy,), {"requires": frozenset({"depth"})})
+    assert renderer_for(model, OcclusionSplittingStrategy().requirements()).raster.visibility_stats
+    plain = renderer_for(model, GuidedSeedingStrategy().requirements())
+    assert plain is model and not model.raster.visibility_stats
+    for base in (DefaultStrategy, Operator):
+        with pytest.raises(StrategyError, match="requires names"):
+            type("Odd", (base,), {"requires": frozenset({"depth"})})

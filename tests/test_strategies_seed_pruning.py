@@ -3,7 +3,7 @@
 The scene is already explained: the training targets are the initial model's own renders and
 ADC growth is off, so the seeds are the only change to a perfect fit. A seed whose 3-sigma ball
 is nearer than every surface under its 3-sigma footprint, in every view that sees it, can only
-add error, so it fades; seed probation (``seed_prune_opa``) removes it once it is below the
+add error, so it fades; seed probation (``RandomSeeding.prune_opa``) removes it once it is below the
 probation threshold. Seeds that no view sees get no gradient: they are counted in
 ``seeds_unseen`` while they live. Refinement runs every 20 steps, seeding every 100 and the
 opacity reset at step 200 (3DGS's 100 / 3000 shortened for a 400-step run).
@@ -17,7 +17,7 @@ import torch
 
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.strategies import SeedingStrategy
-from exploregs_plugin.strategies.seeding import SEED_FLAG, SEED_SEEN
+from exploregs_plugin.strategies.seeding import SEED_FLAG, SEED_SEEN, RandomSeeding
 
 STEPS = 400
 N_SEED = 40
@@ -25,7 +25,7 @@ SEED_EVERY = 100
 RESET_EVERY = 200
 RUN_SEED = 1
 """Trainer seed: places two of the tracked seeds in empty space and several outside every view.
-Without probation (``seed_prune_opa=0``, normal pruning only) both empty-space seeds of this run
+Without probation (``prune_opa=0`` of the operator, normal pruning only) both empty-space seeds of this run
 survive at opacities above the 0.005 threshold."""
 TRACKED = (100, 200)
 """Seeding steps whose batches are followed: the first fades from its start opacity, the second
@@ -68,14 +68,14 @@ def footprint_class(means, sigma, cameras, surfaces, k_sigma=3.0):
 
 def test_empty_space_seeds_are_pruned_and_unseen_seeds_counted(tmp_path, tiny_scene_dir, monkeypatch):
     config = get_method("exploregs-seed").config
-    strategy = SeedingStrategy(n_seed=N_SEED, seed_every=SEED_EVERY, refine_every=20, refine_start_iter=19,
+    strategy = SeedingStrategy(seeding=RandomSeeding(n_seed=N_SEED, every=SEED_EVERY), refine_every=20, refine_start_iter=19,
                                refine_stop_iter=STEPS, reset_every=RESET_EVERY, grow_grad2d=1e9)
     config = replace(config, data="builtin:tiny", max_steps=STEPS, run_dir=tmp_path, quiet=True,
                      tensorboard=False, seed=RUN_SEED,
                      pipeline=replace(config.pipeline, strategy=strategy))
     pipeline = config.setup().pipeline
     dm = pipeline.datamanager
-    assert SeedingStrategy.seed_prune_opa > strategy.prune_opa  # probation is on by default
+    assert strategy.seeding.prune_opa > strategy.prune_opa  # probation is on by default
 
     cameras, targets, surfaces = [], {}, []
     with torch.no_grad():

@@ -40,7 +40,7 @@ def _depth_supervision(description: str) -> tuple[BenchEntry, ...]:
 
 
 def _split_ablation(description: str) -> tuple[BenchEntry, ...]:
-    out = [BenchEntry(f"split-n{n}", "exploregs-split", ("--strategy.n-split", str(n)), description)
+    out = [BenchEntry(f"split-n{n}", "exploregs-split", ("--strategy.splitting.n-split", str(n)), description)
            for n in (0, 5, 10, 20, 40, 80)]
     out += [BenchEntry(f"default-grad{g:g}", "exploregs-default", ("--strategy.grow-grad2d", repr(g)), description)
             for g in (0.0001, 0.0002, 0.0004, 0.0008)]

@@ -120,13 +120,13 @@ def same_config(run_dir: Path, config: Any) -> bool:
     """Whether the run folder was made for ``config`` (its bench_job.yml matches, see configs_match)."""
     import yaml
 
-    from exploregs_plugin.configs import config_to_dict
+    from exploregs_plugin.configs import config_to_dict, upgraded
 
     try:
         old = yaml.safe_load((Path(run_dir) / JOB_NAME).read_text())
     except (OSError, yaml.YAMLError):
         return False
-    return isinstance(old, dict) and configs_match(comparable(old), comparable(config_to_dict(config)))
+    return isinstance(old, dict) and configs_match(comparable(upgraded(old)), comparable(config_to_dict(config)))
 
 
 def _config_or_error(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry,

@@ -1,6 +1,6 @@
 """What a benchmark runs: entries (a method plus overrides), scenes (data plus options), seeds, steps.
 
-An entry's and a scene's overrides are eg-train command-line arguments (``--strategy.n-seed 50``,
+An entry's and a scene's overrides are eg-train command-line arguments (``--strategy.seeding.n-seed 50``,
 ``--data-factor 4``), parsed with tyro against the entry's method config, exactly as ``eg-train``
 would parse them, so a typo fails with tyro's message naming the argument.
 """

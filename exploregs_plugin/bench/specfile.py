@@ -12,7 +12,7 @@ somewhere: the file, its ``preset`` or the command line)::
       - default                   # a named entry or a registered method
       - name: seed50              # a new row
         method: seed              # a named entry or a method (exploregs-seed)
-        overrides: --strategy.n-seed 50
+        overrides: --strategy.seeding.n-seed 50
         description: Seeding with 50 seeds per step
     scenes:
       - builtin:farside
@@ -94,7 +94,7 @@ def _with_args(items: tuple[Any, ...], specs: tuple[str, ...], kind: str, field_
     for text in specs:
         name, sep, args = text.partition(":")
         if not sep or not name:
-            flag, example = (("override", "seed:--strategy.n-seed 50") if kind == "entry"
+            flag, example = (("override", "seed:--strategy.seeding.n-seed 50") if kind == "entry"
                              else ("scene-option", "farside:--data-factor 2"))
             raise BenchSpecError(f"--{flag} {text!r}: expected '{kind.upper()}:ARGS', e.g. '{example}'")
         if name not in names:

@@ -35,7 +35,7 @@ Ray perturbation. :class:`RayStrategy` is gsplat's DefaultStrategy plus the 3DGS
 noise projected onto the viewing ray after every step (our ``RayPerturbationStrategy``);
 :class:`MCMCRayStrategy` is gsplat's MCMCStrategy (relocation of dead Gaussians, 5% growth to
 ``cap_max``) whose isotropic noise is replaced by the same ray noise. Both call our operator
-(``position_noise`` in 'ray' mode, as ``NoiseMixin.perturb_positions`` does). gsplat's ``info`` holds
+(``position_noise`` in 'ray' mode, as ``PositionNoise.perturb`` does). gsplat's ``info`` holds
 no camera, so the trainer puts one in: ``camera_center`` [3], ``camtoworlds`` [C, 4, 4] or
 ``viewmats`` [C, 4, 4] (see :func:`camera_center`; the first camera's rays are used, as in our
 pipeline for a step of several views).
@@ -67,9 +67,9 @@ from .patching import attribute_set_to
 from ..strategies.base import StrategyError
 from ..strategies.budget import PAPER_N_SEED, PAPER_N_SPLIT, PAPER_SPLIT_EVERY
 from ..strategies.ops import Optimizers, Params, num_gaussians
-from ..strategies.perturbation import NoiseMixin, position_noise
+from ..strategies.perturbation import PositionNoise, position_noise
 from ..strategies.relocation import N_MAX, binomial_table
-from ..strategies.seeding import SeedingMixin, seed_rows
+from ..strategies.seeding import RandomSeeding, seed_rows
 from ..strategies.splitting import draw_rows, split_weights
 
 __all__ = [
@@ -270,7 +270,7 @@ def perturb_along_ray(strategy: Any, ctx: ExploreStep) -> int:
     """Our ray perturbation on gsplat's parameters: ``position_noise`` in 'ray' mode,
     eta = noise_lr lr sigmoid(-k (o - t)) Sigma z, projected onto the unit ray d from the camera
     centre to each Gaussian, (eta . d) d, added to the means in place (as
-    ``NoiseMixin.perturb_positions`` does in our pipeline: the same draw from the generator and
+    ``PositionNoise.perturb`` does in our pipeline: the same draw from the generator and
     the same guard). Returns how many Gaussians it moved.
 
     ``strategy`` carries ``noise_lr``, ``noise_gate_k`` and ``noise_gate_t``. The camera comes
@@ -432,10 +432,10 @@ class SeedStrategy(ExplorationStrategy):
 
     n_seed: int = PAPER_N_SEED
     """Seeds added on every step where gsplat refines (0 disables)."""
-    seed_prune_scale3d: float = SeedingMixin.seed_prune_scale3d
+    seed_prune_scale3d: float = RandomSeeding.prune_scale3d
     """While seeding is active, gsplat's world-size prune uses this (x scene scale) instead of
     prune_scale3d, so far seeds survive."""
-    seed_min_scale: float = SeedingMixin.seed_min_scale
+    seed_min_scale: float = RandomSeeding.min_scale
     """Smallest seed scale, as a fraction of the scene scale (guards a seed on the centre)."""
     seed_center: tuple[float, float, float] = (0.0, 0.0, 0.0)
     """Scene centre of the seed rule (scale and opacity grow with the distance from it); both
@@ -499,11 +499,11 @@ class RayStrategy(ExplorationStrategy):
     the training camera, so only depth is explored. The trainer puts the camera into ``info``
     (:data:`CAMERA_KEYS`)."""
 
-    noise_lr: float = NoiseMixin.noise_lr
+    noise_lr: float = PositionNoise.lr
     """Noise scale relative to the means learning rate (3DGS-MCMC: 5e5)."""
-    noise_gate_k: float = NoiseMixin.noise_gate_k
+    noise_gate_k: float = PositionNoise.gate_k
     """Steepness k of the opacity gate sigmoid(-k (o - t))."""
-    noise_gate_t: float = NoiseMixin.noise_gate_t
+    noise_gate_t: float = PositionNoise.gate_t
     """Opacity t at which the gate is one half."""
 
     def __post_init__(self) -> None:
@@ -541,9 +541,9 @@ class MCMCRayStrategy(MCMCStrategy):
     strategy's generator), so the strategy also runs on a CPU.
     """
 
-    noise_gate_k: float = NoiseMixin.noise_gate_k
+    noise_gate_k: float = PositionNoise.gate_k
     """Steepness k of the opacity gate sigmoid(-k (o - t)) (gsplat's MCMC: 100)."""
-    noise_gate_t: float = NoiseMixin.noise_gate_t
+    noise_gate_t: float = PositionNoise.gate_t
     """Opacity t at which the gate is one half (gsplat's MCMC: 0.005)."""
     seed: int = 0
     """Seed of the strategy's own torch.Generator: the noise everywhere, relocation and growth

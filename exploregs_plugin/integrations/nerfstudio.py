@@ -36,7 +36,7 @@ except ImportError as exc:  # one line, whatever part of nerfstudio failed to im
     ) from None
 
 from ..strategies.budget import PAPER_N_SEED, PAPER_N_SPLIT, PAPER_SPLIT_EVERY
-from ..strategies.seeding import SeedingMixin
+from ..strategies.seeding import RandomSeeding
 from .gsplat import SeedSplitStrategy
 
 __all__ = ["METHOD_NAME", "ExploreSplatfactoModel", "ExploreSplatfactoModelConfig", "exploregs_splatfacto_config"]
@@ -56,7 +56,7 @@ class ExploreSplatfactoModelConfig(SplatfactoModelConfig):
     """Gaussians split per splitting step, drawn in proportion to their mean scale (0 disables)."""
     split_every: int = PAPER_SPLIT_EVERY
     """Random Splitting interval in steps, inside splatfacto's refine window."""
-    seed_prune_scale3d: float = SeedingMixin.seed_prune_scale3d
+    seed_prune_scale3d: float = RandomSeeding.prune_scale3d
     """While seeding, the world-size prune threshold (x scene scale) instead of cull_scale_thresh."""
     exploration_seed: int = 0
     """Seed of the exploration's own torch.Generator."""

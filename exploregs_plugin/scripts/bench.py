@@ -3,7 +3,7 @@
     eg-bench quick --out bench-quick                       # a few minutes
     eg-bench standard --out bench-standard --dry-run       # the plan and its estimated cost
     eg-bench --methods default seed seed50=seed --scenes builtin:farside /data/garden \\
-        --seeds 0 1 --steps 2000 --override 'seed50:--strategy.n-seed 50' \\
+        --seeds 0 1 --steps 2000 --override 'seed50:--strategy.seeding.n-seed 50' \\
         --scene-option 'garden:--data-factor 4' --out bench-mine
     eg-bench --spec bench.yml --out bench-mine             # the same as a YAML/JSON file
     eg-bench quick --out bench-quick --report-only         # tables from the runs already there
@@ -62,7 +62,7 @@ class BenchCommand:
     baseline: Annotated[Optional[str], unset(f"{FROM_PRESET}, else default")] = None
     """Entry that the paired differences are taken against."""
     override: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
-    """Per-entry eg-train arguments, 'ENTRY:ARGS', e.g. 'seed:--strategy.n-seed 50'."""
+    """Per-entry eg-train arguments, 'ENTRY:ARGS', e.g. 'seed:--strategy.seeding.n-seed 50'."""
     scene_option: Annotated[tuple[str, ...], tyro.conf.UseAppendAction] = ()
     """Per-scene eg-train arguments, 'SCENE:ARGS', e.g. 'beer:--data-factor 8'."""
     data_factor: Annotated[Optional[int], unset("none added")] = None

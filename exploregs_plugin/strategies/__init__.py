@@ -4,34 +4,37 @@ from . import ops
 from .base import StepContext, Strategy, StrategyError
 from .budget import BUDGET_PRESETS, ExplorationBudget, resolve_budget, scaled_budget
 from .default import DefaultStrategy
+from .exploration import ExplorationStrategy
 from .mcmc import MCMCStrategy
-from .perturbation import NoiseMixin, RayPerturbationMixin, position_noise
+from .operator import Operator
+from .perturbation import PositionNoise, position_noise
 from .ray import RayPerturbationStrategy
 from .registry import ENTRY_POINT_GROUP, StrategyPluginError, available_strategies, builtin_strategies
-from .guided import GuidedSeedingMixin, GuidedSeedingStrategy
-from .occlusion import GuidedOcclusionStrategy, OcclusionSplittingMixin, OcclusionSplittingStrategy
-from .seeding import SeedingMixin, SeedingStrategy
+from .guided import GuidedSeeding, GuidedSeedingStrategy
+from .occlusion import GuidedOcclusionStrategy, OcclusionSplitting, OcclusionSplittingStrategy
+from .seeding import RandomSeeding, SeedingStrategy
 from .seedsplit import SeedSplitStrategy
-from .splitting import SplittingMixin, SplittingStrategy
+from .splitting import RandomSplitting, SplittingStrategy
 
 __all__ = [
     "BUDGET_PRESETS",
     "ENTRY_POINT_GROUP",
     "DefaultStrategy",
     "ExplorationBudget",
+    "ExplorationStrategy",
     "GuidedOcclusionStrategy",
-    "GuidedSeedingMixin",
+    "GuidedSeeding",
     "GuidedSeedingStrategy",
     "MCMCStrategy",
-    "NoiseMixin",
-    "OcclusionSplittingMixin",
+    "OcclusionSplitting",
     "OcclusionSplittingStrategy",
-    "RayPerturbationMixin",
+    "Operator",
+    "PositionNoise",
+    "RandomSeeding",
+    "RandomSplitting",
     "RayPerturbationStrategy",
     "SeedSplitStrategy",
-    "SeedingMixin",
     "SeedingStrategy",
-    "SplittingMixin",
     "SplittingStrategy",
     "StepContext",
     "Strategy",

@@ -35,6 +35,7 @@ from ..schedule import Schedule
 from .errors import StrategyError
 from .observation import ViewObservation, require_views
 from .ops import Optimizers, Params, num_gaussians
+from .requirements import merged_requires
 
 REQUIRED_KEYS = ("means", "scales", "quats", "opacities")
 """Parameter keys every built-in strategy reads."""
@@ -60,12 +61,6 @@ class StepContext:
         return require_generator(self.generator, who)
 
 
-VIEW_ERRORS = "view_errors"
-VISIBILITY_STATS = "visibility_stats"
-REQUIREMENTS = frozenset({VIEW_ERRORS, VISIBILITY_STATS})
-"""Everything a strategy can declare in ``Strategy.requires``."""
-
-
 @dataclass
 class Strategy:
     """Base class: shared fields (Gaussian cap, schedule) and the contract's default hooks."""
@@ -82,21 +77,20 @@ class Strategy:
     """Opacity reset interval in steps. None: the run's schedule."""
 
     requires: ClassVar[frozenset[str]] = frozenset()
-    """What the strategy needs beyond the 2D-mean gradient and radii, which every observation
-    carries; the pipeline asks the renderer for exactly this: ``VIEW_ERRORS`` (each view's
-    ``ViewObservation.error``: its index, camera, target and error map) and ``VISIBILITY_STATS``
-    (``ViewObservation.visibility`` [N, 2]: each Gaussian's summed compositing weight alpha T and
-    alpha over the view's pixels)."""
+    """What the strategy class needs beyond the 2D-mean gradient and radii, which every
+    observation carries: ``VIEW_ERRORS`` (each view's ``ViewObservation.error``: its index,
+    camera, target and error map) and ``VISIBILITY_STATS`` (``ViewObservation.visibility``
+    [N, 2]: each Gaussian's summed compositing weight alpha T and alpha over the view's pixels).
+    The pipeline asks the renderer for :meth:`requirements`."""
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
-        # A composed strategy requires what each of its parts does (a class that declares
-        # ``requires`` adds to its bases' instead of hiding them in the MRO).
         super().__init_subclass__(**kwargs)
-        cls.requires = frozenset().union(cls.__dict__.get("requires", frozenset()),
-                                         *(getattr(base, "requires", frozenset()) for base in cls.__mro__[1:]))
-        unknown = cls.requires - REQUIREMENTS
-        if unknown:
-            raise StrategyError(f"{cls.__name__}.requires names {sorted(unknown)}; known: {sorted(REQUIREMENTS)}")
+        cls.requires = merged_requires(cls, cls.__dict__.get("requires", frozenset()))
+
+    def requirements(self) -> frozenset[str]:
+        """What this strategy needs from the renderer: its class's ``requires`` (a composed
+        strategy adds its operators')."""
+        return type(self).requires
 
     SCHEDULE_FIELDS: ClassVar[tuple[str, ...]] = (
         "refine_start_iter",
@@ -137,7 +131,8 @@ class Strategy:
         return self.SCHEDULE_FIELDS
 
     def require_schedule(self) -> None:
-        missing = [name for name in self.deferred_fields() if getattr(self, name) is None]
+        # a dotted name ("seeding.n_seed") is a field of a nested operator config
+        missing = [name for name in self.deferred_fields() if _field_at(self, name) is None]
         if missing:
             raise StrategyError(
                 f"{type(self).__name__} has unset schedule fields {missing}: call "
@@ -221,6 +216,12 @@ class Strategy:
         """Current totals of what the strategy explored (not events), logged at each evaluation
         and written to metrics.json, e.g. Seeding's ``seeds_alive``. Default: none."""
         return {}
+
+
+def _field_at(config: Any, dotted: str) -> Any:
+    for part in dotted.split("."):
+        config = getattr(config, part)
+    return config
 
 
 def require_generator(generator: torch.Generator | None, who: str) -> torch.Generator:

@@ -14,11 +14,8 @@ spread evenly over the run's densification window (see :func:`scaled_budget`).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
-from typing import Any, Literal
-
-from .base import Strategy
+from typing import Literal
 
 PAPER_N_SEED = 20
 """Seeds per seeding step in the paper."""
@@ -115,39 +112,3 @@ def resolve_budget(name: str, refine_start: int, refine_stop: int, refine_every:
     if final is None:
         return paper_budget(refine_every, views_per_step)
     return scaled_budget(final, refine_start, refine_stop, refine_every)
-
-
-@dataclass
-class BudgetMixin(Strategy):
-    """The ``budget`` field shared by the exploration operators (declared once, composed)."""
-
-    budget: BudgetName = "paper"
-    """Exploration budget preset for fields left at None: 'paper' (20 seeds per densification
-    step, 20 random splits per step) or a CPU preset keeping the paper's explored-to-final ratios
-    for an expected final count: 'cpu-tiny' (2k), 'cpu-small' (20k), 'cpu-medium' (60k)."""
-
-    def __post_init__(self) -> None:
-        if self.budget not in BUDGET_PRESETS:
-            raise ValueError(f"unknown exploration budget '{self.budget}'; known presets: {sorted(BUDGET_PRESETS)}")
-        super().__post_init__()
-
-    def schedule_defaults(self, schedule: Any) -> dict[str, int]:
-        """The schedule's values plus the budget's counts and intervals for the exploration
-        fields this strategy has (``n_seed``/``seed_every`` of Seeding, ``n_split``/``split_every``
-        of Splitting), resolved once for every operator composed here."""
-        defaults = super().schedule_defaults(schedule)
-        budget = dataclasses.asdict(self.resolved_budget(defaults, schedule.views_per_step))
-        own = {f.name for f in dataclasses.fields(self)}
-        return {**defaults, **{name: value for name, value in budget.items() if name in own}}
-
-    def resolved_budget(self, defaults: dict[str, int], views_per_step: int = 1) -> ExplorationBudget:
-        """The budget for this strategy's densification window (own values, else ``defaults``)."""
-
-        def value(name: str) -> int:
-            own = getattr(self, name)
-            return defaults[name] if own is None else own
-
-        return resolve_budget(
-            self.budget, value("refine_start_iter"), value("refine_stop_iter"), value("refine_every"),
-            views_per_step,
-        )

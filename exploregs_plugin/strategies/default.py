@@ -8,9 +8,11 @@ clone Gaussians whose statistic exceeds ``grow_grad2d`` and whose largest scale 
 first opacity reset, world size > ``prune_scale3d`` x extent), then clear the statistics. Every
 ``reset_every`` steps the opacities are clamped to ``reset_opacity``.
 
-Subclasses add exploration through three hooks: :meth:`DefaultStrategy.explore` (called on every
-step after densification and before the opacity reset), :meth:`DefaultStrategy.size_prune_factor`
-and :meth:`DefaultStrategy.extra_prune` (more rows to remove at a refinement step).
+Exploration enters through four hooks: :meth:`DefaultStrategy.observe` (each view, inside the
+window), :meth:`DefaultStrategy.explore` (every step, after densification and before the opacity
+reset), :meth:`DefaultStrategy.size_prune_factor` and :meth:`DefaultStrategy.extra_prune` (more
+rows to remove at a refinement step). :class:`~exploregs_plugin.strategies.exploration.ExplorationStrategy`
+implements them by running its operators in order; a subclass may also override them directly.
 """
 
 from __future__ import annotations
@@ -146,8 +148,8 @@ class DefaultStrategy(Strategy):
     def extra_prune(self, params: Params, state: dict[str, Any], step: int) -> tuple[Tensor | None, dict[str, int]]:
         """More rows to prune at a refinement step, beside the opacity and size criteria.
 
-        Returns (mask [N] bool or None for none, counts to report). Default: none. Mixins
-        extend it, calling super() first and OR-ing their mask in.
+        Returns (mask [N] bool or None for none, counts to report). Default: none. Overrides
+        call super() first and OR their mask in.
         """
         return None, {}
 
@@ -160,7 +162,7 @@ class DefaultStrategy(Strategy):
 
     def explore(self, ctx: StepContext) -> dict[str, int]:
         """Exploration operators run here on every step, after densification and before the
-        opacity reset (Default: none). Mixins extend it, calling super() first."""
+        opacity reset (Default: none). Overrides call super() first."""
         return {}
 
     # ------------------------------------------------------------------ contract

@@ -14,20 +14,24 @@ are Seeding's: seeds at the wrong depth fade and are pruned.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
-from typing import Any, Literal
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 import torch.nn.functional as F
 from torch import Tensor
 
 from ..rasterizer.sh import rgb_to_sh0
-from .observation import ViewObservation
-from .base import VIEW_ERRORS, StrategyError
-from .default import DefaultStrategy
+from .errors import StrategyError
+from .exploration import ExplorationStrategy
 from .geometry import random_unit_quats
+from .observation import ViewObservation
 from .ops import Params
-from .seeding import SeedingMixin, seed_box
+from .requirements import VIEW_ERRORS
+from .seeding import RandomSeeding, seed_box
+
+if TYPE_CHECKING:
+    from .default import DefaultStrategy
 
 DepthSampling = Literal["log", "inverse"]
 
@@ -143,9 +147,9 @@ def guided_seed_rows(
 
 
 @dataclass
-class GuidedSeedingMixin(SeedingMixin):
-    """Guided seeding operator: Random Seeding's schedule, flags and probation, with seeds placed
-    on the rays of the pixels whose recent error is highest. Compose it in front of Default."""
+class GuidedSeeding(RandomSeeding):
+    """Guided seeding: Random Seeding's schedule, flags and probation, with seeds placed on the
+    rays of the pixels whose recent error is highest."""
 
     guide_cell: int = 4
     """Side in pixels of the cells of the stored error maps (memory: four values per cell and view);
@@ -176,12 +180,13 @@ class GuidedSeedingMixin(SeedingMixin):
         if self.guide_depth not in ("log", "inverse") or self.guide_scale <= 0:
             raise StrategyError("guide_depth must be 'log' or 'inverse' and guide_scale > 0")
 
-    def observe(self, params: Params, state: dict[str, Any], view: ViewObservation) -> dict[str, int]:
-        counts = super().observe(params, state, view)
+    def observe(self, owner: DefaultStrategy, params: Params, state: dict[str, Any],
+                view: ViewObservation) -> dict[str, int]:
+        counts = super().observe(owner, params, state, view)
         seen = view.error
         if seen is None:
             raise StrategyError(f"{type(self).__name__} needs the view's error map: the pipeline gives it to "
-                                f"strategies that require VIEW_ERRORS")
+                                f"strategies whose requirements() include VIEW_ERRORS")
         width, height = seen.target.shape[1], seen.target.shape[0]
         cell = view_cell(self.guide_cell, width, height)
         error, colour = coarse_view(seen.error.detach(), seen.target.detach(), cell)
@@ -205,5 +210,8 @@ class GuidedSeedingMixin(SeedingMixin):
 
 
 @dataclass
-class GuidedSeedingStrategy(GuidedSeedingMixin, DefaultStrategy):
+class GuidedSeedingStrategy(ExplorationStrategy):
     """Guided seeding on top of 3DGS adaptive density control."""
+
+    seeding: GuidedSeeding = field(default_factory=GuidedSeeding)
+    """Seeds on the rays of the pixels with the highest recent error (far side)."""

@@ -12,7 +12,7 @@ for the trainer to add to its loss.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -22,7 +22,7 @@ from ..schedule import Schedule
 from . import ops
 from .base import StepContext, Strategy, StrategyError
 from .ops import Optimizers, Params, num_gaussians
-from .perturbation import NoiseMixin, NoiseMode
+from .perturbation import PositionNoise
 from .relocation import N_MAX, binomial_table
 
 MCMC_STOP_FRACTION = 25_000 / 30_000
@@ -30,7 +30,7 @@ MCMC_STOP_FRACTION = 25_000 / 30_000
 
 
 @dataclass
-class MCMCStrategy(NoiseMixin, Strategy):
+class MCMCStrategy(Strategy):
     """3DGS-MCMC: relocation of dead Gaussians, 5% growth to cap_max, noise after every step."""
 
     cap_max: int | None = 30_000
@@ -43,8 +43,9 @@ class MCMCStrategy(NoiseMixin, Strategy):
     """Weight of the L1 opacity regulariser (mean activated opacity)."""
     scale_reg: float = 0.01
     """Weight of the L1 scale regulariser (mean activated scale)."""
-    noise_mode: NoiseMode = "isotropic"
-    """Position noise: 'isotropic' (3DGS-MCMC) or 'ray' (projected onto the camera ray)."""
+    noise: PositionNoise = field(default_factory=PositionNoise)
+    """The position noise after every step: isotropic (3DGS-MCMC), or along the camera ray
+    (``--strategy.noise.mode ray``)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -56,8 +57,6 @@ class MCMCStrategy(NoiseMixin, Strategy):
             raise StrategyError(f"min_opacity must be in (0, 1), got {self.min_opacity}")
         if self.opacity_reg < 0 or self.scale_reg < 0:
             raise StrategyError("opacity_reg and scale_reg must be >= 0")
-        if self.noise_mode not in ("isotropic", "ray"):
-            raise StrategyError(f"noise_mode must be 'isotropic' or 'ray', got '{self.noise_mode}'")
 
     def schedule_defaults(self, schedule: Schedule) -> dict[str, int]:
         defaults = super().schedule_defaults(schedule)
@@ -87,7 +86,7 @@ class MCMCStrategy(NoiseMixin, Strategy):
             gen = ctx.rng("MCMC relocation")
             counts["relocated"] = self.relocate_dead(params, optimizers, state, gen)
             counts["added"] = self.grow(params, optimizers, state, gen)
-        counts["perturbed"] = self.perturb_positions(ctx, self.noise_mode)
+        counts["perturbed"] = self.noise.perturb(ctx, type(self).__name__)
         return counts
 
     def relocate_dead(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator) -> int:

@@ -16,18 +16,23 @@ large, occluded Gaussians whose pixels still carry error, instead of by scale al
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
+from .default import ndc_gradient_norms
+from .errors import StrategyError
+from .exploration import ExplorationStrategy
+from .guided import GuidedSeeding
 from .observation import ViewObservation
-from .base import VISIBILITY_STATS, StrategyError
-from .default import DefaultStrategy, ndc_gradient_norms
-from .guided import GuidedSeedingMixin
 from .ops import Params, num_gaussians
-from .splitting import SplittingMixin, split_weights
+from .requirements import VISIBILITY_STATS
+from .splitting import RandomSplitting, split_weights
+
+if TYPE_CHECKING:
+    from .default import DefaultStrategy
 
 VIS_WEIGHT, VIS_ALPHA, OCC_ERROR = "vis_weight", "vis_alpha", "occ_error"
 """Per-Gaussian statistics: summed weight alpha T, summed alpha, and the compensated-gradient average."""
@@ -46,7 +51,7 @@ def occlusion_weights(log_scales: Tensor, vis_weight: Tensor, vis_alpha: Tensor,
 
 
 @dataclass
-class OcclusionSplittingMixin(SplittingMixin):
+class OcclusionSplitting(RandomSplitting):
     """Random Splitting with candidates drawn by occlusion and compensated error (it requires the
     renderer's visibility statistics, which the pipeline then asks for)."""
 
@@ -62,14 +67,15 @@ class OcclusionSplittingMixin(SplittingMixin):
         if not 0.0 < self.occlusion_t_floor <= 1.0 or not 0.0 <= self.occlusion_decay < 1.0:
             raise StrategyError("occlusion_t_floor must be in (0, 1] and occlusion_decay in [0, 1)")
 
-    def observe(self, params: Params, state: dict[str, Any], view: ViewObservation) -> dict[str, int]:
-        counts = super().observe(params, state, view)
+    def observe(self, owner: DefaultStrategy, params: Params, state: dict[str, Any],
+                view: ViewObservation) -> dict[str, int]:
+        counts = super().observe(owner, params, state, view)
         n = num_gaussians(params)
         if n == 0:
             return counts
         if view.visibility is None:
-            raise StrategyError(f"{type(self).__name__} needs the view's visibility statistics: declare "
-                                f"VISIBILITY_STATS in its requires")
+            raise StrategyError(f"{type(self).__name__} needs the view's visibility statistics: the pipeline "
+                                f"gives them to strategies whose requirements() include VISIBILITY_STATS")
         stats = state["stats"]
         vis = view.visibility.detach().to(params["means"].dtype)  # [N, 2]
         for key in (VIS_WEIGHT, VIS_ALPHA, OCC_ERROR):
@@ -86,18 +92,26 @@ class OcclusionSplittingMixin(SplittingMixin):
         error[seen] = self.occlusion_decay * error[seen] + (1.0 - self.occlusion_decay) * (norm / t_view)[seen]
         return counts
 
-    def split_candidate_weights(self, params: Params, state: dict[str, Any]) -> Tensor:
+    def candidate_weights(self, params: Params, state: dict[str, Any]) -> Tensor:
         stats = state["stats"]
         if OCC_ERROR not in stats:  # nothing observed yet: the paper's rule
-            return super().split_candidate_weights(params, state)
+            return super().candidate_weights(params, state)
         return occlusion_weights(params["scales"], stats[VIS_WEIGHT], stats[VIS_ALPHA], stats[OCC_ERROR])
 
 
 @dataclass
-class OcclusionSplittingStrategy(OcclusionSplittingMixin, DefaultStrategy):
+class OcclusionSplittingStrategy(ExplorationStrategy):
     """Occlusion-aware splitting on top of 3DGS adaptive density control."""
+
+    splitting: OcclusionSplitting = field(default_factory=OcclusionSplitting)
+    """Random Splitting with candidates drawn by occlusion and compensated error (near side)."""
 
 
 @dataclass
-class GuidedOcclusionStrategy(GuidedSeedingMixin, OcclusionSplittingMixin, DefaultStrategy):
+class GuidedOcclusionStrategy(ExplorationStrategy):
     """Guided seeding (far side) + occlusion-aware splitting (near side) on top of 3DGS ADC."""
+
+    splitting: OcclusionSplitting = field(default_factory=OcclusionSplitting)
+    """Occlusion-aware splitting (near side), run first."""
+    seeding: GuidedSeeding = field(default_factory=GuidedSeeding)
+    """Guided seeding (far side), run after the splits."""

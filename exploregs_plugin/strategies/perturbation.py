@@ -12,15 +12,19 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Literal
 
 import torch
 from torch import Tensor
 
-from .base import StepContext, Strategy, StrategyError
-from .default import DefaultStrategy
 from ..rasterizer.projection import covariances_3d
+from .errors import StrategyError
+from .operator import Operator
 from .ops import num_gaussians
+
+if TYPE_CHECKING:
+    from .base import StepContext
+    from .default import DefaultStrategy
 
 NoiseMode = Literal["isotropic", "ray"]
 
@@ -65,24 +69,37 @@ def position_noise(
 
 
 @dataclass
-class NoiseMixin(Strategy):
-    """Fields and the update shared by every strategy that perturbs positions."""
+class PositionNoise(Operator):
+    """3DGS-MCMC's position noise after every optimizer step, isotropic or along the ray. An
+    operator of the ray strategy, and the noise of MCMC (which calls :meth:`perturb` itself)."""
 
-    noise_lr: float = 5e5
+    COUNTS = ("perturbed",)
+
+    mode: NoiseMode = "isotropic"
+    """'isotropic' (3DGS-MCMC) or 'ray': projected onto the ray from the step's first training
+    camera to the Gaussian, so only depth is explored."""
+    lr: float = 5e5
     """Noise scale relative to the means learning rate (3DGS-MCMC: 5e5)."""
-    noise_gate_k: float = 100.0
+    gate_k: float = 100.0
     """Steepness k of the opacity gate sigmoid(-k (o - t))."""
-    noise_gate_t: float = 0.005
+    gate_t: float = 0.005
     """Opacity t at which the gate is one half."""
 
-    def perturb_positions(self, ctx: StepContext, mode: str) -> int:
+    def __post_init__(self) -> None:
+        if self.mode not in ("isotropic", "ray"):
+            raise StrategyError(f"noise mode must be 'isotropic' or 'ray', got '{self.mode}'")
+
+    def explore(self, owner: DefaultStrategy, ctx: StepContext) -> dict[str, int]:
+        return {"perturbed": self.perturb(ctx, type(owner).__name__)}
+
+    def perturb(self, ctx: StepContext, who: str) -> int:
         """Add the noise to ``params['means']`` in place; returns how many Gaussians moved."""
         params, lr = ctx.params, ctx.lr
         if num_gaussians(params) == 0:
             return 0
         if not (math.isfinite(lr) and lr > 0.0):
             raise StrategyError(
-                f"{type(self).__name__} scales its noise by the means learning rate: pass "
+                f"{who} scales its noise by the means learning rate: pass "
                 f"lr=<current means lr> (> 0) to step_post_backward, got {lr}"
             )
         eta = position_noise(
@@ -90,26 +107,16 @@ class NoiseMixin(Strategy):
             params["quats"],
             params["scales"],
             params["opacities"],
-            self.noise_lr * lr,
+            self.lr * lr,
             ctx.rng("position noise"),
-            mode=mode,
+            mode=self.mode,
             # a step of several views perturbs along the rays of its first view
             camera_center=ctx.views[0].camera_center,
-            gate_k=self.noise_gate_k,
-            gate_t=self.noise_gate_t,
+            gate_k=self.gate_k,
+            gate_t=self.gate_t,
         )
         # A non-finite row (degenerate parameters) must not spread NaN into the means.
         eta = torch.where(torch.isfinite(eta), eta, torch.zeros_like(eta))
         with torch.no_grad():
             params["means"].add_(eta.to(params["means"].dtype))
         return num_gaussians(params)
-
-
-@dataclass
-class RayPerturbationMixin(NoiseMixin, DefaultStrategy):
-    """Ray-constrained perturbation after every optimizer step; compose it in front of Default."""
-
-    def explore(self, ctx: StepContext) -> dict[str, int]:
-        counts = super().explore(ctx)
-        counts["perturbed"] = self.perturb_positions(ctx, "ray")
-        return counts

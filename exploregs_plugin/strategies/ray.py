@@ -2,12 +2,15 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from .default import DefaultStrategy
-from .perturbation import RayPerturbationMixin
+from .exploration import ExplorationStrategy
+from .perturbation import PositionNoise
 
 
 @dataclass
-class RayPerturbationStrategy(RayPerturbationMixin, DefaultStrategy):
+class RayPerturbationStrategy(ExplorationStrategy):
     """3DGS adaptive density control plus MCMC-style noise projected onto the camera ray."""
+
+    noise: PositionNoise = field(default_factory=lambda: PositionNoise(mode="ray"))
+    """The position noise, along the ray by default."""

@@ -16,26 +16,32 @@ Seed probation: a seed that lands in empty space fades (its colour cannot match 
 behind it in every view), but joint optimisation lets the Gaussians behind it compensate, so it
 settles at opacity 0.005-0.05 instead of crossing the normal prune threshold (0.005). At every
 refinement step, outside a grace period after an opacity reset, seeds and their descendants
-below ``seed_prune_opa`` are therefore pruned as well: a seed that has not grown opaque has
+below ``prune_opa`` are therefore pruned as well: a seed that has not grown opaque has
 found nothing to explain.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any, Literal
+import dataclasses
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any, Literal
 
 import torch
 from torch import Tensor
 
-from . import ops
-from .observation import ViewObservation
-from .base import StepContext, StrategyError
-from .budget import BudgetMixin
-from .default import DefaultStrategy
 from ..rasterizer.sh import rgb_to_sh0
+from . import ops
+from .errors import StrategyError
+from .exploration import ExplorationStrategy
 from .geometry import random_unit_quats
+from .observation import ViewObservation
+from .operator import Operator
 from .ops import Optimizers, Params, num_gaussians
+
+if TYPE_CHECKING:
+    from .base import StepContext
+    from .budget import ExplorationBudget
+    from .default import DefaultStrategy
 
 _EPS = 1e-12
 
@@ -133,103 +139,97 @@ def seed_rows(
 
 
 @dataclass
-class SeedingMixin(BudgetMixin, DefaultStrategy):
-    """Random Seeding operator; compose it in front of :class:`DefaultStrategy`."""
+class RandomSeeding(Operator):
+    """Random Seeding: ``n_seed`` new Gaussians in the seed box every ``every`` steps while the
+    densification window is open, with the relaxed world-size prune and seed probation."""
+
+    COUNTS = ("seeded", "seeds_pruned")
 
     n_seed: int | None = None
-    """Seeds added per seeding step (0 disables). None: from `budget` (paper: 20)."""
-    seed_every: int | None = None
-    """Seeding interval in steps. None: from `budget` (paper: the densification interval)."""
-    seed_box_mode: Literal["aabb", "robust", "cameras"] = "aabb"
+    """Seeds added per seeding step (0 disables). None: from the strategy's budget (paper: 20)."""
+    every: int | None = None
+    """Seeding interval in steps. None: from the strategy's budget (paper: the densification interval)."""
+    box_mode: Literal["aabb", "robust", "cameras"] = "aabb"
     """Seed box: 'aabb' of all centres (the paper's text), 'robust' per-axis quantiles, or 'cameras':
     the cube of half-side the scene extent around the cameras' centre (the paper's released code)."""
-    seed_box_quantile: float = 0.01
+    box_quantile: float = 0.01
     """Quantile trimmed from each side of each axis in the 'robust' box."""
-    seed_opacity_base: float = 0.2
+    opacity_base: float = 0.2
     """Seed opacity = base + gain * r / max r (r: distance from the scene centre, over the batch)."""
-    seed_opacity_gain: float = 0.5
+    opacity_gain: float = 0.5
     """The gain of that formula: opacity added for the seed farthest from the centre."""
-    seed_prune_scale3d: float = 10.0
+    prune_scale3d: float = 10.0
     """While seeding is active, prune only Gaussians larger than this fraction of the extent."""
-    seed_min_scale: float = 1e-6
+    min_scale: float = 1e-6
     """Smallest seed scale, as a fraction of the scene extent (guards r = 0)."""
-    seed_prune_opa: float = 0.05
+    prune_opa: float = 0.05
     """Seed probation: at refinement steps, prune seeds (and descendants) whose opacity is below
-    this; faded seeds otherwise linger above prune_opa. 0 disables (normal pruning only)."""
-    seed_grace: int | None = None
+    this; faded seeds otherwise linger above Default's prune_opa. 0 disables (normal pruning only)."""
+    grace: int | None = None
     """Steps after an opacity reset before seeds are judged again, so useful ones can climb back
     from the reset value. None: half the reset interval."""
 
     def __post_init__(self) -> None:
-        super().__post_init__()
-        for name, low, note in (("n_seed", 0, " (0 disables seeding)"), ("seed_every", 1, "")):
+        where = type(self).__name__
+        for name, low, note in (("n_seed", 0, " (0 disables seeding)"), ("every", 1, "")):
             value = getattr(self, name)
             if value is not None and value < low:
-                raise StrategyError(f"{type(self).__name__}.{name} must be >= {low}{note}, got {value}")
-        if not 0.0 <= self.seed_box_quantile < 0.5:
-            raise StrategyError(f"seed_box_quantile must be in [0, 0.5), got {self.seed_box_quantile}")
-        if not 0.0 < self.seed_opacity_base + self.seed_opacity_gain < 1.0 or self.seed_opacity_base <= 0:
-            raise StrategyError("seed opacities base and base + gain must lie in (0, 1)")
-        if not 0.0 <= self.seed_prune_opa < 1.0:
-            raise StrategyError(f"seed_prune_opa must be in [0, 1), got {self.seed_prune_opa}")
-        if self.seed_grace is not None and self.seed_grace < 0:
-            raise StrategyError(f"seed_grace must be >= 0, got {self.seed_grace}")
+                raise StrategyError(f"{where}.{name} must be >= {low}{note}, got {value}")
+        if not 0.0 <= self.box_quantile < 0.5:
+            raise StrategyError(f"{where}.box_quantile must be in [0, 0.5), got {self.box_quantile}")
+        if not 0.0 < self.opacity_base + self.opacity_gain < 1.0 or self.opacity_base <= 0:
+            raise StrategyError(f"{where}: seed opacities base and base + gain must lie in (0, 1)")
+        if not 0.0 <= self.prune_opa < 1.0:
+            raise StrategyError(f"{where}.prune_opa must be in [0, 1), got {self.prune_opa}")
+        if self.grace is not None and self.grace < 0:
+            raise StrategyError(f"{where}.grace must be >= 0, got {self.grace}")
 
     def deferred_fields(self) -> tuple[str, ...]:
-        return super().deferred_fields() + ("n_seed", "seed_every")
+        return ("n_seed", "every")
 
-    def seeding_active(self, step: int) -> bool:
-        return bool(self.n_seed) and step < self.refine_stop_iter
+    def setup(self, budget: ExplorationBudget) -> RandomSeeding:
+        return dataclasses.replace(
+            self,
+            n_seed=budget.n_seed if self.n_seed is None else self.n_seed,
+            every=budget.seed_every if self.every is None else self.every,
+        )
 
-    def size_prune_factor(self, step: int) -> float:
-        if self.seeding_active(step):
-            return self.seed_prune_scale3d
-        return super().size_prune_factor(step)
+    def active(self, owner: DefaultStrategy, step: int) -> bool:
+        return bool(self.n_seed) and step < owner.refine_stop_iter
 
-    def seeds_judged_at(self, step: int) -> bool:
+    def size_prune_factor(self, owner: DefaultStrategy, step: int) -> float | None:
+        return self.prune_scale3d if self.active(owner, step) else None
+
+    def judged_at(self, owner: DefaultStrategy, step: int) -> bool:
         """Whether a refinement at ``step`` applies seed probation: no opacity reset yet, or the
         last one (at a multiple of reset_every before this step) at least the grace period ago."""
-        reset_every = self.reset_every
+        reset_every = owner.reset_every
         last_reset = (step - 1) // reset_every * reset_every  # this step's own reset comes after its prune
         if last_reset <= 0:
             return True
-        grace = self.seed_grace if self.seed_grace is not None else reset_every // 2
+        grace = self.grace if self.grace is not None else reset_every // 2
         return step - last_reset >= grace
 
-    def extra_prune(self, params: Params, state: dict[str, Any], step: int) -> tuple[Tensor | None, dict[str, int]]:
-        mask, counts = super().extra_prune(params, state, step)
-        counts = {**counts, "seeds_pruned": 0}
+    def extra_prune(self, owner: DefaultStrategy, params: Params, state: dict[str, Any],
+                    step: int) -> tuple[Tensor | None, dict[str, int]]:
         flag = state["stats"].get(SEED_FLAG)
-        if flag is None or self.seed_prune_opa <= 0.0 or not self.seeds_judged_at(step):
-            return mask, counts
-        faded = (flag > 0) & (torch.sigmoid(params["opacities"].detach().flatten()) < self.seed_prune_opa)
-        counts["seeds_pruned"] = int(faded.sum())
-        return (faded if mask is None else mask | faded), counts
+        if flag is None or self.prune_opa <= 0.0 or not self.judged_at(owner, step):
+            return None, {"seeds_pruned": 0}
+        faded = (flag > 0) & (torch.sigmoid(params["opacities"].detach().flatten()) < self.prune_opa)
+        return faded, {"seeds_pruned": int(faded.sum())}
 
-    def post_backward(self, ctx: StepContext) -> dict[str, int]:
-        counts = super().post_backward(ctx)
-        counts.setdefault("seeds_pruned", 0)  # same keys on every call, not only at refinements
-        return counts
-
-    def observe(self, params: Params, state: dict[str, Any], view: ViewObservation) -> dict[str, int]:
-        counts = super().observe(params, state, view)
+    def observe(self, owner: DefaultStrategy, params: Params, state: dict[str, Any],
+                view: ViewObservation) -> dict[str, int]:
         stats = state["stats"]
-        n = num_gaussians(params)
-        if SEED_SEEN in stats and n > 0:
+        if SEED_SEEN in stats and num_gaussians(params) > 0:
             stats[SEED_SEEN] += view.visible().to(stats[SEED_SEEN].dtype)
-        return counts
+        return {}
 
-    def explore(self, ctx: StepContext) -> dict[str, int]:
-        counts = super().explore(ctx)
+    def explore(self, owner: DefaultStrategy, ctx: StepContext) -> dict[str, int]:
         seeded = 0
-        if (
-            self.seeding_active(ctx.step)
-            and ctx.step > self.refine_start_iter
-            and ctx.step % self.seed_every == 0
-        ):
-            seeded = self.seed(ctx.params, ctx.optimizers, ctx.state, ctx.rng("seeding"))
-        counts["seeded"] = seeded
-        return counts
+        if self.active(owner, ctx.step) and ctx.step > owner.refine_start_iter and ctx.step % self.every == 0:
+            seeded = self.seed(owner, ctx.params, ctx.optimizers, ctx.state, ctx.rng("seeding"))
+        return {"seeded": seeded}
 
     def exploration_summary(self, state: dict[str, Any]) -> dict[str, int]:
         """Current totals (not events): ``seeds_alive``, seeds and their descendants still in
@@ -246,7 +246,7 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
         }
 
     def new_seed_rows(self, params: Params, state: dict[str, Any], n: int, generator: torch.Generator
-                  ) -> dict[str, Tensor] | None:
+                      ) -> dict[str, Tensor] | None:
         """Raw rows of ``n`` new seeds (None: nowhere to seed): uniform in the box of the centres.
         Other placements (guided seeding) override this; flags and probation stay the same."""
         return seed_rows(
@@ -256,18 +256,19 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
             generator,
             state["scene_center"],
             params["shN"].shape[1],
-            box=self.seed_box_mode,
-            box_quantile=self.seed_box_quantile,
+            box=self.box_mode,
+            box_quantile=self.box_quantile,
             extent=state["scene_scale"],
-            opacity_base=self.seed_opacity_base,
-            opacity_gain=self.seed_opacity_gain,
-            min_scale=self.seed_min_scale * state["scene_scale"],
+            opacity_base=self.opacity_base,
+            opacity_gain=self.opacity_gain,
+            min_scale=self.min_scale * state["scene_scale"],
         )
 
-    def seed(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator) -> int:
-        """Append up to n_seed seeds (fewer under cap_max; none when N = 0: no box)."""
+    def seed(self, owner: DefaultStrategy, params: Params, optimizers: Optimizers, state: dict[str, Any],
+             generator: torch.Generator) -> int:
+        """Append up to n_seed seeds (fewer under the owner's cap_max; none when N = 0: no box)."""
         n_before = num_gaussians(params)
-        n = min(self.n_seed, self.room(n_before))
+        n = min(self.n_seed, owner.room(n_before))
         if n <= 0 or n_before == 0:
             return 0
         rows = self.new_seed_rows(params, state, n, generator)
@@ -282,5 +283,8 @@ class SeedingMixin(BudgetMixin, DefaultStrategy):
 
 
 @dataclass
-class SeedingStrategy(SeedingMixin, DefaultStrategy):
+class SeedingStrategy(ExplorationStrategy):
     """Random Seeding on top of 3DGS adaptive density control."""
+
+    seeding: RandomSeeding = field(default_factory=RandomSeeding)
+    """Random Seeding (far side)."""

@@ -1,19 +1,24 @@
 """Seed+Split: Random Seeding and Random Splitting together, by composition.
 
-Neither operator is copied: the class only stacks the two mixins in front of Default. On a step
-where both fire, Random Splitting runs first, then seeds are added (fresh seeds are not split in
-the step that creates them).
+Neither operator is copied: the strategy holds both, in the order they run. On a step where both
+fire, Random Splitting runs first, then seeds are added (fresh seeds are not split in the step
+that creates them).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
-from .default import DefaultStrategy
-from .seeding import SeedingMixin
-from .splitting import SplittingMixin
+from .exploration import ExplorationStrategy
+from .seeding import RandomSeeding
+from .splitting import RandomSplitting
 
 
 @dataclass
-class SeedSplitStrategy(SeedingMixin, SplittingMixin, DefaultStrategy):
+class SeedSplitStrategy(ExplorationStrategy):
     """Random Seeding (far side) + Random Splitting (near side) on top of 3DGS ADC."""
+
+    splitting: RandomSplitting = field(default_factory=RandomSplitting)
+    """Random Splitting (near side), run first."""
+    seeding: RandomSeeding = field(default_factory=RandomSeeding)
+    """Random Seeding (far side), run after the splits."""

@@ -8,17 +8,23 @@ scales / 1.6, parent removed).
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Any
+import dataclasses
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING, Any
 
 import torch
 from torch import Tensor
 
 from . import ops
-from .base import StepContext, StrategyError
-from .budget import BudgetMixin
-from .default import DefaultStrategy
+from .errors import StrategyError
+from .exploration import ExplorationStrategy
+from .operator import Operator
 from .ops import Optimizers, Params, num_gaussians
+
+if TYPE_CHECKING:
+    from .base import StepContext
+    from .budget import ExplorationBudget
+    from .default import DefaultStrategy
 
 
 def split_weights(log_scales: Tensor) -> Tensor:
@@ -46,54 +52,61 @@ def draw_rows(weights: Tensor, n: int, generator: torch.Generator) -> Tensor:
 
 
 @dataclass
-class SplittingMixin(BudgetMixin, DefaultStrategy):
-    """Random Splitting operator; compose it in front of :class:`DefaultStrategy`."""
+class RandomSplitting(Operator):
+    """Random Splitting: ``n_split`` Gaussians drawn by size and split every ``every`` steps
+    inside the densification window."""
+
+    COUNTS = ("random_split",)
 
     n_split: int | None = None
-    """Gaussians split per splitting step (0 disables). None: from `budget` (paper: 20)."""
-    split_every: int | None = None
-    """Splitting interval in steps. None: from `budget` (paper: 1, 'per iteration')."""
+    """Gaussians split per splitting step (0 disables). None: from the strategy's budget (paper: 20)."""
+    every: int | None = None
+    """Splitting interval in steps. None: from the strategy's budget (paper: 1, 'per iteration')."""
 
     def __post_init__(self) -> None:
-        super().__post_init__()
         if self.n_split is not None and self.n_split < 0:
-            raise StrategyError(f"n_split must be >= 0, got {self.n_split}")
-        if self.split_every is not None and self.split_every < 1:
-            raise StrategyError(f"split_every must be >= 1, got {self.split_every}")
+            raise StrategyError(f"{type(self).__name__}.n_split must be >= 0, got {self.n_split}")
+        if self.every is not None and self.every < 1:
+            raise StrategyError(f"{type(self).__name__}.every must be >= 1, got {self.every}")
 
     def deferred_fields(self) -> tuple[str, ...]:
-        return super().deferred_fields() + ("n_split", "split_every")
+        return ("n_split", "every")
 
-    def explore(self, ctx: StepContext) -> dict[str, int]:
-        counts = super().explore(ctx)
-        counts["random_split"] = 0
-        if (
-            self.n_split
-            and self.refine_start_iter < ctx.step < self.refine_stop_iter
-            and ctx.step % self.split_every == 0
-        ):
-            counts["random_split"] = self.random_split(ctx.params, ctx.optimizers, ctx.state, ctx.rng("random splitting"))
-        return counts
+    def setup(self, budget: ExplorationBudget) -> RandomSplitting:
+        return dataclasses.replace(
+            self,
+            n_split=budget.n_split if self.n_split is None else self.n_split,
+            every=budget.split_every if self.every is None else self.every,
+        )
 
-    def split_candidate_weights(self, params: Params, state: dict[str, Any]) -> Tensor:
+    def explore(self, owner: DefaultStrategy, ctx: StepContext) -> dict[str, int]:
+        split = 0
+        if self.n_split and owner.refine_start_iter < ctx.step < owner.refine_stop_iter and ctx.step % self.every == 0:
+            split = self.random_split(owner, ctx.params, ctx.optimizers, ctx.state, ctx.rng("random splitting"))
+        return {"random_split": split}
+
+    def candidate_weights(self, params: Params, state: dict[str, Any]) -> Tensor:
         """Selection weight of each Gaussian [N]: its mean scale (the paper's rule). Other
         choices of candidates (occlusion-aware splitting) override this."""
         return split_weights(params["scales"])
 
-    def random_split(
-        self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator
-    ) -> int:
-        """Split up to n_split Gaussians drawn by size (fewer if N or cap_max leave less room)."""
+    def random_split(self, owner: DefaultStrategy, params: Params, optimizers: Optimizers,
+                     state: dict[str, Any], generator: torch.Generator) -> int:
+        """Split up to n_split Gaussians drawn by size (fewer if N or the owner's cap_max leave
+        less room), with the owner's split factor."""
         n = num_gaussians(params)
-        budget = min(self.n_split, n, self.room(n))
+        budget = min(self.n_split, n, owner.room(n))
         if budget <= 0:
             return 0
-        idx = draw_rows(self.split_candidate_weights(params, state), budget, generator)
+        idx = draw_rows(self.candidate_weights(params, state), budget, generator)
         mask = torch.zeros(n, dtype=torch.bool, device=params["means"].device)
         mask[idx] = True
-        return ops.split(params, optimizers, state["stats"], mask, generator, self.split_scale_factor)
+        return ops.split(params, optimizers, state["stats"], mask, generator, owner.split_scale_factor)
 
 
 @dataclass
-class SplittingStrategy(SplittingMixin, DefaultStrategy):
+class SplittingStrategy(ExplorationStrategy):
     """Random Splitting on top of 3DGS adaptive density control."""
+
+    splitting: RandomSplitting = field(default_factory=RandomSplitting)
+    """Random Splitting (near side)."""

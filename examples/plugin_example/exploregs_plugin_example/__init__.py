@@ -1,1 +1,1 @@
-"""Example ExploreGS plugin: an opacity-budget strategy and a method that uses it."""
+"""Example ExploreGS plugin: an opacity-limit operator, two strategies that compose it, and a method."""

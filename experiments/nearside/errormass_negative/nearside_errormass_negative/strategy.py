@@ -37,7 +37,8 @@ import torch
 from torch import Tensor
 
 from exploregs_plugin.strategies import ops
-from exploregs_plugin.strategies.base import VIEW_ERRORS, VISIBILITY_STATS, StrategyError, require_generator
+from exploregs_plugin.strategies.base import StrategyError, require_generator
+from exploregs_plugin.strategies.requirements import VIEW_ERRORS, VISIBILITY_STATS
 from exploregs_plugin.strategies.default import DefaultStrategy
 from exploregs_plugin.strategies.geometry import max_world_scale
 from exploregs_plugin.strategies.observation import ViewObservation
