@@ -17,7 +17,7 @@ from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.analysis.branch_ablation import render_detached
 from exploregs_plugin.model.gaussians import render_params
-from exploregs_plugin.rasterizer import rasterize
+from exploregs_plugin.rasterizer import rasterize_branched
 from exploregs_plugin.bench.raster_scenes import random_scene
 
 F64 = torch.float64
@@ -49,7 +49,7 @@ def _mse(image, target):
 
 def _loss_with_paths(params, camera, target, m2d, mcov, msh):
     sh = torch.cat([params["sh0"], params["shN"]], 1)
-    image, *_ = rasterize(m2d, params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), sh,
+    image, *_ = rasterize_branched(m2d, params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), sh,
                           camera, sh_degree=3,
                           means_cov=mcov, means_sh=msh)  # fmt: skip
     return _mse(image, target).item()

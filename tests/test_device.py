@@ -22,7 +22,7 @@ from exploregs_plugin.device import DeviceError, make_generator, resolve_device,
 from exploregs_plugin.evaluation import evaluate
 from exploregs_plugin.io.checkpoint import latest_checkpoint, load_checkpoint
 from exploregs_plugin.method_configs import get_method
-from exploregs_plugin.rasterizer import BackendError, RasterSettings, backend_problem, rasterize
+from exploregs_plugin.rasterizer import BackendError, RasterSettings, backend_problem, rasterize, rasterize_branched
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.trainer import Trainer, TrainerConfig
 
@@ -82,8 +82,8 @@ def test_gsplat_backend_problems_say_what_to_do():
         assert "sigma-radius" in backend_problem(odd, torch.device("cuda"))
     s = random_scene(20, 32, 24, torch.Generator().manual_seed(0))
     with pytest.raises(BackendError, match="--model.raster.backend torch"):
-        rasterize(s.means, s.quats, s.scales, s.opacities, s.sh_coeffs, Camera(s.viewmat, s.K, 32, 24),
-                  means_cov=s.means.clone(), settings=gsplat)
+        rasterize_branched(s.means, s.quats, s.scales, s.opacities, s.sh_coeffs, Camera(s.viewmat, s.K, 32, 24),
+                           means_cov=s.means.clone(), means_sh=s.means, settings=gsplat)
 
 
 def test_rasterizer_follows_the_device_of_its_inputs():

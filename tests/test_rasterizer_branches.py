@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from exploregs_plugin.rasterizer import rasterize, trace_pixel
+from exploregs_plugin.rasterizer import rasterize, rasterize_branched, trace_pixel
 from exploregs_plugin.rasterizer.reference import reference_rasterize
 from exploregs_plugin.bench.raster_scenes import random_scene
 
@@ -27,8 +27,8 @@ def _weights(s):
 def _branch_grads(s):
     """Gradients of a weighted image sum through the 2D-mean, covariance and SH paths."""
     m1, m2, m3 = (s.means.clone().requires_grad_() for _ in range(3))
-    img, *_ = rasterize(m1, s.quats, s.scales, s.opacities, s.sh_coeffs, s.camera,
-                        means_cov=m2, means_sh=m3)  # fmt: skip
+    img, *_ = rasterize_branched(m1, s.quats, s.scales, s.opacities, s.sh_coeffs, s.camera,
+                                 means_cov=m2, means_sh=m3)  # fmt: skip
     (img * _weights(s)).sum().backward()
     return m1.grad, m2.grad, m3.grad
 

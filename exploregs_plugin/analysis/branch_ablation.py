@@ -21,7 +21,7 @@ from torch import Tensor, nn
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.method_configs import MethodSpecification, builtin_methods
 from exploregs_plugin.model.gaussians import GaussianModel, GaussianModelConfig
-from exploregs_plugin.rasterizer import RasterSettings, rasterize
+from exploregs_plugin.rasterizer import RasterSettings, rasterize_branched
 
 PositionPath = Literal["mean2d", "cov", "sh"]
 POSITION_PATHS: tuple[PositionPath, ...] = ("mean2d", "cov", "sh")
@@ -50,7 +50,7 @@ def render_detached(
     means_cov = means.detach() if "cov" in detach_paths else means
     means_sh = means.detach() if "sh" in detach_paths else means
     sh = torch.cat([params["sh0"], params["shN"]], dim=1)
-    return rasterize(means_2d, params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), sh,
+    return rasterize_branched(means_2d, params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), sh,
                      camera, sh_degree=sh_degree, background=background, means_cov=means_cov, means_sh=means_sh,
                      settings=settings)
 

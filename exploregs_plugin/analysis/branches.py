@@ -17,7 +17,7 @@ from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.losses import photometric_loss
-from exploregs_plugin.rasterizer import RasterSettings, rasterize
+from exploregs_plugin.rasterizer import RasterSettings, rasterize_branched
 from exploregs_plugin.rasterizer.composite import single_threaded_ops
 
 BRANCHES = ("mean2d", "cov", "sh")
@@ -108,7 +108,7 @@ def render_branches(
     means, quats, scales, opacities, sh = activated(params)
     leaves = tuple(means.clone().requires_grad_(True) for _ in BRANCHES)
     with torch.enable_grad():
-        image, _, depth, info = rasterize(
+        image, _, depth, info = rasterize_branched(
             leaves[0], quats, scales, opacities, sh, camera,
             sh_degree=sh_degree, background=background, means_cov=leaves[1], means_sh=leaves[2],
             settings=settings,

@@ -14,9 +14,9 @@ and dC/dalpha.
 
 from .backends import backend_line, backend_problem, resolve_backend
 from .gsplat_backend import BackendError
-from .rasterize import rasterize
+from .rasterize import rasterize, rasterize_branched
 from .settings import RasterSettings
 from .trace import trace_pixel
 
-__all__ = ["rasterize", "trace_pixel", "RasterSettings", "BackendError", "backend_problem", "backend_line",
+__all__ = ["rasterize", "rasterize_branched", "trace_pixel", "RasterSettings", "BackendError", "backend_problem", "backend_line",
            "resolve_backend"]

@@ -110,8 +110,6 @@ def rasterize(
     sh_degree: int | None = None,
     colors: Tensor | None = None,
     background: Tensor | None = None,
-    means_cov: Tensor | None = None,
-    means_sh: Tensor | None = None,
     settings: RasterSettings | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
     """Renders Gaussians with the 3DGS image model.
@@ -120,12 +118,42 @@ def rasterize(
     opacities: [N] in [0, 1]; sh_coeffs: [N, K, 3] (K = 1, 4, 9, 16) or None with colors [N, 3];
     camera: its viewmat [4, 4] world-to-camera (OpenCV), K [3, 3], width, height and depth range
     (near, far); background: [3] (None = black).
-    means_cov / means_sh: [N, 3] tensors fed to the covariance (Jacobian) path and the SH
-    view-direction path instead of ``means`` (the expected depth follows the ``means`` path).
 
     Returns image [H, W, 3], alpha [H, W, 1], expected depth [H, W, 1] (sum w z / alpha; 0 where
     nothing is drawn) and info (see the package docstring).
     """
+    return _render(means, quats, scales, opacities, sh_coeffs, camera, sh_degree, colors, background,
+                   None, None, settings)
+
+
+def rasterize_branched(
+    means: Tensor,
+    quats: Tensor,
+    scales: Tensor,
+    opacities: Tensor,
+    sh_coeffs: Tensor | None,
+    camera: Camera,
+    *,
+    means_cov: Tensor,
+    means_sh: Tensor,
+    sh_degree: int | None = None,
+    colors: Tensor | None = None,
+    background: Tensor | None = None,
+    settings: RasterSettings | None = None,
+) -> tuple[Tensor, Tensor, Tensor, dict[str, Any]]:
+    """:func:`rasterize` with each of the means' three paths through its own tensor, the renderer
+    variant of the Blur-Trap branch analysis (``exploregs_plugin/analysis/branches.py``) and the
+    branch ablation: ``means`` feeds the projected 2D mean and depth (the expected depth follows
+    it), ``means_cov`` [N, 3] the covariance through the perspective Jacobian, ``means_sh`` [N, 3]
+    the SH view direction. The same tensor three times renders exactly what :func:`rasterize` does.
+    Torch and cpp backends only (gsplat has one means input)."""
+    return _render(means, quats, scales, opacities, sh_coeffs, camera, sh_degree, colors, background,
+                   means_cov, means_sh, settings)
+
+
+def _render(means, quats, scales, opacities, sh_coeffs, camera, sh_degree, colors, background,
+            means_cov, means_sh, settings):  # fmt: skip
+    """Checks the inputs, resolves the backend and renders (the body of both public variants)."""
     settings = settings or RasterSettings()
     if not isinstance(camera, Camera):
         raise TypeError(f"rasterize: argument 'camera' must be an exploregs_plugin.cameras.Camera, got "
@@ -139,8 +167,9 @@ def rasterize(
     backend = resolve_backend(settings, means.device)
     if backend == "gsplat":
         if (means_cov is not None and means_cov is not means) or (means_sh is not None and means_sh is not means):
-            raise BackendError("separate tensors for the covariance and SH paths of the means (the branch "
-                               "ablation, exploregs-branch-ablation --model.detach-paths) need --model.raster.backend torch or cpp")
+            raise BackendError("separate tensors for the covariance and SH paths of the means (rasterize_branched: "
+                               "the branch analysis and exploregs-branch-ablation --model.detach-paths) need "
+                               "--model.raster.backend torch or cpp")
         return rasterize_gsplat(means, quats, scales, opacities, sh_coeffs, colors, degree, viewmat, K, int(width),
                                 int(height), background, near_plane, far_plane, settings)
     problem = backend_problem(settings, means.device) if settings.backend == "cpp" else None
