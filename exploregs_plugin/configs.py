@@ -46,7 +46,15 @@ def config_to_dict(value: Any) -> Any:
     raise TypeError(f"cannot write config value of type {type(value).__name__}: {value!r}")
 
 
+MOVED_TYPES: dict[str, str] = {
+    "exploregs_plugin.data.depth_supervision:DepthSupervisionConfig":
+        "exploregs_plugin.analysis.depth_degradation:DepthSupervisionConfig",
+}
+"""Config classes that moved to another module since configs were saved: old path -> new path."""
+
+
 def _import_type(spec: str) -> Any:
+    spec = MOVED_TYPES.get(spec, spec)
     module_name, _, qualname = spec.partition(":")
     try:
         obj: Any = importlib.import_module(module_name)
@@ -67,10 +75,16 @@ REMOVED_FIELDS: dict[str, dict[str, tuple[Any, str]]] = {
         "detach_paths": ((), "the branch ablation's switch is a field of the method exploregs-branch-ablation "
                              "(eg-train exploregs-branch-ablation --model.detach-paths ...)"),
     },
+    "exploregs_plugin.pipeline:PipelineConfig": {
+        "depth_supervision": (lambda old: not old.active,
+                              "degraded depth maps are the method exploregs-mono-depth (eg-train "
+                              "exploregs-mono-depth --strategy NAME --depth-supervision.noise-std ...)"),
+    },
 }
 """Fields a config class no longer has, by the class that had them (its subclasses' saved configs
-included): (the value that meant "off", where the setting went). A saved config with that value
-loads (the field is dropped); any other value is refused with one line that says where it went."""
+included): (the value that meant "off", or a test of the saved value that says it was off; where
+the setting went). A saved config whose value was off loads (the field is dropped); any other
+value is refused with one line that says where it went."""
 
 
 def _without_removed(cls: type, names: set[str], spec: str, value: dict[str, Any]) -> dict[str, Any]:
@@ -80,7 +94,7 @@ def _without_removed(cls: type, names: set[str], spec: str, value: dict[str, Any
         for name, (off, moved) in REMOVED_FIELDS.get(f"{base.__module__}:{base.__qualname__}", {}).items():
             if name in value and name not in names:
                 old = config_from_dict(value[name])
-                if old != off:
+                if not (off(old) if callable(off) else old == off):
                     raise ValueError(f"config for {spec}: field {name!r} ({old!r}) is gone: {moved}")
                 value = {k: v for k, v in value.items() if k != name}
     return value
@@ -141,6 +155,8 @@ def upgraded(value: Any) -> Any:
     spec = value.get(_TYPE_KEY)
     if not isinstance(spec, str) or ":" not in spec:
         return value
+    if spec in MOVED_TYPES:
+        spec = value[_TYPE_KEY] = MOVED_TYPES[spec]
     try:
         cls = _import_type(spec)
     except ValueError:

@@ -14,7 +14,6 @@ from typing import Any, Protocol, Sequence
 
 from torch import Tensor
 
-from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
 from exploregs_plugin.model.losses import DepthSpace, depth_l1, photometric_loss
 
 
@@ -51,18 +50,21 @@ class PhotometricTerm:
 
 @dataclass(frozen=True)
 class DepthTerm:
-    """weight x L1 between the rendered depth and the dataset's depth map (in z or 1/z), the map
-    first degraded by ``supervision`` (to play a monocular estimate); logs ``depth``."""
+    """weight x L1 between the rendered depth and the dataset's depth map (in z or 1/z); logs
+    ``depth``."""
 
     weight: float
     space: DepthSpace = "depth"
-    supervision: DepthSupervisionConfig = field(default_factory=DepthSupervisionConfig)
 
-    def __call__(self, view: ViewLossInput) -> tuple[Tensor, dict[str, Tensor]]:
+    def target(self, view: ViewLossInput) -> Tensor:
+        """The depth map the render is compared with [H, W, 1] (an experiment may degrade it:
+        ``exploregs_plugin/analysis/depth_degradation.py``)."""
         if "depth" not in view.extras:
             raise ValueError("depth_loss_weight > 0 but the dataset has no depth maps")
-        target = self.supervision.apply(view.extras["depth"], view.index).to(view.depth.device)
-        term = depth_l1(view.depth, target, self.space)
+        return view.extras["depth"]
+
+    def __call__(self, view: ViewLossInput) -> tuple[Tensor, dict[str, Tensor]]:
+        term = depth_l1(view.depth, self.target(view).to(view.depth.device), self.space)
         return self.weight * term, {"depth": term.detach()}
 
 

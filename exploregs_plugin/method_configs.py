@@ -131,3 +131,52 @@ def get_method(name: str) -> MethodSpecification:
     if name not in methods:
         raise MethodRegistryError(f"unknown method {name!r}; known methods: {', '.join(sorted(methods))}")
     return methods[name]
+
+
+def strategy_choice(argv: list[str]) -> tuple[list[str], str | None]:
+    """``argv`` without ``--strategy NAME`` (or ``--strategy=NAME``), and NAME (None if absent).
+    ``--strategy.FIELD`` options stay: they set fields of the chosen strategy. Used by eg-train
+    and by the bench's overrides, so both read the flag the same way."""
+    from exploregs_plugin.strategies.registry import available_strategies
+
+    rest, name = [], None
+    args = iter(argv)
+    for arg in args:
+        if arg == "--strategy":
+            name = next(args, None)
+            if name is None or name.startswith("-"):
+                raise MethodRegistryError("--strategy needs the name of a registered strategy: "
+                                          + ", ".join(sorted(available_strategies())))
+        elif arg.startswith("--strategy="):
+            name = arg.split("=", 1)[1]
+        else:
+            rest.append(arg)
+    return rest, name
+
+
+def chosen_strategy(name: str, methods: dict[str, MethodSpecification]) -> object:
+    """The strategy ``--strategy NAME`` selects: a built-in with the settings of the method
+    ``exploregs-NAME`` when it has that class (so ``eg-train exploregs-default --strategy
+    seedsplit`` explores as ``exploregs-seedsplit`` does), otherwise the class's own defaults
+    (a plugin's, from the ``exploregs.strategies`` entry points). MethodRegistryError for an
+    unknown name or a broken strategy entry point."""
+    from exploregs_plugin.strategies.registry import StrategyPluginError, available_strategies
+
+    try:
+        registered = available_strategies()
+    except StrategyPluginError as err:
+        raise MethodRegistryError(str(err)) from err
+    if name not in registered:
+        raise MethodRegistryError(f"unknown strategy {name!r}; registered strategies: {', '.join(sorted(registered))}")
+    cls = registered[name]
+    method = methods.get(f"exploregs-{name}")
+    if method is not None and type(method.config.pipeline.strategy) is cls:
+        return method.config.pipeline.strategy
+    return cls()
+
+
+def with_strategy(config: TrainerConfig, name: str | None, methods: dict[str, MethodSpecification]) -> TrainerConfig:
+    """``config`` with the strategy ``--strategy NAME`` selects (unchanged for None)."""
+    if name is None:
+        return config
+    return replace(config, pipeline=replace(config.pipeline, strategy=chosen_strategy(name, methods)))

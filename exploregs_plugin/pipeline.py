@@ -12,7 +12,6 @@ from torch import Tensor, nn
 from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.device import make_generator, restore_generator, to_device
 from exploregs_plugin.distributed import World
-from exploregs_plugin.data.depth_supervision import DepthSupervisionConfig
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
 from exploregs_plugin.model.losses import DepthSpace, psnr
@@ -85,14 +84,6 @@ def renderer_for(model: GaussianModelConfig, requires: frozenset[str]) -> Gaussi
     return model
 
 
-def loss_terms_of(config: "PipelineConfig") -> list[LossTerm]:
-    """The per-view loss terms a pipeline config asks for, in the order they are summed."""
-    terms: list[LossTerm] = [PhotometricTerm(config.ssim_lambda)]
-    if config.depth_loss_weight > 0.0:
-        terms.append(DepthTerm(config.depth_loss_weight, config.depth_loss_space, config.depth_supervision))
-    return terms
-
-
 @dataclass
 class PipelineConfig:
     """Everything a training step needs: data, model, optimizer, densification strategy, loss."""
@@ -110,13 +101,19 @@ class PipelineConfig:
     """Weight of an L1 loss between rendered expected depth and the dataset's depth maps (0 = off)."""
     depth_loss_space: DepthSpace = "depth"
     """Compare depth ('depth', z) or inverse depth ('inverse', 1/z: far pixels weigh less)."""
-    depth_supervision: DepthSupervisionConfig = field(default_factory=DepthSupervisionConfig)
-    """Degrade the depth maps before the depth loss (noise, smooth bias) to play a monocular estimate."""
     batch_size: int | None = None
     """Training views per step, shared among the ranks (a multiple of their number); unset: one
     per rank. The schedule counts images seen: B views per step take 1/B of the steps."""
     batch_rule: bool = True
     """With B > 1 views per step, learning rates x sqrt(B) and Adam's betas ^ B (Grendel's rule)."""
+
+    def loss_terms(self) -> list[LossTerm]:
+        """The per-view loss terms this config asks for, in the order they are summed (a pipeline
+        variant may replace one, as the depth-degradation experiment does)."""
+        terms: list[LossTerm] = [PhotometricTerm(self.ssim_lambda)]
+        if self.depth_loss_weight > 0.0:
+            terms.append(DepthTerm(self.depth_loss_weight, self.depth_loss_space))
+        return terms
 
     def setup(self, schedule: Schedule, seed: int, device: torch.device | str = "cpu",
               world: World = World()) -> "Pipeline":
@@ -156,7 +153,7 @@ class Pipeline:
         self.background = dm.background.to(device)
         self.model = model_config.setup(*to_device((dm.points, dm.points_rgb), device), seed=seed)
         self.optim = self._make_optimizer_set()
-        self.loss_terms = loss_terms_of(config)
+        self.loss_terms = config.loss_terms()
         self.strategy = config.strategy.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
         # Scene centre = mean training-camera centre (seeding measures distances from it).

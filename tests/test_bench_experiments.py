@@ -54,9 +54,11 @@ def test_depth_and_split_entries(tmp_path):
     depth = {n: _config(e, tmp_path).pipeline for n, e in _by_name(DEPTH_SUPERVISION).items()}
     assert {"default", "default+depth", "seed", "seed+depth", "seedsplit", "seedsplit+depth"} <= set(depth)
     assert depth["seed+depth"].depth_loss_weight > 0 and depth["seed"].depth_loss_weight == 0
-    mono = depth["seedsplit+mono-depth"].depth_supervision
-    assert mono.noise_std == 0.05 and mono.bias_amplitude == 0.1 and mono.active
-    assert not depth["seedsplit+depth"].depth_supervision.active
+    mono = depth["seedsplit+mono-depth"]
+    assert mono.depth_supervision.noise_std == 0.05 and mono.depth_supervision.bias_amplitude == 0.1
+    assert mono.depth_loss_weight == depth["seedsplit+depth"].depth_loss_weight
+    assert mono.strategy == depth["seedsplit+depth"].strategy  # the same strategy, picked with --strategy
+    assert not hasattr(depth["seedsplit+depth"], "depth_supervision")  # the core pipeline has no degradation
     split = {n: _config(e, tmp_path).pipeline.strategy for n, e in _by_name(SPLIT_ABLATION).items()}
     n_splits = sorted(s.splitting.n_split for n, s in split.items() if n.startswith("split-"))
     assert n_splits[0] == 0 and len(n_splits) >= 4

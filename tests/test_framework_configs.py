@@ -187,3 +187,30 @@ def test_the_bench_reuses_a_run_saved_with_flat_strategy_fields_only_for_the_sam
     strategy = same.pipeline.strategy
     other = dataclasses.replace(strategy, seeding=dataclasses.replace(strategy.seeding, prune_opa=0.1))
     assert not same_config(tmp_path, dataclasses.replace(same, pipeline=dataclasses.replace(same.pipeline, strategy=other)))
+
+
+def test_a_config_saved_with_the_core_depth_degradation_loads_or_names_its_method(tmp_path):
+    # the degraded depth maps left the core pipeline for the method exploregs-mono-depth; runs
+    # saved before carry pipeline.depth_supervision with its class at its old path
+    from exploregs_plugin.method_configs import get_method
+
+    saved = tmp_path / "config.yml"
+    save_config(get_method("exploregs-default").config, saved)
+    text = saved.read_text()
+    old_field = ("  depth_supervision:\n    _type: exploregs_plugin.data.depth_supervision:DepthSupervisionConfig\n"
+                 "    noise_std: 0.0\n    bias_amplitude: 0.0\n    bias_wavelength: 0.5\n    seed: 3\n")
+    old = text.replace("  batch_size: null\n", old_field + "  batch_size: null\n", 1)
+    assert old != text
+    saved.write_text(old)
+    assert load_config(saved) == get_method("exploregs-default").config  # off (any seed): dropped
+    saved.write_text(old.replace("    noise_std: 0.0\n", "    noise_std: 0.05\n", 1))
+    with pytest.raises(ValueError, match=r"field 'depth_supervision' .* is gone: .*exploregs-mono-depth"):
+        load_config(saved)
+    # the method's own config keeps the field, and reads the old class path too
+    mono = get_method("exploregs-mono-depth").config
+    save_config(mono, saved)
+    assert load_config(saved) == mono and mono.pipeline.depth_supervision.active
+    moved = saved.read_text().replace("exploregs_plugin.analysis.depth_degradation:DepthSupervisionConfig",
+                                      "exploregs_plugin.data.depth_supervision:DepthSupervisionConfig")
+    saved.write_text(moved)
+    assert load_config(saved) == mono

@@ -7,7 +7,7 @@ import torch
 
 from exploregs_plugin.loss_terms import DepthTerm, PhotometricTerm, ViewLossInput, view_loss
 from exploregs_plugin.model.losses import depth_l1, photometric_loss
-from exploregs_plugin.pipeline import PipelineConfig, loss_terms_of
+from exploregs_plugin.pipeline import PipelineConfig
 
 
 def _view(with_depth: bool = True) -> ViewLossInput:
@@ -39,7 +39,7 @@ def test_a_depth_term_without_depth_maps_and_an_empty_loss_are_clear_errors():
 
 
 def test_a_pipeline_config_builds_the_terms_it_asks_for():
-    assert loss_terms_of(PipelineConfig()) == [PhotometricTerm(0.2)]
-    terms = loss_terms_of(PipelineConfig(ssim_lambda=0.3, depth_loss_weight=0.1, depth_loss_space="inverse"))
+    assert PipelineConfig().loss_terms() == [PhotometricTerm(0.2)]
+    terms = PipelineConfig(ssim_lambda=0.3, depth_loss_weight=0.1, depth_loss_space="inverse").loss_terms()
     assert terms[0] == PhotometricTerm(0.3) and isinstance(terms[1], DepthTerm)
     assert (terms[1].weight, terms[1].space) == (0.1, "inverse")

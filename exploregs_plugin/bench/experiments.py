@@ -14,7 +14,8 @@ from exploregs_plugin.bench.spec import BenchEntry
 DEPTH_WEIGHT = 0.1
 """Weight of the depth L1 term in the depth-supervision entries."""
 MONOCULAR_DEPTH = ("--depth-supervision.noise-std", "0.05", "--depth-supervision.bias-amplitude", "0.1")
-"""A monocular-like depth map: 5% per-pixel noise and a 10% smooth bias (relative to depth)."""
+"""A monocular-like depth map: 5% per-pixel noise and a 10% smooth bias (relative to depth), the
+settings of the method exploregs-mono-depth (given here too, so the entries say what they run)."""
 PATHS = ("mean2d", "cov", "sh")
 
 
@@ -31,11 +32,13 @@ def _branch_ablation(description: str) -> tuple[BenchEntry, ...]:
 def _depth_supervision(description: str) -> tuple[BenchEntry, ...]:
     out = []
     depth = ("--depth-loss-weight", repr(DEPTH_WEIGHT))
-    for label, method in (("default", "exploregs-default"), ("seed", "exploregs-seed"),
-                          ("seedsplit", "exploregs-seedsplit")):  # fmt: skip
+    for label in ("default", "seed", "seedsplit"):
+        method = f"exploregs-{label}"
         out.append(BenchEntry(label, method, (), description))
         out.append(BenchEntry(f"{label}+depth", method, depth, description))
-        out.append(BenchEntry(f"{label}+mono-depth", method, depth + MONOCULAR_DEPTH, description))
+        # the degraded maps are a pipeline variant: that method, with this entry's strategy
+        out.append(BenchEntry(f"{label}+mono-depth", "exploregs-mono-depth",
+                              ("--strategy", label) + depth + MONOCULAR_DEPTH, description))
     return tuple(out)
 
 

@@ -156,7 +156,8 @@ _STREAM_LOCK = threading.Lock()
 
 
 def parse_overrides(config: TrainerConfig, args: list[str], where: str) -> TrainerConfig:
-    """Apply eg-train arguments to ``config`` through tyro (the same parser eg-train uses).
+    """Apply eg-train arguments to ``config`` through tyro (the same parser eg-train uses);
+    ``--strategy NAME`` swaps the strategy first, as in eg-train.
 
     Raises BenchSpecError naming ``where`` when tyro rejects the arguments."""
     if not args:
@@ -165,6 +166,16 @@ def parse_overrides(config: TrainerConfig, args: list[str], where: str) -> Train
     import io
 
     import tyro
+
+    from exploregs_plugin.method_configs import MethodRegistryError, all_methods, strategy_choice, with_strategy
+
+    try:
+        args, name = strategy_choice(list(args))
+        config = with_strategy(config, name, all_methods() if name else {})
+    except MethodRegistryError as err:
+        raise BenchSpecError(f"{where}: {err}") from None
+    if not args:
+        return config
 
     err = io.StringIO()
     try:

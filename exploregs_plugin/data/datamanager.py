@@ -21,7 +21,7 @@ from .errors import DataError
 from .images import read_image_alpha
 from .parsed import REGION_LABELS, ImageRecord, ParsedScene, ParseOptions
 from .dataparser import parse_dataset
-from .depth_supervision import read_depth_map, warn_masked_depth
+from .depth_maps import read_depth_map, warn_masked_depth
 from .random_init import box_points, cube_points, frustum_points
 from .transforms_json import BLENDER_LAYOUT
 

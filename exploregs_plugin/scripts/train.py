@@ -14,7 +14,6 @@ import signal
 import sys
 from dataclasses import replace
 from pathlib import Path
-from typing import Any
 
 import tyro
 
@@ -25,9 +24,8 @@ from exploregs_plugin.distributed import (LAUNCHER_GONE, DistributedError, Machi
                                           launched_by_eg_train, launched_by_torchrun, leave_world)
 from exploregs_plugin.io.checkpoint import resolve_run
 from exploregs_plugin.scripts import run_cli
-from exploregs_plugin.method_configs import MethodRegistryError, all_methods
+from exploregs_plugin.method_configs import MethodRegistryError, all_methods, strategy_choice, with_strategy
 from exploregs_plugin.pipeline import NonFiniteError, resolve_batch_size
-from exploregs_plugin.strategies.registry import StrategyPluginError, available_strategies
 from exploregs_plugin.scripts.launch import LaunchError, LaunchStopped, launch, note_run_dir
 from exploregs_plugin.trainer import CONFIG_NAME, Stopped, Trainer, TrainerConfig
 
@@ -52,16 +50,20 @@ def parse_config(argv: list[str]) -> TrainerConfig:
         raise _fail(str(err), 2) from err
     if argv and not argv[0].startswith("-") and argv[0] not in methods:
         raise _fail(f"unknown method {argv[0]!r}; known methods: {', '.join(sorted(methods))}", 2)
-    argv, strategy_name = _strategy_choice(argv)
+    try:
+        argv, strategy_name = strategy_choice(argv)
+    except MethodRegistryError as err:
+        raise _fail(str(err), 2) from err
     full_help = "--help-full" in argv  # tyro's whole help; --help shows one line per flag
     argv = ["--help" if arg == "--help-full" else arg for arg in argv]
     defaults = {name: spec.config for name, spec in methods.items()}
     if strategy_name is not None:
         if not argv or argv[0].startswith("-"):
             raise _fail("--strategy NAME needs a method first: eg-train METHOD --strategy NAME", 2)
-        strategy = chosen_strategy(strategy_name, methods)
-        base = defaults[argv[0]]
-        defaults[argv[0]] = replace(base, pipeline=replace(base.pipeline, strategy=strategy))
+        try:
+            defaults[argv[0]] = with_strategy(defaults[argv[0]], strategy_name, methods)
+        except MethodRegistryError as err:
+            raise _fail(str(err), 2) from err
     subcommands = tyro.extras.subcommand_type_from_defaults(
         defaults, {name: spec.description for name, spec in methods.items()})
     captured, shown = io.StringIO(), _Utf8Text()
@@ -86,42 +88,6 @@ class _Utf8Text(io.StringIO):
     @property
     def encoding(self) -> str:  # type: ignore[override]
         return "utf-8"
-
-
-def _strategy_choice(argv: list[str]) -> tuple[list[str], str | None]:
-    """``argv`` without ``--strategy NAME`` (or ``--strategy=NAME``), and NAME (None if absent).
-    ``--strategy.FIELD`` options stay: they set fields of the chosen strategy."""
-    rest, name = [], None
-    args = iter(argv)
-    for arg in args:
-        if arg == "--strategy":
-            name = next(args, None)
-            if name is None or name.startswith("-"):
-                raise _fail("--strategy needs the name of a registered strategy: "
-                            + ", ".join(sorted(available_strategies())), 2)
-        elif arg.startswith("--strategy="):
-            name = arg.split("=", 1)[1]
-        else:
-            rest.append(arg)
-    return rest, name
-
-
-def chosen_strategy(name: str, methods: dict) -> Any:
-    """The strategy ``--strategy NAME`` selects: a built-in with the settings of the method
-    ``exploregs-NAME`` when it has that class (so ``eg-train exploregs-default --strategy
-    seedsplit`` explores as ``exploregs-seedsplit`` does), otherwise the class's own defaults
-    (a plugin's, from the ``exploregs.strategies`` entry points)."""
-    try:
-        registered = available_strategies()
-    except StrategyPluginError as err:
-        raise _fail(str(err), 2) from err
-    if name not in registered:
-        raise _fail(f"unknown strategy {name!r}; registered strategies: {', '.join(sorted(registered))}", 2)
-    cls = registered[name]
-    method = methods.get(f"exploregs-{name}")
-    if method is not None and type(method.config.pipeline.strategy) is cls:
-        return method.config.pipeline.strategy
-    return cls()
 
 
 def _stop_before_training(signum: int, frame: object) -> None:

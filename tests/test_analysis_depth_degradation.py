@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from exploregs_plugin.data.depth_supervision import (
+from exploregs_plugin.analysis.depth_degradation import (
     N_WAVES, DepthSupervisionConfig, degrade_depth, smooth_field,
 )
 
@@ -74,3 +74,24 @@ def test_non_finite_depth_is_masked_as_no_depth_and_counted(tiny_scene_dir, tmp_
     render = loaded.clone()
     render[:5] = 123.0
     assert depth_l1(render, loaded).item() == 0.0
+
+
+def test_mono_depth_pipeline_degrades_the_map_the_depth_term_reads():
+    from exploregs_plugin.analysis.depth_degradation import DegradedDepthTerm, MonoDepthPipelineConfig
+    from exploregs_plugin.loss_terms import DepthTerm, PhotometricTerm, ViewLossInput
+    from exploregs_plugin.method_configs import get_method
+
+    config = get_method("exploregs-mono-depth").config.pipeline
+    assert isinstance(config, MonoDepthPipelineConfig) and config.depth_loss_weight > 0
+    terms = config.loss_terms()
+    assert type(terms[0]) is PhotometricTerm and type(terms[1]) is DegradedDepthTerm
+    assert MonoDepthPipelineConfig(depth_loss_weight=0.0).loss_terms() == [PhotometricTerm(0.2)]
+    g = torch.Generator().manual_seed(0)
+    truth = 2.0 + torch.rand(8, 6, 1, generator=g)
+    view = ViewLossInput(image=torch.zeros(8, 6, 3), target=torch.zeros(8, 6, 3), depth=truth.clone(),
+                         extras={"depth": truth}, index=5)
+    plain, _ = DepthTerm(1.0)(view)
+    degraded, parts = terms[1](view)
+    assert float(plain) == 0.0  # the render equals the true map: no loss without degradation
+    expected = (degrade_depth(truth, 5, config.depth_supervision) - truth).abs().mean()
+    assert float(parts["depth"]) == pytest.approx(float(expected), rel=1e-5) and float(degraded) > 0

@@ -1,4 +1,5 @@
-"""Depth maps for the depth loss, degraded to play a monocular estimate: noise + smooth bias.
+"""Degraded depth maps for the depth-supervision experiment: noise + smooth bias, as a monocular
+estimate has, and the method that trains with them (``exploregs-mono-depth``).
 
 A monocular depth network is locally noisy and wrong by a smooth, relative factor. With d the
 ground-truth map, the supervised map is
@@ -9,21 +10,22 @@ where B is a smooth field of unit RMS (a sum of random plane waves whose wavelen
 of the image size), b = ``bias_amplitude`` and s = ``noise_std``. Both are relative to depth.
 The degradation of a view depends only on (seed, view index): the same view always gets the same
 map, as a fixed estimate computed once per image would.
+
+The core loss (``DepthTerm``) reads the dataset's maps as they are; the experiment is a pipeline
+variant, :class:`MonoDepthPipelineConfig`, whose depth term degrades them first.
 """
 
 from __future__ import annotations
 
 import math
-import warnings
-from dataclasses import dataclass
-from pathlib import Path
+from dataclasses import dataclass, field, replace
 
-import numpy as np
 import torch
-from PIL import Image
 from torch import Tensor
 
-from .errors import DataError
+from exploregs_plugin.loss_terms import DepthTerm, LossTerm, ViewLossInput
+from exploregs_plugin.method_configs import MethodSpecification, builtin_methods
+from exploregs_plugin.pipeline import PipelineConfig
 
 N_WAVES = 6  # plane waves in the smooth bias field
 MIN_RELATIVE_DEPTH = 0.05  # the degraded depth never drops below this fraction of the truth
@@ -87,40 +89,48 @@ def degrade_depth(depth: Tensor, view_index: int, config: DepthSupervisionConfig
     return torch.where(valid, depth * factor.to(depth.dtype)[..., None], depth)
 
 
-def read_depth_map(path: Path, size: tuple[int, int]) -> tuple[np.ndarray, tuple[int, int]]:
-    """(float32 [H, W] depth resized (nearest) to ``size`` = (width, height), (masked pixels,
-    pixels in the file)).
 
-    Non-finite values (sky stored as inf, holes as NaN) mean "no depth here", as in depth
-    datasets: they become 0, which the depth loss leaves out with every value <= 0. DataError
-    for a file that is unreadable or not a 2D array.
-    """
-    try:
-        depth = np.load(path)
-    except (OSError, ValueError) as err:
-        raise DataError(path, f"depth file is unreadable ({err})") from err
-    if depth.ndim != 2 or depth.dtype.kind not in "fiu":
-        raise DataError(path, f"depth must be a numeric [H, W] array, got shape {depth.shape} of {depth.dtype}")
-    depth = depth.astype(np.float32)
-    finite = np.isfinite(depth)
-    masked = int(depth.size - np.count_nonzero(finite))
-    if masked:
-        depth = np.where(finite, depth, np.float32(0.0))
-    if depth.shape != (size[1], size[0]):
-        depth = np.asarray(Image.fromarray(depth).resize(size, Image.Resampling.NEAREST))
-    return depth, (masked, int(finite.size))
+@dataclass(frozen=True)
+class DegradedDepthTerm(DepthTerm):
+    """:class:`DepthTerm` against the dataset's depth map degraded by ``supervision``."""
+
+    supervision: DepthSupervisionConfig = field(default_factory=DepthSupervisionConfig)
+
+    def target(self, view: ViewLossInput) -> Tensor:
+        return self.supervision.apply(super().target(view), view.index)
 
 
-def warn_masked_depth(masked: dict[Path, tuple[int, int]]) -> None:
-    """One warning for every depth map with non-finite pixels: ``masked`` maps a depth file to
-    (masked pixels, pixels in the file)."""
-    hit = {path: counts for path, counts in masked.items() if counts[0]}
-    if not hit:
-        return
-    pixels = sum(c[0] for c in hit.values())
-    total = sum(c[1] for c in masked.values())
-    folders = sorted({str(path.parent) for path in hit})
-    example = ", ".join(path.name for path in list(hit)[:3])
-    warnings.warn(f"{', '.join(folders)}: {pixels} of {total} depth pixels ({100 * pixels / total:.2f}%) in "
-                  f"{len(hit)} of {len(masked)} depth maps are not finite (inf or NaN, e.g. sky) and are masked "
-                  f"as no depth (e.g. {example})", stacklevel=3)
+MONO_DEPTH_WEIGHT = 0.1
+"""Weight of the depth term in exploregs-mono-depth."""
+MONO_DEPTH = DepthSupervisionConfig(noise_std=0.05, bias_amplitude=0.1)
+"""exploregs-mono-depth's maps: 5% per-pixel noise and a 10% smooth bias (relative to depth)."""
+
+
+@dataclass
+class MonoDepthPipelineConfig(PipelineConfig):
+    """The pipeline with its depth loss against degraded depth maps."""
+
+    depth_supervision: DepthSupervisionConfig = field(default_factory=lambda: replace(MONO_DEPTH))
+    """Degrade the depth maps before the depth loss (noise, smooth bias) to play a monocular estimate."""
+
+    def loss_terms(self) -> list[LossTerm]:
+        return [DegradedDepthTerm(term.weight, term.space, self.depth_supervision) if type(term) is DepthTerm
+                else term for term in super().loss_terms()]
+
+
+def _mono_depth_method() -> MethodSpecification:
+    """exploregs-default with depth supervision from degraded maps (any strategy: --strategy NAME)."""
+    config = builtin_methods()["exploregs-default"].config
+    pipeline = MonoDepthPipelineConfig(**{f: getattr(config.pipeline, f) for f in PipelineConfig.__dataclass_fields__})
+    pipeline = replace(pipeline, depth_loss_weight=MONO_DEPTH_WEIGHT)
+    config = replace(config, method_name="exploregs-mono-depth", pipeline=pipeline)
+    return MethodSpecification(config=config, description="3DGS density control with a depth loss against "
+                                                          "monocular-like depth maps (the dataset's, with noise "
+                                                          "and a smooth bias: --depth-supervision.*).")
+
+
+def __getattr__(name: str) -> MethodSpecification:
+    # the entry point's object, made on first access (from the built-in exploregs-default)
+    if name != "mono_depth_method":
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return globals().setdefault(name, _mono_depth_method())
