@@ -164,15 +164,15 @@ class Pipeline:
             raise ValueError("random_background needs a dataset whose images have an alpha channel")
         # --datamanager.background random asks for the same as random_background
         self.random_background = config.random_background or dm.random_background
-        if dm.is_dynamic and not self.model.field_parameters() and world.is_main:
+        if dm.is_dynamic and not self.model.parts and world.is_main:
             print(f"note: {dm.scene_name}: the frames carry times (a dynamic scene), which this static method "
                   "ignores: it trains every frame as one still scene (the exploregs-4d-* methods use them)", flush=True)
 
     def _make_optimizer_set(self) -> OptimizerSet:
-        """The Gaussians' Adams (the strategies re-index them with the rows) and the model's other
-        parameter groups (a deformation field's, out of the strategies' reach), stepped as one."""
+        """The Gaussians' Adams (the strategies re-index them with the rows) and the parameter
+        groups of the model's parts (a deformation field's, out of the strategies' reach), stepped as one."""
         gaussians = self.config.optim.setup(self.params, self.scene_extent, self.batch_size, self.config.batch_rule)
-        groups = self.model.extra_param_groups(self.scene_extent, self.schedule.max_steps, self.lr_scale)
+        groups = self.model.part_param_groups(self.scene_extent, self.schedule.max_steps, self.lr_scale)
         return OptimizerSet(gaussians, self.means_lr_at, groups, batch_betas(self.batch_size, self.config.batch_rule))
 
     @property
@@ -181,8 +181,8 @@ class Pipeline:
         return self.optim.gaussians
 
     def trained_tensors(self) -> list[tuple[str, nn.Parameter]]:
-        """Every trained parameter by name: the Gaussians' and, for a dynamic model, the field's."""
-        return list(self.params.items()) + self.model.field_parameters()
+        """Every trained parameter by name: the Gaussians' and the model's parts' (a deformation field's)."""
+        return list(self.params.items()) + self.model.part_parameters()
 
     def exploration_summary(self) -> dict[str, int]:
         """Current totals a strategy reports about its exploration (e.g. seeds alive)."""
@@ -331,14 +331,13 @@ class Pipeline:
     def state_dict(self) -> dict[str, Any]:
         state = {
             "params": {k: v.detach().clone() for k, v in self.params.items()},
-            **self.optim.state_dict(),  # "optimizers" and, with a field, "field_optimizer"
+            **self.optim.state_dict(),  # "optimizers" and, with model parts, "field_optimizer"
             "strategy_state": self.strategy_state,
             "generator": self.generator.get_state(),
             "datamanager": self.datamanager.state_dict(),
         }
-        field = self.model.field_state()
-        if field is not None:  # a dynamic model: its deformation field
-            state["field"] = field
+        if self.model.parts:  # a dynamic model: its deformation field
+            state["parts"] = self.model.parts_state()
         return state
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -349,12 +348,13 @@ class Pipeline:
             raise ValueError(f"checkpoint lacks parameters {sorted(missing)}")
         for name, value in state["params"].items():
             self.params[name] = nn.Parameter(value.to(self.device, copy=True))
-        if self.model.field_parameters():
-            if "field" not in state:
-                raise ValueError("the checkpoint holds no deformation field: it was made by a static method")
-            self.model.load_field_state(state["field"])  # copied into the field's own tensors
-        elif "field" in state:
+        # checkpoints made before models had parts hold the deformation field as "field"
+        parts = state.get("parts", {"deformation": state["field"]} if "field" in state else {})
+        if self.model.parts and not parts:
+            raise ValueError("the checkpoint holds no deformation field: it was made by a static method")
+        if parts and not self.model.parts:
             raise ValueError("the checkpoint holds a deformation field: load it with its dynamic (4D) method's config")
+        self.model.load_parts_state(parts)  # copied into the parts' own tensors
         self.optim = self._make_optimizer_set()  # the Adams hold the loaded tensors
         self.optim.load_state_dict(state)  # Adam's moments follow their parameter's device
         self.strategy_state = to_device(state["strategy_state"], self.device)

@@ -14,6 +14,7 @@ import torch
 from PIL import Image
 
 from exploregs_plugin.method_configs import get_method
+from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.trainer import Trainer
 
@@ -70,7 +71,7 @@ def test_dynamic_run_trains_deforms_and_reports_frames(split_run):
 def test_strategies_change_canonical_gaussians_field_keeps_its_state(tmp_path, exploregs_cache):
     trainer = dynamic_config("exploregs-4d-split", tmp_path / "run", max_steps=40).setup()
     pipeline = trainer.pipeline
-    field_params = [p for _, p in pipeline.model.field_parameters()]
+    field_params = [p for _, p in pipeline.model.part_parameters()]
     shapes = [p.shape for p in field_params]
     counts = []
     for step in range(40):
@@ -87,7 +88,7 @@ def test_strategies_change_canonical_gaussians_field_keeps_its_state(tmp_path, e
     assert all(field_state[p]["exp_avg"].shape == p.shape for p in field_params if p in field_state)
     steps = {int(field_state[p]["step"]) for p in field_params if p in field_state}
     # the field trains from the end of the warm-up (step 8 of 40) on every step
-    assert steps == {40 - pipeline.model.start_step(40)}
+    assert steps == {40 - pipeline.model.deformation.start_step(40)}
     assert pipeline.optim.shared not in pipeline.optimizers.values()
     # its groups are part of the one optimizer set, each at its own decayed rate
     lrs = pipeline.optim.lrs()
@@ -119,9 +120,26 @@ def test_checkpoint_and_resume_of_a_dynamic_run_is_bit_identical(tmp_path, explo
 def test_a_static_checkpoint_is_refused_by_a_dynamic_pipeline(tmp_path, exploregs_cache):
     trainer = dynamic_config("exploregs-4d-default", tmp_path / "run", max_steps=4).setup()
     state = trainer.pipeline.state_dict()
-    static_state = {k: v for k, v in state.items() if not k.startswith("field")}
+    static_state = {k: v for k, v in state.items() if not k.startswith("field") and k != "parts"}
     with pytest.raises(ValueError, match="holds no deformation field"):
         trainer.pipeline.load_state_dict(static_state)
+
+
+def test_a_checkpoint_from_before_model_parts_loads_its_field(tmp_path, exploregs_cache):
+    # checkpoints written before the deformation field became a model part hold it as "field"
+    trainer = dynamic_config("exploregs-4d-default", tmp_path / "run", max_steps=4).setup()
+    pipeline = trainer.pipeline
+    state = pipeline.state_dict()
+    assert set(state["parts"]) == {"deformation"} and "field" not in state
+    old = {k: v for k, v in state.items() if k != "parts"}
+    old["field"] = {k: v + 1.0 if v.is_floating_point() else v for k, v in state["parts"]["deformation"].items()}
+    pipeline.load_state_dict(old)
+    for key, value in pipeline.model.deformation.state_dict().items():
+        assert torch.equal(value, old["field"][key]), key
+    static = dynamic_config("exploregs-4d-default", tmp_path / "static", max_steps=4)
+    static = replace(static, pipeline=replace(static.pipeline, model=GaussianModelConfig())).setup()
+    with pytest.raises(ValueError, match="holds a deformation field"):
+        static.pipeline.load_state_dict(old)
 
 
 def test_eg_render_renders_the_test_camera_over_time(split_run, tmp_path):

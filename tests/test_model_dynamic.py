@@ -12,7 +12,7 @@ from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.deformation import (PLANE_PAIRS, SPACE_PLANES, TIME_PLANES, DeformationField,
                                                 HexPlaneField, hexplane_features, plane_tv, robust_box,
                                                 sample_plane, static_l1, time_smoothness)
-from exploregs_plugin.model.dynamic import DeformationConfig, DynamicGaussianModelConfig
+from exploregs_plugin.model.dynamic import DeformationConfig, DynamicGaussianModelConfig, deform_params
 from exploregs_plugin.model.optim import exponential_lr
 
 
@@ -172,7 +172,12 @@ def test_model_warm_up_then_deformation():
     # zero-initialised heads: switching the deformation on does not change the image
     assert torch.allclose(model.render(_camera(0.3))[0], before, atol=1e-6)
     assert float(model.regularization_loss().detach()) >= 0.0
-    assert [name for name, _ in model.field_parameters()][0].startswith("deformation.")
+    assert [name for name, _ in model.part_parameters()][0].startswith("deformation.")
+    assert set(model.parts) == {"deformation"} and model.parts["deformation"] is model.deformation
+    # the field's two groups cover every trained tensor of the part, once
+    groups = model.part_param_groups(1.0, 10)
+    assert [g.name for g in groups] == ["grid", "mlp"]
+    assert sorted(id(p) for g in groups for p in g.params) == sorted(id(p) for _, p in model.part_parameters())
 
 
 def test_render_uses_deformed_means_and_their_screen_gradient():
@@ -183,7 +188,7 @@ def test_render_uses_deformed_means_and_their_screen_gradient():
         model.deformation.decoder.position[-1].bias.copy_(torch.tensor([0.05, -0.02, 0.0]))
     camera = _camera(0.6)
     image, _, _, info = model.render(camera)
-    deformed = model.deformed_params(0.6)["means"]
+    deformed = deform_params(model.params, model.deformation, 0.6)["means"]
     assert torch.allclose(deformed, model.params["means"] + torch.tensor([0.05, -0.02, 0.0]), atol=1e-6)
     cam = deformed.detach() @ camera.viewmat[:3, :3].T + camera.viewmat[:3, 3]
     uv = cam[:, :2] / cam[:, 2:3] * 40.0 + torch.tensor([16.0, 12.0])

@@ -1,7 +1,8 @@
 """Dynamic scenes: canonical Gaussians deformed over time by a HexPlane field (4DGS).
 
 The canonical Gaussians are the ordinary parameter dict, so every strategy and op works on
-them unchanged; the deformation field has its own Adam, which no strategy touches. A frame at
+them unchanged; the deformation field is the model's one part (:class:`DeformationPart`), whose
+planes and decoder are parameter groups of the run's optimizer set, out of the strategies' reach. A frame at
 time t renders ``params_at(t)``: the canonical parameters plus the field's offsets there. The
 projected 2D means are those of the deformed Gaussians, so the densification statistic is the
 screen-space gradient of the deformed means, as in 4DGS.
@@ -22,7 +23,7 @@ from torch import Tensor, nn
 
 from exploregs_plugin.model.deformation import (SPACE_PLANES, TIME_PLANES, DeformationField, plane_tv,
                                                 robust_box, static_l1, time_smoothness)
-from exploregs_plugin.model.gaussians import GaussianModel, GaussianModelConfig
+from exploregs_plugin.model.gaussians import GaussianModel, GaussianModelConfig, ModelPart
 from exploregs_plugin.model.optim import ParamGroup, exponential_lr
 
 def deform_params(params: Mapping[str, Tensor], field: DeformationField, time: float) -> dict[str, Tensor]:
@@ -106,66 +107,50 @@ class DynamicGaussianModelConfig(GaussianModelConfig):
         d = self.deformation
         box_min, box_max = robust_box(static.params["means"].detach(), d.box_trim_percent, d.box_margin)
         generator = torch.Generator().manual_seed(seed)
-        deformation = DeformationField(box_min.cpu(), box_max.cpu(), d.resolution, d.multires, d.features,
-                                       d.width, d.depth, generator).to(static.params["means"].device)
+        deformation = DeformationPart(d, box_min.cpu(), box_max.cpu(), generator).to(static.params["means"].device)
         return DynamicGaussianModel(self, static.params, deformation)
 
 
-class DynamicGaussianModel(GaussianModel):
-    """Canonical Gaussians (``params``) and a :class:`DeformationField` (``deformation``)."""
+class DeformationPart(DeformationField, ModelPart):
+    """The deformation field as a model part: off during the static warm-up, then on (``active``,
+    saved with its state); its planes ("grid") and decoder ("mlp") each a parameter group whose
+    rate decays exponentially from the end of the warm-up to the last step; 4DGS's plane
+    regularisers once it is on."""
 
-    config: DynamicGaussianModelConfig
+    def __init__(self, config: DeformationConfig, box_min: Tensor, box_max: Tensor,
+                 generator: torch.Generator | None = None) -> None:
+        super().__init__(box_min, box_max, config.resolution, config.multires, config.features, config.width,
+                         config.depth, generator)
+        self.config = config
 
-    def __init__(self, config: DynamicGaussianModelConfig, params: nn.ParameterDict,
-                 deformation: DeformationField) -> None:
-        super().__init__(config, params)
-        self.deformation = deformation
+    def start_step(self, max_steps: int) -> int:
+        """The step at which the deformation is switched on."""
+        return int(round(self.config.start_frac * max_steps))
 
-    def deformed_params(self, time: float) -> dict[str, Tensor]:
-        """The raw parameters at ``time`` in [0, 1] (:func:`deform_params`)."""
-        return deform_params(self.params, self.deformation, time)
-
-    def params_at(self, time: float | None) -> Mapping[str, Tensor]:
-        """:func:`params_at_time` of this model's Gaussians and field."""
-        return params_at_time(self.params, self.deformation, time)
-
-    def field_parameters(self) -> list[tuple[str, nn.Parameter]]:
-        return [(f"deformation.{name}", p) for name, p in self.deformation.named_parameters()]
-
-    def field_state(self) -> dict[str, Tensor]:
-        return {k: v.detach().clone() for k, v in self.deformation.state_dict().items()}
-
-    def load_field_state(self, state: Mapping[str, Tensor]) -> None:
-        self.deformation.load_state_dict(dict(state))  # copies into the field's tensors, on their device
-
-    def extra_param_groups(self, scene_extent: float, max_steps: int, lr_scale: float = 1.0) -> list[ParamGroup]:
-        """The field's planes ("grid") and decoder ("mlp"), each decaying exponentially from the
-        end of the warm-up to the last step, x scene extent."""
-        d = self.config.deformation
+    def param_groups(self, scene_extent: float, max_steps: int, lr_scale: float = 1.0) -> list[ParamGroup]:
+        """The planes ("grid") and decoder ("mlp"), each decaying exponentially from the end of the
+        warm-up to the last step, x scene extent."""
+        d = self.config
         start = self.start_step(max_steps)
         scale = scene_extent * lr_scale
 
         def decay(lr0: float, lr1: float):
             return lambda step: exponential_lr(lr0 * scale, lr1 * scale, (step - start) / max(max_steps - start, 1))
 
-        return [ParamGroup("grid", self.deformation.grid_parameters(), decay(d.grid_lr, d.grid_lr_final)),
-                ParamGroup("mlp", self.deformation.mlp_parameters(), decay(d.mlp_lr, d.mlp_lr_final))]
-
-    def start_step(self, max_steps: int) -> int:
-        """The step at which the deformation is switched on."""
-        return int(round(self.config.deformation.start_frac * max_steps))
+        return [ParamGroup("grid", self.grid_parameters(), decay(d.grid_lr, d.grid_lr_final)),
+                ParamGroup("mlp", self.mlp_parameters(), decay(d.mlp_lr, d.mlp_lr_final))]
 
     def begin_step(self, step: int, max_steps: int) -> None:
-        if step >= self.start_step(max_steps) and not bool(self.deformation.active):
-            self.deformation.active.fill_(True)
+        if step >= self.start_step(max_steps) and not bool(self.active):
+            self.active.fill_(True)
 
     def regularization_loss(self) -> Tensor | None:
         """4DGS's plane regularisers, once the deformation is on (None before)."""
-        if not bool(self.deformation.active):
+        if not bool(self.active):
             return None
-        d = self.config.deformation
-        total = self.params["means"].new_zeros(())
-        for planes in self.deformation.grid.planes():
+        d = self.config
+        total = self.box_min.new_zeros(())
+        for planes in self.grid.planes():
             for i in SPACE_PLANES:
                 total = total + d.plane_tv_weight * plane_tv(planes[i])
             for i in TIME_PLANES:
@@ -174,3 +159,20 @@ class DynamicGaussianModel(GaussianModel):
                 total = total + d.time_l1_weight * static_l1(planes[i])
         return total
 
+
+class DynamicGaussianModel(GaussianModel):
+    """Canonical Gaussians (``params``) and their deformation over time (the part ``deformation``)."""
+
+    config: DynamicGaussianModelConfig
+
+    def __init__(self, config: DynamicGaussianModelConfig, params: nn.ParameterDict,
+                 deformation: DeformationPart) -> None:
+        super().__init__(config, params, {"deformation": deformation})
+
+    @property
+    def deformation(self) -> DeformationPart:
+        return self.parts["deformation"]
+
+    def params_at(self, time: float | None) -> Mapping[str, Tensor]:
+        """:func:`params_at_time` of this model's Gaussians and field."""
+        return params_at_time(self.params, self.deformation, time)

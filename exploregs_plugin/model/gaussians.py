@@ -105,45 +105,71 @@ def init_params(
     )
 
 
-class GaussianModel(nn.Module):
-    """Holds the Gaussian parameters (raw, unactivated) and renders them from a camera."""
+class ModelPart(nn.Module):
+    """A trained part of a model beside the Gaussians' rows (a dynamic model's deformation field):
+    its parameter groups, each with its learning-rate schedule, which join the Gaussians' Adams in
+    the run's ``OptimizerSet``; what it does before each step; its regulariser. Its parameters and
+    buffers (``state_dict``) go into checkpoints. A static model has no parts."""
 
-    def __init__(self, config: GaussianModelConfig, params: nn.ParameterDict) -> None:
+    def param_groups(self, scene_extent: float, max_steps: int, lr_scale: float = 1.0) -> list[ParamGroup]:
+        """Every trained tensor of the part in a group with its schedule (x scene extent, x batch factor)."""
+        raise NotImplementedError(f"{type(self).__name__} must say how its parameters are trained")
+
+    def begin_step(self, step: int, max_steps: int) -> None:
+        """Called before each training step (the deformation ends its static warm-up here)."""
+
+    def regularization_loss(self) -> Tensor | None:
+        """The part's regulariser, added once per step (None: none)."""
+        return None
+
+
+class GaussianModel(nn.Module):
+    """Holds the Gaussian parameters (raw, unactivated) and renders them from a camera; a model of
+    a dynamic scene adds its trained parts (``parts``: name -> :class:`ModelPart`)."""
+
+    def __init__(self, config: GaussianModelConfig, params: nn.ParameterDict,
+                 parts: Mapping[str, ModelPart] | None = None) -> None:
         super().__init__()
         self.config = config
         self.params = params
+        self.parts = nn.ModuleDict(dict(parts or {}))
 
     @property
     def num_gaussians(self) -> int:
         return int(self.params["means"].shape[0])
 
-    # What a time-conditioned model (model.dynamic) adds; a static scene has none of it.
     def params_at(self, time: float | None) -> Mapping[str, Tensor]:
         """The raw parameters to render at ``time``: a static scene's are the same at every time."""
         return self.params
 
-    def field_parameters(self) -> list[tuple[str, nn.Parameter]]:
-        """Named parameters trained beside the Gaussians' rows (none here)."""
-        return []
+    # The model's parts, all of them in turn (none for a static scene).
+    def part_parameters(self) -> list[tuple[str, nn.Parameter]]:
+        """Named parameters trained beside the Gaussians' rows ("<part>.<parameter>")."""
+        return [(f"{name}.{key}", p) for name, part in self.parts.items() for key, p in part.named_parameters()]
 
-    def extra_param_groups(self, scene_extent: float, max_steps: int, lr_scale: float = 1.0) -> list[ParamGroup]:
-        """The groups of :meth:`field_parameters` with their learning-rate schedules, which join the
-        Gaussians' optimizers in the run's ``OptimizerSet`` (none here)."""
-        return []
-
-    def field_state(self) -> dict[str, Tensor] | None:
-        """A copy of the field's parameters and buffers for a checkpoint (None: no field)."""
-        return None
-
-    def load_field_state(self, state: Mapping[str, Tensor]) -> None:
-        raise ValueError("this model has no deformation field to load")
+    def part_param_groups(self, scene_extent: float, max_steps: int, lr_scale: float = 1.0) -> list[ParamGroup]:
+        """Every part's parameter groups, in the order of the parts."""
+        return [group for part in self.parts.values() for group in part.param_groups(scene_extent, max_steps, lr_scale)]
 
     def begin_step(self, step: int, max_steps: int) -> None:
-        """Called before each training step (a dynamic model ends its static warm-up here)."""
+        for part in self.parts.values():
+            part.begin_step(step, max_steps)
 
     def regularization_loss(self) -> Tensor | None:
-        """A regulariser of the model's own (None: none)."""
-        return None
+        """The sum of the parts' regularisers (None when no part has one)."""
+        terms = [term for term in (part.regularization_loss() for part in self.parts.values()) if term is not None]
+        return sum(terms[1:], terms[0]) if terms else None
+
+    def parts_state(self) -> dict[str, dict[str, Tensor]]:
+        """A copy of every part's parameters and buffers, for a checkpoint."""
+        return {name: {k: v.detach().clone() for k, v in part.state_dict().items()} for name, part in self.parts.items()}
+
+    def load_parts_state(self, state: Mapping[str, Mapping[str, Tensor]]) -> None:
+        """Copy :meth:`parts_state` into the parts' own tensors (on their device)."""
+        if set(state) != set(self.parts):
+            raise ValueError(f"the checkpoint holds the model parts {sorted(state)}, this model has {sorted(self.parts)}")
+        for name, part in self.parts.items():
+            part.load_state_dict(dict(state[name]))
 
     def render(
         self,

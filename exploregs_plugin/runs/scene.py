@@ -59,7 +59,7 @@ class RenderableScene:
     @property
     def is_dynamic(self) -> bool:
         """The Gaussians move: a run of a dynamic (4D) method."""
-        return self.model is not None and bool(self.model.field_parameters())
+        return self.model is not None and bool(self.model.parts)
 
     def params_for(self, camera: Camera) -> Mapping[str, Tensor]:
         """The raw parameters to render from ``camera``: a dynamic run's, deformed to its time."""

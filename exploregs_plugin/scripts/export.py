@@ -40,7 +40,7 @@ def main(args: ExportArgs) -> PlyExport:
     model = run.pipeline.model
     params = model.params
     if args.time is not None:
-        if not model.field_parameters():
+        if not model.parts:
             raise ValueError(f"--time is for runs of a dynamic (4D) method; {run.run_dir} is static")
         if not 0.0 <= args.time <= 1.0:
             raise ValueError(f"--time must be in [0, 1], got {args.time}")

@@ -80,7 +80,7 @@ class ViewerScene:
             raster_settings=pipeline.model.config.raster,
             name=str(dm.scene_name),
             step=step,
-            deformation=(lambda: pipeline.model.deformation) if pipeline.model.field_parameters() else None,
+            deformation=(lambda: pipeline.model.deformation) if pipeline.model.parts else None,
         )
 
     @classmethod
