@@ -1,5 +1,7 @@
 """Hooks into the training loop: the one way for the viewer, the branch-gradient logger and
-analysis probes to act between training steps, so there is one loop (``Trainer.train``).
+analysis probes to act between training steps, so there is one loop (``Trainer.train``). The
+caller passes callbacks to the Trainer, and a config adds those it asks for
+(``TrainerConfig.callbacks``).
 
 A callback overrides the hooks it needs; every hook has a default that does nothing. The
 trainer is passed in (typed loosely here: this module sits below the trainer in the layers).
@@ -23,10 +25,6 @@ class TrainingCallback:
 
     Time spent in callbacks is not training time.
     """
-
-    serves: tuple[str, ...] = ()
-    """TrainerConfig fields this callback implements; the trainer refuses a config that sets
-    such a field without a callback serving it (nothing is silently ignored)."""
 
     def on_train_start(self, trainer: Any) -> None:
         """Before the first step of this call to ``train``."""

@@ -75,6 +75,11 @@ REMOVED_FIELDS: dict[str, dict[str, tuple[Any, str]]] = {
         "detach_paths": ((), "the branch ablation's switch is a field of the method exploregs-branch-ablation "
                              "(eg-train exploregs-branch-ablation --model.detach-paths ...)"),
     },
+    "exploregs_plugin.trainer:TrainerConfig": {
+        "grad_branches_every": (0, "the live branch-gradient curves are the method exploregs-grad-branches "
+                                   "(eg-train exploregs-grad-branches --strategy NAME --grad-branches-every N)"),
+        "grad_branches_views": (lambda old: True, "exploregs-grad-branches --grad-branches-views"),
+    },
     "exploregs_plugin.pipeline:PipelineConfig": {
         "depth_supervision": (lambda old: not old.active,
                               "degraded depth maps are the method exploregs-mono-depth (eg-train "

@@ -38,11 +38,6 @@ CONFIG_NAME = "config.yml"
 METRICS_NAME = "metrics.json"
 EVAL_PANELS = 2  # test views shown in tensorboard at each evaluation (render | truth | error)
 THREADS_CHECK_SECONDS = 5.0  # how often a run without --num-threads follows the CPUs left idle
-# TrainerConfig fields that a callback from a layer above the trainer implements: a config that
-# sets one without such a callback is refused instead of silently ignored.
-CALLBACK_FIELDS = {
-    "grad_branches_every": "exploregs_plugin.analysis.tensorboard.BranchGradientLogger()",
-}
 
 
 @dataclass
@@ -89,12 +84,6 @@ class TrainerConfig:
     """Write tensorboard scalars every this many steps."""
     tensorboard: bool = True
     """Write tensorboard event files into the run folder."""
-    grad_branches_every: int = 0
-    """Every this many steps, log the position gradient's norm through each branch (2D mean, 2D
-    covariance, SH direction) as grad_branches/* in tensorboard (0 = off; one extra render and
-    backward per view; docs/analysis.md)."""
-    grad_branches_views: int = 4
-    """Training views (evenly spaced) averaged at each --grad-branches-every step."""
     save_eval_images: bool = True
     """At the end, save render | ground truth | error PNGs of every test view into RUN/renders/."""
     flush_denormal: bool = True
@@ -129,6 +118,12 @@ class TrainerConfig:
             self.pipeline = replace(self.pipeline, datamanager=dm)
             self.data = self.data_factor = None
 
+    def callbacks(self) -> list[TrainingCallback]:
+        """The callbacks this config asks for, after those the caller passes: the live viewer
+        with ``viewer``. A config variant adds its own (the branch-gradient logger of
+        ``exploregs-grad-branches``), so a resumed run gets them back from its config.yml."""
+        return [ViewerCallback(self.viewer_config)] if self.viewer else []
+
     def setup(self, callbacks: Sequence[TrainingCallback] = ()) -> "Trainer":
         if self.resume is not None:
             return Trainer.from_run(self.resume, max_steps=None, quiet=self.quiet, callbacks=callbacks)
@@ -143,10 +138,7 @@ class Trainer:
                  callbacks: Sequence[TrainingCallback] = (), payload: dict[str, Any] | None = None) -> None:
         """``payload``: the checkpoint's content when the caller has read it already."""
         self.config = config
-        self.callbacks: list[TrainingCallback] = list(callbacks)
-        if config.viewer:
-            self.callbacks.append(ViewerCallback(config.viewer_config))
-        self._check_callbacks()
+        self.callbacks: list[TrainingCallback] = list(callbacks) + config.callbacks()
         if config.flush_denormal:
             torch.set_flush_denormal(True)
         if config.num_threads:
@@ -184,13 +176,6 @@ class Trainer:
             with _run_folder_errors(self.run_dir):
                 self.run_dir.mkdir(parents=True, exist_ok=True)
                 save_config(config, self.run_dir / CONFIG_NAME)
-
-    def _check_callbacks(self) -> None:
-        served = {name for callback in self.callbacks for name in callback.serves}
-        for name, callback in CALLBACK_FIELDS.items():
-            if getattr(self.config, name) and name not in served:
-                raise ValueError(f"TrainerConfig.{name} is set, but no callback serves it: pass "
-                                 f"callbacks=[{callback}] to the Trainer (eg-train does)")
 
     @property
     def stop_requested(self) -> bool:

@@ -189,6 +189,24 @@ def test_the_bench_reuses_a_run_saved_with_flat_strategy_fields_only_for_the_sam
     assert not same_config(tmp_path, dataclasses.replace(same, pipeline=dataclasses.replace(same.pipeline, strategy=other)))
 
 
+def test_a_config_saved_with_the_core_branch_logging_loads_or_names_its_method(tmp_path):
+    from exploregs_plugin.method_configs import get_method
+
+    saved = tmp_path / "config.yml"
+    save_config(get_method("exploregs-default").config, saved)
+    text = saved.read_text()
+    old = text.replace("tensorboard: true\n", "tensorboard: true\ngrad_branches_every: 0\ngrad_branches_views: 2\n", 1)
+    assert old != text
+    saved.write_text(old)
+    assert load_config(saved) == get_method("exploregs-default").config
+    saved.write_text(old.replace("grad_branches_every: 0", "grad_branches_every: 50"))
+    with pytest.raises(ValueError, match=r"field 'grad_branches_every' \(50\) is gone: .*exploregs-grad-branches"):
+        load_config(saved)
+    method = get_method("exploregs-grad-branches").config
+    save_config(method, saved)
+    assert load_config(saved) == method
+
+
 def test_a_config_saved_with_the_core_depth_degradation_loads_or_names_its_method(tmp_path):
     # the degraded depth maps left the core pipeline for the method exploregs-mono-depth; runs
     # saved before carry pipeline.depth_supervision with its class at its old path

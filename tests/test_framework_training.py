@@ -226,15 +226,28 @@ def test_callbacks_see_every_step_in_order_and_are_closed(tmp_path, tiny_scene_d
                      ("before", 2), ("after", 3, 2), ("end", 3), ("close",)]
 
 
-def test_a_field_served_by_a_callback_is_refused_without_it(tmp_path, tiny_scene_dir):
-    from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
+def test_a_config_variant_brings_its_callbacks_also_on_resume(tmp_path, tiny_scene_dir):
+    # the branch-gradient curves are a config variant's callback (exploregs-grad-branches), not a
+    # field of the core config: its runs log them, a resumed run too (from its config.yml)
+    from dataclasses import fields
 
-    config = tiny_config(tmp_path / "run", max_steps=4, tensorboard=True, grad_branches_every=2, grad_branches_views=1)
-    with pytest.raises(ValueError, match="grad_branches_every is set, but no callback serves it.*BranchGradientLogger"):
-        Trainer(config)
-    logger = BranchGradientLogger()
-    Trainer(config, callbacks=[logger]).train()
-    assert (logger.every, logger.views) == (2, 1)  # taken from the trainer's config
+    from exploregs_plugin.analysis.tensorboard import BranchGradientLogger, GradBranchesTrainerConfig
+    from exploregs_plugin.method_configs import get_method
+
+    assert "grad_branches_every" not in {f.name for f in fields(TrainerConfig)}
+    method = get_method("exploregs-grad-branches").config
+    assert isinstance(method, GradBranchesTrainerConfig) and method.pipeline == get_method("exploregs-default").config.pipeline
+    base = tiny_config(tmp_path / "run", max_steps=4, tensorboard=True, checkpoint_every=2)
+    config = GradBranchesTrainerConfig(**{f.name: getattr(base, f.name) for f in fields(TrainerConfig)},
+                                       grad_branches_every=2, grad_branches_views=1)
+    trainer = Trainer(config)
+    loggers = [c for c in trainer.callbacks if isinstance(c, BranchGradientLogger)]
+    assert [(c.every, c.views) for c in loggers] == [(2, 1)]
+    trainer.train()
+    resumed = Trainer.from_run(tmp_path / "run", max_steps=6)
+    assert [(c.every, c.views) for c in resumed.callbacks if isinstance(c, BranchGradientLogger)] == [(2, 1)]
+    off = GradBranchesTrainerConfig(**{f.name: getattr(base, f.name) for f in fields(TrainerConfig)} | {"tensorboard": False})
+    assert [c.every for c in off.callbacks() if isinstance(c, BranchGradientLogger)] == [0]  # nowhere to log
 
 
 def test_sigterm_checkpoints_and_exits_143_with_one_line(tmp_path, tiny_scene_dir, exploregs_cache):

@@ -1,11 +1,19 @@
-"""Gradient-branch norms during training: a training callback (``eg-train --grad-branches-every N``)."""
+"""Gradient-branch norms during training: a training callback, and the method that logs them
+live to tensorboard (``eg-train exploregs-grad-branches --strategy NAME --grad-branches-every N``).
+
+The diagnostic lives with the analysis, not in the core trainer: ``GradBranchesTrainerConfig``
+is a TrainerConfig variant whose ``callbacks()`` adds the logger, so its runs (resumes included)
+log the curves, and the core config has no field for it.
+"""
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
 from exploregs_plugin.callbacks import TrainingCallback
+from exploregs_plugin.method_configs import MethodSpecification, builtin_methods
+from exploregs_plugin.trainer import TrainerConfig
 
 from .branches import sample_branch_norms
 from .sampling import train_problems
@@ -28,25 +36,15 @@ def pipeline_branch_norms(pipeline: Pipeline, step: int, n_views: int) -> dict[s
 @dataclass
 class BranchGradientLogger(TrainingCallback):
     """Logs ``grad_branches/{mean2d,cov,sh,total}`` (and ``grad_branches/ratio_mean2d_cov``)
-    every ``every`` steps; ``every`` = 0 switches it off. As a training callback, fields left at
-    None come from the trainer's config (``grad_branches_every``, off without tensorboard, and
-    ``grad_branches_views``)."""
+    every ``every`` steps, averaged over ``views`` evenly spaced training views; ``every`` = 0
+    switches it off."""
 
-    every: int | None = None
-    views: int | None = None
-    serves = ("grad_branches_every",)
+    every: int = 0
+    views: int = 4
 
     def __post_init__(self) -> None:
-        if (self.every is not None and self.every < 0) or (self.views is not None and self.views < 1):
+        if self.every < 0 or self.views < 1:
             raise ValueError(f"grad-branch logging needs every >= 0 and views >= 1, got {self.every}, {self.views}")
-
-    def on_train_start(self, trainer: Any) -> None:
-        config = trainer.config
-        if self.every is None:
-            self.every = config.grad_branches_every if config.tensorboard else 0
-        if self.views is None:
-            self.views = config.grad_branches_views
-        self.__post_init__()
 
     def after_step(self, trainer: Any, step: int, stats: dict[str, Any]) -> None:
         self(trainer.pipeline, step, trainer.logger)
@@ -55,9 +53,42 @@ class BranchGradientLogger(TrainingCallback):
         """``step``: the number of steps completed. Returns the logged values (None when idle)."""
         if not self.every or step % self.every:
             return None
-        norms = pipeline_branch_norms(pipeline, step, self.views or 4)
+        norms = pipeline_branch_norms(pipeline, step, self.views)
         for name, value in norms.items():
             sink.scalar(f"grad_branches/{name}", value, step)
         if norms["cov"] > 0:
             sink.scalar("grad_branches/ratio_mean2d_cov", norms["mean2d"] / norms["cov"], step)
         return norms
+
+
+@dataclass
+class GradBranchesTrainerConfig(TrainerConfig):
+    """A training run that also logs the position gradient's branches to tensorboard."""
+
+    grad_branches_every: int = 100
+    """Every this many steps, log the position gradient's norm through each branch (2D mean, 2D
+    covariance, SH direction) as grad_branches/* in tensorboard (0 = off; one extra render and
+    backward per view; docs/analysis.md)."""
+    grad_branches_views: int = 4
+    """Training views (evenly spaced) averaged at each --grad-branches-every step."""
+
+    def callbacks(self) -> list[TrainingCallback]:
+        every = self.grad_branches_every if self.tensorboard else 0  # the curves go to tensorboard
+        return super().callbacks() + [BranchGradientLogger(every, self.grad_branches_views)]
+
+
+def _grad_branches_method() -> MethodSpecification:
+    """exploregs-default with the branch-gradient logger (any strategy: --strategy NAME)."""
+    config = builtin_methods()["exploregs-default"].config
+    config = GradBranchesTrainerConfig(**{f: getattr(config, f) for f in TrainerConfig.__dataclass_fields__})
+    config = replace(config, method_name="exploregs-grad-branches")
+    return MethodSpecification(config=config, description="3DGS density control that logs the position gradient's "
+                                                          "branches to tensorboard (--grad-branches-every; the "
+                                                          "Blur-Trap diagnostic, live).")
+
+
+def __getattr__(name: str) -> MethodSpecification:
+    # the entry point's object, made on first access (from the built-in exploregs-default)
+    if name != "grad_branches_method":
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    return globals().setdefault(name, _grad_branches_method())

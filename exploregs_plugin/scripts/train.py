@@ -17,7 +17,6 @@ from pathlib import Path
 
 import tyro
 
-from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
 from exploregs_plugin.collapse import CollapseError
 from exploregs_plugin.configs import compact_help, load_config, tyro_error_text
 from exploregs_plugin.distributed import (LAUNCHER_GONE, DistributedError, MachineConfig, PeerLostError,
@@ -137,12 +136,12 @@ def main(argv: list[str]) -> dict:
             return {}
         if resume is not None:
             run, device, devices = resume
-            trainer = Trainer.from_run(run, callbacks=[BranchGradientLogger()], device=device, num_devices=devices)
+            trainer = Trainer.from_run(run, device=device, num_devices=devices)
             if trainer.world.is_main:
                 print(f"resuming {trainer.run_dir} from step {trainer.start_step} ({trainer.last_checkpoint})",
                       file=sys.stderr)
         else:
-            trainer = config.setup(callbacks=[BranchGradientLogger()])
+            trainer = config.setup()
         if trainer.world.is_main:
             print(f"run folder: {trainer.run_dir}", file=sys.stderr)
             note_run_dir(trainer.run_dir)

@@ -14,8 +14,6 @@ if TYPE_CHECKING:  # the server side (viser) loads when a viewer is built, not w
 class ViewerCallback(TrainingCallback):
     """Serves the viewer of ``config`` while the trainer runs (``eg-train --viewer``)."""
 
-    serves = ("viewer",)
-
     def __init__(self, config: ViewerConfig) -> None:
         self.config = config
         self.viewer: Viewer | None = None
