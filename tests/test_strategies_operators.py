@@ -11,7 +11,6 @@ import torch
 
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.strategies import ExplorationStrategy, Operator, RandomSeeding, RandomSplitting, StrategyError
-from exploregs_plugin.strategies.budget import ExplorationBudget
 from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_views
 
 WINDOW = dict(refine_start_iter=2, refine_stop_iter=500, refine_every=10, reset_every=100)
@@ -23,18 +22,13 @@ class Recorder(Operator):
     asks for ``size_factor`` as the world-size threshold."""
 
     COUNTS: ClassVar[tuple[str, ...]] = ("recorded",)
+    BUDGET_FIELDS: ClassVar[dict[str, str]] = {"every": "seed_every"}
 
     tag: str = "a"
     size_factor: float | None = None
     prune_row: int | None = None
     every: int | None = None
     """Budget-filled like Seeding's interval: None until setup."""
-
-    def deferred_fields(self) -> tuple[str, ...]:
-        return ("every",)
-
-    def setup(self, budget: ExplorationBudget) -> "Recorder":
-        return Recorder(self.tag, self.size_factor, self.prune_row, budget.seed_every if self.every is None else self.every)
 
     def observe(self, owner: Any, params: Any, state: dict[str, Any], view: Any) -> dict[str, int]:
         state.setdefault("calls", []).append(("observe", self.tag))

@@ -19,6 +19,7 @@ Operators keep their per-Gaussian statistics in ``state["stats"]`` (kept aligned
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
@@ -47,6 +48,9 @@ class Operator:
     COUNTS: ClassVar[tuple[str, ...]] = ()
     """Count keys the operator reports on every step (0 when it did nothing), so every step's
     counts have the same keys."""
+    BUDGET_FIELDS: ClassVar[dict[str, str]] = {}
+    """The operator's fields that the run's exploration budget fills when left at None: field ->
+    the ``ExplorationBudget`` value that fills it (Seeding: ``every`` <- ``seed_every``)."""
 
     def __init_subclass__(cls, **kwargs: Any) -> None:
         super().__init_subclass__(**kwargs)
@@ -55,11 +59,13 @@ class Operator:
     # ----------------------------------------------------------------- configuration
     def deferred_fields(self) -> tuple[str, ...]:
         """Fields that may be None until :meth:`setup` fills them from the budget."""
-        return ()
+        return tuple(self.BUDGET_FIELDS)
 
     def setup(self: OperatorT, budget: ExplorationBudget) -> OperatorT:
-        """A copy with the fields left at None filled from the run's exploration budget."""
-        return self
+        """A copy with the :data:`BUDGET_FIELDS` left at None filled from the run's exploration budget."""
+        filled = {name: getattr(budget, value) for name, value in self.BUDGET_FIELDS.items()
+                  if getattr(self, name) is None}
+        return dataclasses.replace(self, **filled)
 
     # ----------------------------------------------------------------- hooks
     def observe(self, owner: DefaultStrategy, params: Params, state: dict[str, Any],

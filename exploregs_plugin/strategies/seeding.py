@@ -22,7 +22,6 @@ found nothing to explain.
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -40,7 +39,6 @@ from .ops import Optimizers, Params, num_gaussians
 
 if TYPE_CHECKING:
     from .base import StepContext
-    from .budget import ExplorationBudget
     from .default import DefaultStrategy
 
 _EPS = 1e-12
@@ -144,6 +142,7 @@ class RandomSeeding(Operator):
     densification window is open, with the relaxed world-size prune and seed probation."""
 
     COUNTS = ("seeded", "seeds_pruned")
+    BUDGET_FIELDS = {"n_seed": "n_seed", "every": "seed_every"}
 
     n_seed: int | None = None
     """Seeds added per seeding step (0 disables). None: from the strategy's budget (paper: 20)."""
@@ -183,16 +182,6 @@ class RandomSeeding(Operator):
             raise StrategyError(f"{where}.prune_opa must be in [0, 1), got {self.prune_opa}")
         if self.grace is not None and self.grace < 0:
             raise StrategyError(f"{where}.grace must be >= 0, got {self.grace}")
-
-    def deferred_fields(self) -> tuple[str, ...]:
-        return ("n_seed", "every")
-
-    def setup(self, budget: ExplorationBudget) -> RandomSeeding:
-        return dataclasses.replace(
-            self,
-            n_seed=budget.n_seed if self.n_seed is None else self.n_seed,
-            every=budget.seed_every if self.every is None else self.every,
-        )
 
     def active(self, owner: DefaultStrategy, step: int) -> bool:
         return bool(self.n_seed) and step < owner.refine_stop_iter

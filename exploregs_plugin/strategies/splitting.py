@@ -8,7 +8,6 @@ scales / 1.6, parent removed).
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, Any
 
@@ -23,7 +22,6 @@ from .ops import Optimizers, Params, num_gaussians
 
 if TYPE_CHECKING:
     from .base import StepContext
-    from .budget import ExplorationBudget
     from .default import DefaultStrategy
 
 
@@ -57,6 +55,7 @@ class RandomSplitting(Operator):
     inside the densification window."""
 
     COUNTS = ("random_split",)
+    BUDGET_FIELDS = {"n_split": "n_split", "every": "split_every"}
 
     n_split: int | None = None
     """Gaussians split per splitting step (0 disables). None: from the strategy's budget (paper: 20)."""
@@ -68,16 +67,6 @@ class RandomSplitting(Operator):
             raise StrategyError(f"{type(self).__name__}.n_split must be >= 0, got {self.n_split}")
         if self.every is not None and self.every < 1:
             raise StrategyError(f"{type(self).__name__}.every must be >= 1, got {self.every}")
-
-    def deferred_fields(self) -> tuple[str, ...]:
-        return ("n_split", "every")
-
-    def setup(self, budget: ExplorationBudget) -> RandomSplitting:
-        return dataclasses.replace(
-            self,
-            n_split=budget.n_split if self.n_split is None else self.n_split,
-            every=budget.split_every if self.every is None else self.every,
-        )
 
     def explore(self, owner: DefaultStrategy, ctx: StepContext) -> dict[str, int]:
         split = 0
