@@ -209,18 +209,23 @@ class DefaultStrategy(Strategy):
             state["stats"], grad.reshape(1, n, 2), view.visible().reshape(1, n), view.width, view.height, view.n_cameras
         )
 
-    def _grow(
-        self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator | None
-    ) -> tuple[int, int]:
+    def growth(self, params: Params, state: dict[str, Any]) -> tuple[Tensor, Tensor]:
+        """This refinement's (clone [N], split [N]) masks: the 3DGS rule on the gradient statistic,
+        limited by cap_max. A densifier that chooses otherwise overrides this; :meth:`_grow` applies it."""
         stats = state["stats"]
-        n = num_gaussians(params)
-        if "grad2d" not in stats or n == 0:
-            return 0, 0
         avg_grad = stats["grad2d"] / stats["count"].clamp_min(1.0)
         clone, split = grow_masks(
             avg_grad, params["scales"].detach(), self.grow_grad2d, self.grow_scale3d * state["scene_scale"]
         )
-        clone, split = limit_growth(clone, split, avg_grad, self.room(n))
+        return limit_growth(clone, split, avg_grad, self.room(num_gaussians(params)))
+
+    def _grow(
+        self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator | None
+    ) -> tuple[int, int]:
+        stats = state["stats"]
+        if "grad2d" not in stats or num_gaussians(params) == 0:
+            return 0, 0
+        clone, split = self.growth(params, state)
         n_cloned = ops.duplicate(params, optimizers, stats, clone)
         # Clones are appended at the end and are never split in the same step.
         split = torch.cat([split, torch.zeros(n_cloned, dtype=torch.bool, device=split.device)])

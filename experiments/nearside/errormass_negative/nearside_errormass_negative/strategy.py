@@ -36,13 +36,12 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from exploregs_plugin.strategies import ops
-from exploregs_plugin.strategies.base import StrategyError, require_generator
+from exploregs_plugin.strategies.base import StrategyError
 from exploregs_plugin.strategies.requirements import VIEW_ERRORS, VISIBILITY_STATS
 from exploregs_plugin.strategies.default import DefaultStrategy
 from exploregs_plugin.strategies.geometry import max_world_scale
 from exploregs_plugin.strategies.observation import ViewObservation
-from exploregs_plugin.strategies.ops import Optimizers, Params, num_gaussians
+from exploregs_plugin.strategies.ops import Params, num_gaussians
 
 ERROR_MASS = "error_mass"
 """Per-Gaussian statistic: the largest error mass over the views of the current window."""
@@ -113,26 +112,16 @@ class ErrorMassStrategy(DefaultStrategy):
         stats[ERROR_MASS] = torch.maximum(stats[ERROR_MASS], mass.to(stats[ERROR_MASS].dtype))
         return counts
 
-    def _grow(
-        self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator | None
-    ) -> tuple[int, int]:
+    def growth(self, params: Params, state: dict[str, Any]) -> tuple[Tensor, Tensor]:
         stats = state["stats"]
-        n = num_gaussians(params)
-        if "grad2d" not in stats or n == 0:
-            return 0, 0
         avg_grad = stats["grad2d"] / stats["count"].clamp_min(1.0)
         # the budget: as many as Default's threshold grows (and the cap allows)
-        n_grow = min(int((avg_grad > self.grow_grad2d).sum()), self.room(n))
+        n_grow = min(int((avg_grad > self.grow_grad2d).sum()), self.room(num_gaussians(params)))
         mass = stats.get(ERROR_MASS, torch.zeros_like(avg_grad))
         chosen = choose_growth(avg_grad, mass, n_grow, self.error_share)
-        small = max_world_scale(params["scales"].detach()) <= self.grow_scale3d * state["scene_scale"]
-        clone, split = chosen & small, chosen & ~small
-        n_cloned = ops.duplicate(params, optimizers, stats, clone)
-        split = torch.cat([split, torch.zeros(n_cloned, dtype=torch.bool, device=split.device)])
-        n_split = 0
-        if bool(split.any()):
-            gen = require_generator(generator, f"{type(self).__name__} (split)")
-            n_split = ops.split(params, optimizers, stats, split, gen, self.split_scale_factor)
         if ERROR_MASS in stats:
-            stats[ERROR_MASS].zero_()  # a new window: the next decision sees only its own views
-        return n_cloned, n_split
+            # a new window: the next decision sees only its own views (the clones and children
+            # Default's growth makes from these rows then start at zero too)
+            stats[ERROR_MASS].zero_()
+        small = max_world_scale(params["scales"].detach()) <= self.grow_scale3d * state["scene_scale"]
+        return chosen & small, chosen & ~small
