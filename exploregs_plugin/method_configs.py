@@ -10,8 +10,10 @@ where ``my_method`` is a :class:`MethodSpecification`. It then appears in ``eg-t
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from collections.abc import Callable
+from dataclasses import dataclass, fields, replace
 from importlib.metadata import entry_points
+from typing import TypeVar
 
 from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.model import GaussianModelConfig
@@ -180,3 +182,31 @@ def with_strategy(config: TrainerConfig, name: str | None, methods: dict[str, Me
     if name is None:
         return config
     return replace(config, pipeline=replace(config.pipeline, strategy=chosen_strategy(name, methods)))
+
+
+ConfigT = TypeVar("ConfigT")
+
+
+def as_variant(cls: type[ConfigT], config: object, **changes: object) -> ConfigT:
+    """``config``'s field values in ``cls``, a subclass of its config class that an experiment adds
+    fields or behaviour to (the new fields keep their defaults unless ``changes`` sets them)."""
+    return cls(**{**{f.name: getattr(config, f.name) for f in fields(config) if f.init}, **changes})
+
+
+def default_variant(attribute: str, name: str, description: str,
+                    variant: Callable[[TrainerConfig], TrainerConfig]) -> Callable[[str], MethodSpecification]:
+    """A module ``__getattr__`` whose ``attribute`` is the entry point of the method ``name``:
+    exploregs-default's config changed by ``variant`` (an experiment's variant of a core part),
+    any strategy with ``--strategy NAME``. The method is made when the registry first loads the
+    entry point, from the built-in exploregs-default as it is then, and kept."""
+    made: list[MethodSpecification] = []
+
+    def __getattr__(requested: str) -> MethodSpecification:
+        if requested != attribute:
+            raise AttributeError(f"module has no attribute {requested!r}")
+        if not made:
+            config = variant(builtin_methods()["exploregs-default"].config)
+            made.append(MethodSpecification(config=replace(config, method_name=name), description=description))
+        return made[0]
+
+    return __getattr__

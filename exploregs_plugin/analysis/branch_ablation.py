@@ -19,7 +19,7 @@ import torch
 from torch import Tensor, nn
 
 from exploregs_plugin.cameras import Camera
-from exploregs_plugin.method_configs import MethodSpecification, builtin_methods
+from exploregs_plugin.method_configs import as_variant, default_variant
 from exploregs_plugin.model.gaussians import GaussianModel, GaussianModelConfig
 from exploregs_plugin.rasterizer import RasterSettings, rasterize_branched
 
@@ -85,21 +85,10 @@ class BranchAblationModel(GaussianModel):
                                self.config.detach_paths, self.config.raster)
 
 
-def _branch_ablation_method() -> MethodSpecification:
-    """exploregs-default with the branch-ablation model (all paths on by default)."""
-    default = builtin_methods()["exploregs-default"]
-    config = default.config
-    model = BranchAblationModelConfig(**{f: getattr(config.pipeline.model, f) for f in
-                                         GaussianModelConfig.__dataclass_fields__})
-    config = replace(config, method_name="exploregs-branch-ablation",
-                     pipeline=replace(config.pipeline, model=model))
-    return MethodSpecification(config=config, description="3DGS density control with position-gradient paths "
-                                                          "switched off (--model.detach-paths; the branch ablation).")
-
-
-def __getattr__(name: str) -> MethodSpecification:
-    # the entry point's object, made on first access (from the built-in exploregs-default, when the
-    # registry loads its entry points)
-    if name != "branch_ablation_method":
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return globals().setdefault(name, _branch_ablation_method())
+__getattr__ = default_variant(
+    "branch_ablation_method", "exploregs-branch-ablation",
+    "3DGS density control with position-gradient paths switched off (--model.detach-paths; the branch ablation).",
+    # all paths on by default
+    lambda config: replace(config, pipeline=replace(config.pipeline,
+                                                    model=as_variant(BranchAblationModelConfig, config.pipeline.model))),
+)

@@ -24,7 +24,7 @@ import torch
 from torch import Tensor
 
 from exploregs_plugin.loss_terms import DepthTerm, LossTerm, ViewLossInput
-from exploregs_plugin.method_configs import MethodSpecification, builtin_methods
+from exploregs_plugin.method_configs import as_variant, default_variant
 from exploregs_plugin.pipeline import PipelineConfig
 
 N_WAVES = 6  # plane waves in the smooth bias field
@@ -118,19 +118,10 @@ class MonoDepthPipelineConfig(PipelineConfig):
                 else term for term in super().loss_terms()]
 
 
-def _mono_depth_method() -> MethodSpecification:
-    """exploregs-default with depth supervision from degraded maps (any strategy: --strategy NAME)."""
-    config = builtin_methods()["exploregs-default"].config
-    pipeline = MonoDepthPipelineConfig(**{f: getattr(config.pipeline, f) for f in PipelineConfig.__dataclass_fields__})
-    pipeline = replace(pipeline, depth_loss_weight=MONO_DEPTH_WEIGHT)
-    config = replace(config, method_name="exploregs-mono-depth", pipeline=pipeline)
-    return MethodSpecification(config=config, description="3DGS density control with a depth loss against "
-                                                          "monocular-like depth maps (the dataset's, with noise "
-                                                          "and a smooth bias: --depth-supervision.*).")
-
-
-def __getattr__(name: str) -> MethodSpecification:
-    # the entry point's object, made on first access (from the built-in exploregs-default)
-    if name != "mono_depth_method":
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return globals().setdefault(name, _mono_depth_method())
+__getattr__ = default_variant(
+    "mono_depth_method", "exploregs-mono-depth",
+    "3DGS density control with a depth loss against monocular-like depth maps (the dataset's, with noise "
+    "and a smooth bias: --depth-supervision.*).",
+    lambda config: replace(config, pipeline=as_variant(MonoDepthPipelineConfig, config.pipeline,
+                                                       depth_loss_weight=MONO_DEPTH_WEIGHT)),
+)

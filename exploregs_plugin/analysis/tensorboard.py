@@ -8,11 +8,11 @@ log the curves, and the core config has no field for it.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Protocol
 
 from exploregs_plugin.callbacks import TrainingCallback
-from exploregs_plugin.method_configs import MethodSpecification, builtin_methods
+from exploregs_plugin.method_configs import as_variant, default_variant
 from exploregs_plugin.trainer import TrainerConfig
 
 from .branches import sample_branch_norms
@@ -77,18 +77,9 @@ class GradBranchesTrainerConfig(TrainerConfig):
         return super().callbacks() + [BranchGradientLogger(every, self.grad_branches_views)]
 
 
-def _grad_branches_method() -> MethodSpecification:
-    """exploregs-default with the branch-gradient logger (any strategy: --strategy NAME)."""
-    config = builtin_methods()["exploregs-default"].config
-    config = GradBranchesTrainerConfig(**{f: getattr(config, f) for f in TrainerConfig.__dataclass_fields__})
-    config = replace(config, method_name="exploregs-grad-branches")
-    return MethodSpecification(config=config, description="3DGS density control that logs the position gradient's "
-                                                          "branches to tensorboard (--grad-branches-every; the "
-                                                          "Blur-Trap diagnostic, live).")
-
-
-def __getattr__(name: str) -> MethodSpecification:
-    # the entry point's object, made on first access (from the built-in exploregs-default)
-    if name != "grad_branches_method":
-        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
-    return globals().setdefault(name, _grad_branches_method())
+__getattr__ = default_variant(
+    "grad_branches_method", "exploregs-grad-branches",
+    "3DGS density control that logs the position gradient's branches to tensorboard (--grad-branches-every; "
+    "the Blur-Trap diagnostic, live).",
+    lambda config: as_variant(GradBranchesTrainerConfig, config),
+)
