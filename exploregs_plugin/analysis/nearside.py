@@ -39,6 +39,7 @@ from torch import Tensor
 
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.rasterizer.composite import single_threaded_ops
+from exploregs_plugin.strategies.occlusion import mean_transmittance
 
 from .branches import ViewProblem, ndc_gradient_norm
 
@@ -169,11 +170,6 @@ def view_stats(view: ViewProblem) -> ViewStats:
                      (info["radii"] > 0).all(-1), vis[:, 0], vis[:, 1])
 
 
-def mean_transmittance(weight: Tensor, alpha: Tensor) -> Tensor:
-    """T-bar = sum(alpha T) / sum(alpha); NaN where the Gaussian was composited nowhere."""
-    return torch.where(alpha > 0, weight / alpha.clamp_min(1e-12), torch.full_like(alpha, math.nan)).clamp(max=1.0)
-
-
 @dataclass
 class Accumulated:
     """Sums over views [N]: ``grad_sum``, ``count`` (views where visible), ``comp_sum`` (|g| / max(T-bar,
@@ -204,7 +200,8 @@ class Accumulated:
 
     @property
     def tbar(self) -> Tensor:
-        return mean_transmittance(self.weight, self.alpha)
+        """T-bar per Gaussian; NaN where it was composited nowhere."""
+        return mean_transmittance(self.weight, self.alpha, unseen=math.nan)
 
 
 def accumulate(stats: list[ViewStats], t_floor: float = T_FLOOR) -> Accumulated:
@@ -214,8 +211,7 @@ def accumulate(stats: list[ViewStats], t_floor: float = T_FLOOR) -> Accumulated:
     for s in stats:
         vis = s.visible
         g = s.grad.to(torch.float64)
-        t = mean_transmittance(s.weight.to(torch.float64), s.alpha.to(torch.float64))
-        t = torch.where(torch.isnan(t), torch.ones_like(t), t).clamp_min(t_floor)
+        t = mean_transmittance(s.weight.to(torch.float64), s.alpha.to(torch.float64)).clamp_min(t_floor)
         acc.grad_sum += torch.where(vis, g, torch.zeros_like(g))
         acc.comp_sum += torch.where(vis, g / t, torch.zeros_like(g))
         acc.count += vis.to(torch.float64)
@@ -258,7 +254,8 @@ def class_summary(region: Tensor, acc: Accumulated, threshold: float, scales: Te
 
 # ---------------------------------------------------------------------------- error by visibility
 def psnr_of(sq_sum: float, count: int) -> float:
-    """PSNR (dB, images in [0, 1]) of ``count`` squared-error values summing to ``sq_sum``."""
+    """PSNR (dB, images in [0, 1]) of ``count`` squared-error values summing to ``sq_sum``; inf
+    for a perfect fit (a ceiling of the analysis, not capped as the evaluation's pooled_psnr is)."""
     if count <= 0:
         return math.nan
     mse = sq_sum / count

@@ -38,10 +38,11 @@ VIS_WEIGHT, VIS_ALPHA, OCC_ERROR = "vis_weight", "vis_alpha", "occ_error"
 """Per-Gaussian statistics: summed weight alpha T, summed alpha, and the compensated-gradient average."""
 
 
-def mean_transmittance(vis_weight: Tensor, vis_alpha: Tensor) -> Tensor:
-    """T-bar = sum(alpha T) / sum(alpha) per Gaussian [N]; 1 (unoccluded) where nothing was summed."""
+def mean_transmittance(vis_weight: Tensor, vis_alpha: Tensor, unseen: float = 1.0) -> Tensor:
+    """T-bar = sum(alpha T) / sum(alpha) per Gaussian [N], in [0, 1]; ``unseen`` where nothing was
+    summed (1: unoccluded, what splitting assumes; NaN leaves it out of an analysis' statistics)."""
     seen = vis_alpha > 0
-    return torch.where(seen, vis_weight / vis_alpha.clamp_min(1e-12), torch.ones_like(vis_alpha)).clamp(0.0, 1.0)
+    return torch.where(seen, vis_weight / vis_alpha.clamp_min(1e-12), torch.full_like(vis_alpha, unseen)).clamp(0.0, 1.0)
 
 
 def occlusion_weights(log_scales: Tensor, vis_weight: Tensor, vis_alpha: Tensor, occ_error: Tensor) -> Tensor:
