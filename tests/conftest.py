@@ -6,6 +6,7 @@ tmp dir), so ``builtin:tiny`` is generated once per session and no test writes t
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import pytest
@@ -13,6 +14,29 @@ import torch
 
 SHARED_SCENES = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
 """Real captured scenes next to the repository (tests that use them skip when absent)."""
+
+
+def _selects_cuda(markexpr: str) -> bool:
+    """Whether a ``-m`` expression picks the CUDA tests (``cuda``, ``cuda and not slow``) rather
+    than leaving them out (``not cuda``) or not naming them (the default ``not slow``)."""
+    tokens = markexpr.replace("(", " ").replace(")", " ").split()
+    return any(t == "cuda" and (i == 0 or tokens[i - 1] != "not") for i, t in enumerate(tokens))
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The default suite is the CPU contract (bit-identical results across thread counts, resumes
+    and seeds; the compiled CPU backend), so on a machine with a GPU it still runs on the CPU:
+    otherwise ``--device auto`` would put every test's run, and every command a test starts, on
+    CUDA, where atomic adds make runs differ bit for bit. The CUDA contract is
+    ``python -m pytest -m cuda`` (tests/test_cuda.py), which keeps the GPU visible. Hidden through
+    the environment before anything has initialised CUDA, so subprocesses inherit it."""
+    if not _selects_cuda(config.getoption("markexpr") or ""):
+        os.environ["CUDA_VISIBLE_DEVICES"] = ""
+    if not _selects_cuda(config.getoption("markexpr") or "") or not torch.cuda.is_available():
+        # gsplat builds its CUDA kernels on first import wherever it finds nvcc (minutes, and a second
+        # process importing it meanwhile deletes the half-built folder); the CPU suite uses only its
+        # pure-torch parts
+        os.environ["CUDA_HOME"] = "/nonexistent-cuda"
 
 
 @pytest.fixture(scope="session", autouse=True)

@@ -10,6 +10,7 @@ live, which is what running on CUDA needs.
 from __future__ import annotations
 
 import contextlib
+import sys
 from dataclasses import replace
 from pathlib import Path
 
@@ -84,6 +85,30 @@ def test_gsplat_backend_problems_say_what_to_do():
     with pytest.raises(BackendError, match="--model.raster.backend torch"):
         rasterize_branched(s.means, s.quats, s.scales, s.opacities, s.sh_coeffs, Camera(s.viewmat, s.K, 32, 24),
                            means_cov=s.means.clone(), means_sh=s.means, settings=gsplat)
+
+
+def test_branched_rendering_under_auto_renders_with_the_reference_where_auto_would_pick_gsplat(monkeypatch):
+    # On a GPU ``auto`` picks gsplat, whose kernels take one means tensor; the branch analysis and
+    # the branch ablation (default backend) must still render there, with the torch reference.
+    import importlib
+
+    rasterize_module = importlib.import_module("exploregs_plugin.rasterizer.rasterize")
+    s = random_scene(40, 32, 24, torch.Generator().manual_seed(1))
+    camera = Camera(s.viewmat, s.K, 32, 24)
+    shifted = s.means + 0.01
+
+    def branched(settings):
+        return rasterize_branched(s.means, s.quats, s.scales, s.opacities, s.sh_coeffs, camera,
+                                  means_cov=shifted, means_sh=s.means, settings=settings)
+
+    expected = branched(RasterSettings(backend="torch"))
+    plain = rasterize(s.means, s.quats, s.scales, s.opacities, s.sh_coeffs, camera, settings=RasterSettings(backend="torch"))
+    assert not torch.equal(expected[0], plain[0])  # the separate covariance path changed the image
+    monkeypatch.setattr(rasterize_module, "resolve_backend", lambda settings, device: "gsplat")
+    image, alpha, depth, _ = branched(RasterSettings())
+    assert torch.equal(image, expected[0]) and torch.equal(alpha, expected[1]) and torch.equal(depth, expected[2])
+    with pytest.raises(BackendError, match="--model.raster.backend torch"):  # an explicit gsplat is refused
+        branched(RasterSettings(backend="gsplat"))
 
 
 def test_rasterizer_follows_the_device_of_its_inputs():
@@ -252,3 +277,43 @@ def test_machine_report_says_what_gsplat_will_and_will_not_do(monkeypatch):
     done = subprocess.run([sys.executable, "-m", "exploregs_plugin.device"], capture_output=True, text=True,
                           env={**os.environ, "CUDA_HOME": "/nonexistent-cuda"}, timeout=120)
     assert done.returncode == 0 and len(done.stdout.strip().splitlines()) == 3, done.stderr
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="POSIX file locks")
+def test_gsplat_kernels_are_imported_under_a_machine_wide_lock(tmp_path, monkeypatch):
+    # gsplat's first import builds its kernels after deleting its build folder: parallel processes
+    # (bench jobs, ranks) must take turns, or each deletes the other's half-built files
+    import fcntl
+    import textwrap
+
+    from exploregs_plugin.rasterizer.gsplat_backend import load_gsplat_kernels
+
+    fake = tmp_path / "fake"
+    (fake / "gsplat" / "cuda").mkdir(parents=True)
+    (fake / "gsplat" / "__init__.py").write_text("")
+    (fake / "gsplat" / "cuda" / "__init__.py").write_text("")
+    (fake / "gsplat" / "cuda" / "_backend.py").write_text(textwrap.dedent("""
+        import fcntl, glob, os
+        lock = glob.glob(os.path.join(os.environ["TORCH_EXTENSIONS_DIR"], "*.build-lock"))[0]
+        with open(lock) as other:  # another open file: blocked while the importer holds the lock
+            try:
+                fcntl.flock(other.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+                HELD = False
+            except BlockingIOError:
+                HELD = True
+        _C = ("kernels", HELD)
+    """))
+    monkeypatch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path / "extensions"))
+    for name in [m for m in sys.modules if m == "gsplat" or m.startswith("gsplat.")]:
+        monkeypatch.delitem(sys.modules, name)
+    monkeypatch.syspath_prepend(str(fake))
+    load_gsplat_kernels.cache_clear()
+    try:
+        assert load_gsplat_kernels() == ("kernels", True)
+        assert load_gsplat_kernels() is load_gsplat_kernels()  # once per process
+        with open(next((tmp_path / "extensions").glob("*.build-lock"))) as after:
+            fcntl.flock(after.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)  # released: taken at once
+    finally:
+        load_gsplat_kernels.cache_clear()
+        for name in [m for m in sys.modules if m == "gsplat" or m.startswith("gsplat.")]:
+            del sys.modules[name]

@@ -19,6 +19,7 @@ from __future__ import annotations
 import functools
 import importlib.util
 from dataclasses import fields
+from pathlib import Path
 from typing import Any
 
 import torch
@@ -54,6 +55,33 @@ def gsplat_problem(settings: RasterSettings, device: torch.device) -> str | None
     return None
 
 
+@functools.cache
+def load_gsplat_kernels() -> Any:
+    """gsplat's compiled kernels, imported once per process and one process at a time per machine.
+
+    gsplat 1.5.3 builds its kernels on first import (minutes) and, finding no finished build,
+    first deletes its build folder: a second process importing meanwhile (bench jobs, a run's
+    ranks, test workers) would delete the first one's half-built files and both builds fail. Under
+    an exclusive lock beside that folder the first process builds and the others wait, then load."""
+    try:
+        import fcntl
+    except ImportError:  # no POSIX locks (Windows): import unguarded
+        fcntl = None
+    from torch.utils.cpp_extension import _get_build_directory
+
+    lock_dir = Path(_get_build_directory("gsplat_cuda", verbose=False)).parent
+    lock_dir.mkdir(parents=True, exist_ok=True)
+    with open(lock_dir / "gsplat_cuda.build-lock", "a") as lock:
+        if fcntl is not None:
+            fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
+        try:
+            from gsplat.cuda._backend import _C
+        finally:
+            if fcntl is not None:
+                fcntl.flock(lock.fileno(), fcntl.LOCK_UN)
+    return _C
+
+
 def rasterize_gsplat(
     means: Tensor,
     quats: Tensor,
@@ -78,6 +106,7 @@ def rasterize_gsplat(
     problem = gsplat_problem(settings, means.device)
     if problem is not None:
         raise BackendError(problem)
+    load_gsplat_kernels()
     from gsplat import rasterization
 
     viewmat, K = viewmat.to(means), K.to(means)

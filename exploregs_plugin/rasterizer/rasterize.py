@@ -146,7 +146,8 @@ def rasterize_branched(
     branch ablation: ``means`` feeds the projected 2D mean and depth (the expected depth follows
     it), ``means_cov`` [N, 3] the covariance through the perspective Jacobian, ``means_sh`` [N, 3]
     the SH view direction. The same tensor three times renders exactly what :func:`rasterize` does.
-    Torch and cpp backends only (gsplat has one means input)."""
+    Torch and cpp backends only (gsplat has one means input): ``--model.raster.backend auto`` renders
+    it with the torch reference where it would pick gsplat, and an explicit gsplat is refused."""
     return _render(means, quats, scales, opacities, sh_coeffs, camera, sh_degree, colors, background,
                    means_cov, means_sh, settings)
 
@@ -165,11 +166,14 @@ def _render(means, quats, scales, opacities, sh_coeffs, camera, sh_degree, color
         sh_degree, means_cov, means_sh, background,
     )  # fmt: skip
     backend = resolve_backend(settings, means.device)
-    if backend == "gsplat":
-        if (means_cov is not None and means_cov is not means) or (means_sh is not None and means_sh is not means):
+    branched = (means_cov is not None and means_cov is not means) or (means_sh is not None and means_sh is not means)
+    if backend == "gsplat" and branched:
+        if settings.backend == "gsplat":
             raise BackendError("separate tensors for the covariance and SH paths of the means (rasterize_branched: "
                                "the branch analysis and exploregs-branch-ablation --model.detach-paths) need "
                                "--model.raster.backend torch or cpp")
+        backend = "torch"  # auto on a GPU: gsplat has one means input, so the branches render with the reference
+    if backend == "gsplat":
         return rasterize_gsplat(means, quats, scales, opacities, sh_coeffs, colors, degree, viewmat, K, int(width),
                                 int(height), background, near_plane, far_plane, settings)
     problem = backend_problem(settings, means.device) if settings.backend == "cpp" else None
