@@ -51,7 +51,7 @@ def test_branched_rendering_runs_on_cuda_under_auto():
     camera = scene.camera.to(CUDA)
     outs = [rasterize_branched(*args, camera, means_cov=args[0] + 0.01, means_sh=args[0], settings=settings)[0]
             for settings in (RasterSettings(), RasterSettings(backend="torch"))]
-    assert torch.equal(outs[0], outs[1])
+    assert float((outs[0] - outs[1]).abs().max()) <= 1e-6  # the same renderer (CUDA adds in no fixed order)
 
 
 def _rel(a: torch.Tensor, b: torch.Tensor) -> float:
