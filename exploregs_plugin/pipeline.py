@@ -312,11 +312,15 @@ class Pipeline:
             totals[k] = value.to(torch.float64)
 
     def check_finite(self, step: int) -> None:
-        for name, p in self.trained_tensors():
-            # One reduction per tensor: NaN and inf propagate through a sum, so a finite sum
-            # means finite entries. Only a non-finite sum (or float32 overflow of a large one)
-            # pays for the element-wise scan.
-            if p.numel() == 0 or bool(torch.isfinite(p.detach().sum())):
+        # One reduction per tensor: NaN and inf propagate through a sum, so a finite sum means
+        # finite entries. The sums are read back together, one wait for the device per step
+        # instead of one per tensor; only a non-finite sum (or float32 overflow of a large one)
+        # pays for the element-wise scan below.
+        tensors = [(name, p) for name, p in self.trained_tensors() if p.numel() > 0]
+        if not tensors or bool(torch.isfinite(torch.stack([p.detach().sum().float() for _, p in tensors])).all()):
+            return
+        for name, p in tensors:
+            if bool(torch.isfinite(p.detach().sum())):
                 continue
             bad = ~torch.isfinite(p.detach())
             if not bool(bad.any()):
