@@ -238,8 +238,8 @@ class Pipeline:
         """Render one training view, back-propagate its share of the step's loss, add its values
         to ``totals``; returns what the strategy observes of this view."""
         batch = self.batch_size
-        camera, target, extras = self.datamanager.train_item(index)
-        target = self._target_on(background, target.to(self.device, non_blocking=True), extras)
+        camera, target, extras = self.datamanager.train_item(index, self.device)
+        target = self._target_on(background, target, extras)
         image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background)
         error = None
         if VIEW_ERRORS in self.requires:  # guided exploration: where this view is still wrong
