@@ -65,13 +65,15 @@ def measure(data: str, method: str, device: str, backend: str, warmup: int, step
     target = target.to(where)
     degree = pipeline.sh_degree_at(warmup)
 
-    def bare() -> None:
-        image, _, _, _ = render_params(params, camera, degree, pipeline.background, settings=pipeline.model.config.raster)
+    def optimise(image: torch.Tensor) -> None:
         loss, _ = photometric_loss(image, target, config.pipeline.ssim_lambda)
         loss.backward()
         for optimizer in optimizers.values():
             optimizer.step()
             optimizer.zero_grad(set_to_none=True)
+
+    def bare() -> None:
+        optimise(render_params(params, camera, degree, pipeline.background, settings=pipeline.model.config.raster)[0])
 
     def native() -> None:
         # gsplat's own call, as its simple trainer makes it: activated parameters, RGB only
@@ -82,11 +84,7 @@ def measure(data: str, method: str, device: str, backend: str, warmup: int, step
             torch.cat([params["sh0"], params["shN"]], dim=1), camera.viewmat.to(where)[None], camera.K.to(where)[None],
             int(camera.width), int(camera.height), sh_degree=degree, packed=False,
         )  # fmt: skip
-        loss, _ = photometric_loss(renders[0], target, config.pipeline.ssim_lambda)
-        loss.backward()
-        for optimizer in optimizers.values():
-            optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
+        optimise(renders[0])
 
     bare()  # warm-up
     bare_times = [_timed(bare, where) for _ in range(steps)]
