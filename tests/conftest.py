@@ -30,9 +30,10 @@ def pytest_configure(config: pytest.Config) -> None:
     CUDA, where atomic adds make runs differ bit for bit. The CUDA contract is
     ``python -m pytest -m cuda`` (tests/test_cuda.py), which keeps the GPU visible. Hidden through
     the environment before anything has initialised CUDA, so subprocesses inherit it."""
-    if not _selects_cuda(config.getoption("markexpr") or ""):
+    cuda = _selects_cuda(config.getoption("markexpr") or "")
+    if not cuda:
         os.environ["CUDA_VISIBLE_DEVICES"] = ""
-    if not _selects_cuda(config.getoption("markexpr") or "") or not torch.cuda.is_available():
+    if not cuda or not torch.cuda.is_available():
         # gsplat builds its CUDA kernels on first import wherever it finds nvcc (minutes, and a second
         # process importing it meanwhile deletes the half-built folder); the CPU suite uses only its
         # pure-torch parts

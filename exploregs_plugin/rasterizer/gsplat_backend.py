@@ -69,8 +69,8 @@ def load_gsplat_kernels() -> Any:
         fcntl = None
     from torch.utils.cpp_extension import _get_build_directory
 
+    # torch makes the build folder if it is missing, so its parent, where the lock lives, exists
     lock_dir = Path(_get_build_directory("gsplat_cuda", verbose=False)).parent
-    lock_dir.mkdir(parents=True, exist_ok=True)
     with open(lock_dir / "gsplat_cuda.build-lock", "a") as lock:
         if fcntl is not None:
             fcntl.flock(lock.fileno(), fcntl.LOCK_EX)
