@@ -133,7 +133,7 @@ def test_failing_runs_appear_as_failed(bench, tmp_path):
     assert sum(r["status"] == "failed" for r in rows) == 3
 
 
-def test_parallel_runs_parse_overrides_before_threads_and_lose_no_output(bench, monkeypatch, capsys):
+def test_parallel_runs_parse_overrides_in_the_main_thread_and_lose_no_output(bench, monkeypatch, capsys):
     # Parsing an entry's overrides swaps the process-wide stderr for a moment; done inside the
     # worker threads it swallowed other threads' progress lines and could leave stderr captured.
     import sys
@@ -212,3 +212,44 @@ def test_real_gpu_preset_at_tiny_scale_matches_counts_through_result_references(
                            BenchEntry("b", "exploregs-mcmc", ("--strategy.cap-max", "{a:num_gaussians}")),
                            BenchEntry("c", "exploregs-mcmc", ("--strategy.cap-max", "{b:num_gaussians}"))),
                   scenes=(TINY,))
+
+
+def test_a_dependent_run_starts_when_its_inputs_finish_not_after_every_other_run(tmp_path, monkeypatch):
+    """Two job slots; ``slow`` and ``fast`` are independent, ``after`` uses ``fast``'s count. ``after``
+    must start (its config built once ``fast`` has finished) while ``slow`` still runs: ``slow``
+    waits for that start, so a scheduler that holds ``after`` back until every independent run has
+    finished leaves ``slow`` to time out."""
+    import threading
+
+    from exploregs_plugin.bench import runner
+
+    spec = BenchSpec(entries=(BenchEntry("slow", "exploregs-default"), BenchEntry("fast", "exploregs-default"),
+                              BenchEntry("after", "exploregs-mcmc", ("--strategy.cap-max", "{fast:num_gaussians}"))),
+                     scenes=(TINY,), seeds=(0, 1), steps=STEPS, name="test")
+    finished: set[tuple[str, int]] = set()
+    built_after: list[tuple[int, bool]] = []
+    after_started = {0: threading.Event(), 1: threading.Event()}
+    slow_saw_after: dict[int, bool] = {}
+
+    def fake_config(spec, results, scene, entry, seed):
+        if entry.name == "after":
+            built_after.append((seed, ("fast", seed) in finished))
+        return entry.name
+
+    def fake_run(spec, results, scene, entry, seed, options, prepared):
+        assert prepared == entry.name
+        if entry.name == "slow":
+            slow_saw_after[seed] = after_started[seed].wait(timeout=10)
+        if entry.name == "after":
+            after_started[seed].set()
+        finished.add((entry.name, seed))
+        return runner.RunRecord(scene.name, entry.name, seed, tmp_path, status="done", metrics={"psnr": 1.0})
+
+    monkeypatch.setattr(runner, "_config_or_error", fake_config)
+    monkeypatch.setattr(runner, "run_one", fake_run)
+    logs: list[str] = []
+    records = runner.execute(spec, tmp_path, RunOptions(jobs=2, log=logs.append))
+    assert [(r.entry, r.seed) for r in records] == [(e, s) for s in (0, 1) for e in ("slow", "fast", "after")]
+    assert sorted(built_after) == [(0, True), (1, True)]
+    assert slow_saw_after == {0: True, 1: True}
+    assert len([ln for ln in logs if ln.startswith("[")]) == 6

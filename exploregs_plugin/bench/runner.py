@@ -18,7 +18,7 @@ import subprocess
 import sys
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import FIRST_COMPLETED, Future, ThreadPoolExecutor, wait
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
@@ -205,19 +205,40 @@ def run_one(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry
     return record
 
 
+def _needs(plan: list[tuple[BenchScene, BenchEntry, int]]) -> dict[int, set[int]]:
+    """For each run of ``plan``, the runs whose results its overrides use: the referenced entries'
+    runs on the same scene and seed (a reference the plan does not run is not waited for; building
+    the config then reports it)."""
+    where = {(scene.name, entry.name, seed): i for i, (scene, entry, seed) in enumerate(plan)}
+    return {i: {where[(scene.name, ref, seed)] for ref in entry.depends_on() if (scene.name, ref, seed) in where}
+            for i, (scene, entry, seed) in enumerate(plan)}
+
+
 def execute(spec: BenchSpec, results: Path, options: RunOptions | None = None) -> list[RunRecord]:
-    """Run (or reuse) every run of ``spec``; returns one record per (scene, entry, seed) in spec order."""
+    """Run (or reuse) every run of ``spec``; returns one record per (scene, entry, seed) in spec order.
+
+    A run whose overrides use another run's result (``{ENTRY:num_gaussians}``) starts as soon as
+    that run has finished, not after the whole bench's other runs: a long independent run does not
+    hold a free job slot idle."""
     options = options or RunOptions()
     if options.jobs < 1:
         raise BenchSpecError(f"jobs must be >= 1, got {options.jobs}")
     plan = spec.runs()
-    lock = threading.Lock()
-    done = {"count": 0, "trained_seconds": 0.0, "trained": 0}
-    prepared: dict[int, TrainerConfig | BenchSpecError] = {}
+    # One lock for everything that prints or builds a config: parsing overrides swaps the
+    # process-wide stderr for a moment (to catch tyro's message), which would swallow a line
+    # another thread prints meanwhile. Configs are built here, in this thread.
+    lock = threading.RLock()
 
-    def one(index: int) -> RunRecord:
+    def log(message: str) -> None:
+        with lock:
+            options.log(message)
+
+    run_options = replace(options, log=log)
+    done = {"count": 0, "trained_seconds": 0.0, "trained": 0}
+
+    def one(index: int, prepared: TrainerConfig | BenchSpecError) -> RunRecord:
         scene, entry, seed = plan[index]
-        record = run_one(spec, results, scene, entry, seed, options, prepared[index])
+        record = run_one(spec, results, scene, entry, seed, run_options, prepared)
         with lock:
             done["count"] += 1
             if record.trained:
@@ -226,19 +247,25 @@ def execute(spec: BenchSpec, results: Path, options: RunOptions | None = None) -
             options.log(_progress_line(record, done["count"], len(plan), done, options.jobs))
         return record
 
-    # Runs whose overrides use another entry's result ({ENTRY:num_gaussians}) come in a second
-    # wave, after every run they may need.
+    needs = _needs(plan)
+    waiting = set(range(len(plan)))
     records: dict[int, RunRecord] = {}
-    for wave in ([i for i, (_, e, _) in enumerate(plan) if not e.depends_on()],
-                 [i for i, (_, e, _) in enumerate(plan) if e.depends_on()]):
-        # Configs are built here, before any thread starts: parsing overrides swaps the process-wide
-        # stderr for a moment (to catch tyro's message), which would swallow other threads' output.
-        prepared.update({i: _config_or_error(spec, results, *plan[i]) for i in wave})
-        if options.jobs == 1:
-            records.update({i: one(i) for i in wave})
-        else:
-            with ThreadPoolExecutor(max_workers=options.jobs) as pool:
-                records.update(zip(wave, pool.map(one, wave)))
+    running: dict[Future[RunRecord], int] = {}
+    with ThreadPoolExecutor(max_workers=options.jobs) as pool:
+        while waiting or running:
+            # in plan order, every run whose inputs are in, up to the free job slots
+            for i in sorted(i for i in waiting if not needs[i] & waiting.union(running.values())):
+                if len(running) >= options.jobs:
+                    break
+                waiting.discard(i)
+                with lock:
+                    prepared = _config_or_error(spec, results, *plan[i])
+                running[pool.submit(one, i, prepared)] = i
+            if not running:  # the spec forbids chains, so this is a bug, not a slow bench
+                raise BenchSpecError(f"runs {sorted(waiting)} wait for each other")
+            finished, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in finished:
+                records[running.pop(future)] = future.result()
     return [records[i] for i in range(len(plan))]
 
 
