@@ -73,8 +73,7 @@ def evaluate_views(
     if save_dir is not None:
         Path(save_dir).mkdir(parents=True, exist_ok=True)
     for i in views:
-        camera, target, extras = datamanager.test_item(i)
-        target = target.to(device)
+        camera, target, extras = datamanager.test_item(i, device)
         start = time.perf_counter()
         with torch.no_grad():
             image, _, _, _ = model.render(camera, model.config.sh_degree, datamanager.background)

@@ -54,9 +54,11 @@ def test_branched_rendering_runs_on_cuda_under_auto():
     assert float((outs[0] - outs[1]).abs().max()) <= 1e-6  # the same renderer (CUDA adds in no fixed order)
 
 
-def test_a_training_image_is_uploaded_as_uint8_and_converted_on_the_gpu(tiny_dm):
-    camera, host, _ = tiny_dm.train_item(0)
-    _, on_gpu, _ = tiny_dm.train_item(0, CUDA)
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_an_image_is_uploaded_as_uint8_and_converted_on_the_gpu(tiny_dm, split):
+    item = getattr(tiny_dm, f"{split}_item")
+    camera, host, _ = item(0)
+    _, on_gpu, _ = item(0, CUDA)
     assert on_gpu.device.type == "cuda" and on_gpu.dtype == torch.float32
     # CUDA divides by a scalar as a product with its reciprocal: within one rounding of the host's
     assert float((on_gpu.cpu() - host).abs().max()) <= 1e-7

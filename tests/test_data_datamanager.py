@@ -199,10 +199,12 @@ def test_frustum_init_puts_points_on_training_pixels_with_their_colours(tiny_sce
         replace(config, random_init_depth=(2.0, 1.0)).setup()
 
 
-def test_train_item_on_a_device_is_the_host_item_moved(tiny_dm):
-    # the pipeline asks for its device's copy (converted from uint8 there): the same values
-    for index in (0, len(tiny_dm.train_cameras) - 1):
-        camera, host, _ = tiny_dm.train_item(index)
-        camera_d, on_device, _ = tiny_dm.train_item(index, torch.device("cpu"))
+@pytest.mark.parametrize("split", ["train", "test"])
+def test_an_item_on_a_device_is_the_host_item_moved(tiny_dm, split):
+    # the pipeline and evaluation ask for their device's copy (converted from uint8 there): the same values
+    item = getattr(tiny_dm, f"{split}_item")
+    for index in (0, len(getattr(tiny_dm, f"{split}_cameras")) - 1):
+        camera, host, _ = item(index)
+        camera_d, on_device, _ = item(index, torch.device("cpu"))
         assert camera_d is camera and on_device.dtype == torch.float32 and torch.equal(on_device, host)
         assert float(host.min()) >= 0.0 and float(host.max()) <= 1.0 and float(host.max()) > 0.0

@@ -164,10 +164,10 @@ def _test_views(run: LoadedRun) -> Iterator[tuple[Any, Tensor, Tensor, Tensor, T
     model, dm = run.pipeline.model, run.pipeline.datamanager
     device = model.params["means"].device
     for i in range(len(dm.test_cameras)):
-        camera, target, _ = dm.test_item(i)
+        camera, target, _ = dm.test_item(i, device)
         with torch.no_grad():
             image, alpha, depth, _ = model.render(camera, model.config.sh_degree, dm.background)
-        yield camera, target.to(device), image.clamp(0.0, 1.0), alpha[..., 0].float(), depth[..., 0].float()
+        yield camera, target, image.clamp(0.0, 1.0), alpha[..., 0].float(), depth[..., 0].float()
 
 
 def far_masks(reference: Path, quantile: float = FAR_QUANTILE, device: str = "auto") -> list[Tensor]:

@@ -296,9 +296,10 @@ class DataManager:
         image on ``device`` when given (converted there from the stored uint8), else on the host."""
         return self._item(self._train[index], device)
 
-    def test_item(self, index: int) -> tuple[Camera, Tensor, dict[str, Any]]:
-        """(camera, image [H, W, 3] float32 in [0, 1], extras) of test image ``index``."""
-        return self._item(self._test[index])
+    def test_item(self, index: int, device: torch.device | None = None) -> tuple[Camera, Tensor, dict[str, Any]]:
+        """(camera, image [H, W, 3] float32 in [0, 1], extras) of test image ``index``; the image on
+        ``device`` when given, as :meth:`train_item`."""
+        return self._item(self._test[index], device)
 
     def next_train(self) -> tuple[int, Camera, Tensor, dict[str, Any]]:
         """The next training image in a seeded random order; a fresh permutation each epoch."""
