@@ -75,13 +75,34 @@ def beer_scene(data_factor: int = 4, image_index: int = 0) -> GaussianScene:
     return scene.to(torch.float32)
 
 
+def checkpoint_scene(path: str, view: int = 0) -> GaussianScene:
+    """A trained set: the Gaussians of a checkpoint (a ``.pt`` file, or a run folder's newest),
+    seen from training view ``view`` of its run (loaded on the CPU)."""
+    from exploregs_plugin.runs.load import load_run
+
+    run = load_run(Path(path), "cpu")
+    p, cameras = run.pipeline.model.params, run.pipeline.datamanager.train_cameras
+    if not 0 <= view < len(cameras):
+        raise ValueError(f"bench: {path} has {len(cameras)} training views, no view {view}")
+    cam = cameras[view]
+    sh = torch.cat([p["sh0"], p["shN"]], dim=1)
+    scene = GaussianScene(p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), sh,
+                          cam.viewmat, cam.K, int(cam.width), int(cam.height))  # fmt: skip
+    return scene.to(torch.float32)
+
+
 def make_scene(name: str) -> GaussianScene:
+    """S, M, L (random), beer (its sparse points), or ``PATH[@VIEW]``: a checkpoint's trained set."""
     if name in SCENES:
         n, w, h = SCENES[name]
         return random_scene(n, w, h, torch.Generator().manual_seed(0))
     if name == "beer":
         return beer_scene()
-    raise ValueError(f"bench: unknown scene '{name}' (choose from S, M, beer)")
+    path, _, view = name.rpartition("@") if "@" in name else (name, "", "0")
+    if Path(path).exists() and view.isdigit():
+        return checkpoint_scene(path, int(view))
+    raise ValueError(f"bench: unknown scene '{name}' (choose from {', '.join(SCENES)}, beer, or a checkpoint "
+                     f"PATH[@VIEW])")
 
 
 def _windows(w: int, h: int) -> list[tuple[int, int, int, int]]:
@@ -198,7 +219,8 @@ def _row(r: dict, base: dict | None) -> str:
 def main(argv: list[str] | None = None) -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", nargs="+", default=["S", "M", "beer"],
-                    help="S, M, L (500k Gaussians at 1024x1024), beer (skipped if absent)")
+                    help="S, M, L (500k Gaussians at 1024x1024), beer (skipped if absent), or a trained set: "
+                         "PATH[@VIEW], a checkpoint file or run folder and one of its training views (default 0)")
     ap.add_argument("--methods", nargs="+", default=["cpp", "torch"], choices=list(METHODS),
                     help="cpp (compiled, CPU), torch (pure torch, CPU), baseline (plain compositor, CPU), "
                          "torch-cuda, gsplat (CUDA)")
