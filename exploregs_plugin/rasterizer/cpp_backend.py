@@ -85,7 +85,7 @@ class _ProjectCpp(torch.autograd.Function):
         inputs = [t.detach().contiguous() for t in (means, quats, scales, opacities)]
         camera = (viewmat.detach(), K.detach(), width, height, float(near), float(far), settings.eps2d,
                   settings.sigma_radius, settings.guard_band, settings.antialiased)  # fmt: skip
-        means2d, conics, opac, depths, radii, support, visible = extension().project_forward(*inputs, *camera, threads)
+        means2d, conics, opac, depths, radii, support, visible = extension().project_forward(*inputs, *camera, settings.alpha_min, threads)
         ctx.mark_non_differentiable(radii, support, visible)
         ctx.save_for_backward(*inputs)
         ctx.camera, ctx.threads = camera, threads

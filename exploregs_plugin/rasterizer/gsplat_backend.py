@@ -4,9 +4,10 @@ The conventions we can set are ours: pixel centres at +0.5, the 0.3 px low-pass 
 the guard band 0.3, the alpha floor 1/255, the transmittance stop 1e-4, the antialiased
 variant, SH colours max(SH + 0.5, 0), the background and the expected depth sum w z / A.
 gsplat 1.5.3's kernels fix three things differently (read from its CUDA sources): alpha is
-capped at 0.999 (ours: 0.99); the support box is opacity-aware, per axis
-min(3.33, sqrt(2 ln(255 o))) standard deviations (ours: 3), and Gaussians with o < 1/255 are
-culled; and a pixel blends every Gaussian whose box meets its tile (ours: whose box holds the
+capped at 0.999 (ours: 0.99); the support box is per axis min(3.33, sqrt(2 ln(255 o)))
+standard deviations (ours: min(3, sqrt(2 ln(255 o))), which leaves out only pairs below the alpha
+floor, and the ``radii`` the strategies see are 3 standard deviations), and Gaussians with
+o < 1/255 are culled; and a pixel blends every Gaussian whose box meets its tile (ours: whose box holds the
 pixel centre). Images therefore agree closely but not to float rounding, mostly at support
 edges and where alpha saturates. The returned ``info`` keeps
 the contract the strategies read: ``means2d`` (whose gradient is the densification statistic;

@@ -613,7 +613,8 @@ torch::Tensor sum_pairs(torch::Tensor rows, torch::Tensor gauss_first, torch::Te
 std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
                                            torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
                                            int64_t width, int64_t height, double near, double far, double eps2d,
-                                           double sigma_radius, double guard_band, bool antialiased, int64_t threads);
+                                           double sigma_radius, double guard_band, bool antialiased, double alpha_min,
+                                           int64_t threads);
 std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
                                             torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
                                             int64_t width, int64_t height, double near, double far, double eps2d,

@@ -7,7 +7,10 @@
 //   J = [[fx / z, 0, -fx xz / z], [0, fy / z, -fy yz / z]], xz = clamp(p_x / z) to the guard band,
 //   M = J W R(q) diag(s), cov2d = M M^T, (a, b, c) = (cov_00 + eps2d, cov_01, cov_11 + eps2d),
 //   det = max(a c - b^2, 1e-20), conic = (c, -b, a) / det, radius = ceil(sigma_radius sqrt((a, c))),
-//   antialiased: o' = o sqrt(max((cov_00 cov_11 - b^2) / det, 0)).
+//   antialiased: o' = o sqrt(max((cov_00 cov_11 - b^2) / det, 0)),
+//   support = min(radius, ceil(sqrt(t (a, c)) (1 + 1e-3) + 1e-2)), t = 2 ln(max(o', alpha_min) / alpha_min)
+//   where the determinant is not floored (projection.py's opacity_support: alpha = o' exp(-q / 2)
+//   reaches alpha_min only inside q <= t, and that ellipse's bounding box is sqrt(t (a, c))).
 // Backward: the chain rule through exactly these expressions; zero through the guard-band clamp
 // and the determinant floor where they are active, as autograd gives for the torch code.
 // Every Gaussian writes only its own rows, so the result does not depend on the thread count.
@@ -25,6 +28,8 @@ namespace {
 
 constexpr double QUAT_NORM2_MIN = 1e-24;  // |q| <= 1e-12: the identity rotation
 constexpr double DET_MIN = 1e-20;         // floor of the 2D covariance determinant
+constexpr double SUPPORT_MARGIN_REL = 1e-3;  // margins of the opacity-aware support (projection.py)
+constexpr double SUPPORT_MARGIN_PX = 1e-2;
 
 template <typename scalar_t>
 struct Camera {
@@ -115,7 +120,7 @@ template <typename scalar_t>
 void project_forward_impl(const Camera<scalar_t>& cam, int64_t n, const scalar_t* means, const scalar_t* quats,
                           const scalar_t* scales, const scalar_t* opac, scalar_t* means2d, scalar_t* conics,
                           scalar_t* opac_out, scalar_t* depths, int32_t* radii, scalar_t* support, bool* visible,
-                          int64_t threads) {
+                          scalar_t alpha_min, int64_t threads) {
 #pragma omp parallel for num_threads(std::max<int64_t>(1, threads)) schedule(static)
   for (int64_t i = 0; i < n; ++i) {
     const Geometry<scalar_t> g = geometry(cam, means + 3 * i, quats + 4 * i, scales + 3 * i);
@@ -135,8 +140,17 @@ void project_forward_impl(const Camera<scalar_t>& cam, int64_t n, const scalar_t
     opac_out[i] = o;
     const scalar_t rx = std::ceil(cam.sigma_radius * std::sqrt(std::max(g.a, scalar_t(0))));
     const scalar_t ry = std::ceil(cam.sigma_radius * std::sqrt(std::max(g.c, scalar_t(0))));
-    support[2 * i] = rx;
-    support[2 * i + 1] = ry;
+    scalar_t sx = rx, sy = ry;
+    if (!g.det_floor) {
+      const scalar_t t = 2 * std::log(std::max(o, alpha_min) / alpha_min);
+      const scalar_t a = std::max(g.a, scalar_t(0)), c = std::max(g.c, scalar_t(0));
+      const scalar_t tx = std::ceil(std::sqrt(t * a) * scalar_t(1 + SUPPORT_MARGIN_REL) + scalar_t(SUPPORT_MARGIN_PX));
+      const scalar_t ty = std::ceil(std::sqrt(t * c) * scalar_t(1 + SUPPORT_MARGIN_REL) + scalar_t(SUPPORT_MARGIN_PX));
+      sx = std::fmin(rx, tx);  // fmin: a NaN keeps the sigma_radius box
+      sy = std::fmin(ry, ty);
+    }
+    support[2 * i] = sx;
+    support[2 * i + 1] = sy;
     const bool finite = std::isfinite(u) && std::isfinite(v) && std::isfinite(k0) && std::isfinite(k1) &&
                         std::isfinite(k2) && std::isfinite(rx) && std::isfinite(ry);
     // the support box holds pixel centres i + 0.5 with |i + 0.5 - mean| <= radius
@@ -286,7 +300,8 @@ Camera<scalar_t> make_camera(const torch::Tensor& viewmat, const torch::Tensor& 
 std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
                                            torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
                                            int64_t width, int64_t height, double near, double far, double eps2d,
-                                           double sigma_radius, double guard_band, bool antialiased, int64_t threads) {
+                                           double sigma_radius, double guard_band, bool antialiased, double alpha_min,
+                                           int64_t threads) {
   for (const auto* t : {&means, &quats, &scales, &opacities}) {
     TORCH_CHECK(t->device().is_cpu() && t->is_contiguous(), "project_cpu: CPU contiguous tensors");
     TORCH_CHECK(t->scalar_type() == means.scalar_type(), "project_cpu: tensors must share one dtype");
@@ -303,7 +318,8 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor qu
                                    scales.data_ptr<scalar_t>(), opacities.data_ptr<scalar_t>(),
                                    means2d.data_ptr<scalar_t>(), conics.data_ptr<scalar_t>(), opac.data_ptr<scalar_t>(),
                                    depths.data_ptr<scalar_t>(), radii.data_ptr<int32_t>(),
-                                   support.data_ptr<scalar_t>(), visible.data_ptr<bool>(), threads);
+                                   support.data_ptr<scalar_t>(), visible.data_ptr<bool>(), scalar_t(alpha_min),
+                                   threads);
   });
   return {means2d, conics, opac, depths, radii, support, visible};
 }
