@@ -78,16 +78,15 @@ def beer_scene(data_factor: int = 4, image_index: int = 0) -> GaussianScene:
 def checkpoint_scene(path: str, view: int = 0) -> GaussianScene:
     """A trained set: the Gaussians of a checkpoint (a ``.pt`` file, or a run folder's newest),
     seen from training view ``view`` of its run (loaded on the CPU)."""
+    from exploregs_plugin.analysis.branches import activated
     from exploregs_plugin.runs.load import load_run
 
     run = load_run(Path(path), "cpu")
-    p, cameras = run.pipeline.model.params, run.pipeline.datamanager.train_cameras
+    cameras = run.pipeline.datamanager.train_cameras
     if not 0 <= view < len(cameras):
         raise ValueError(f"bench: {path} has {len(cameras)} training views, no view {view}")
     cam = cameras[view]
-    sh = torch.cat([p["sh0"], p["shN"]], dim=1)
-    scene = GaussianScene(p["means"], p["quats"], torch.exp(p["scales"]), torch.sigmoid(p["opacities"]), sh,
-                          cam.viewmat, cam.K, int(cam.width), int(cam.height))  # fmt: skip
+    scene = GaussianScene(*activated(run.pipeline.model.params), cam.viewmat, cam.K, int(cam.width), int(cam.height))
     return scene.to(torch.float32)
 
 
