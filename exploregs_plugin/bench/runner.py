@@ -253,8 +253,9 @@ def execute(spec: BenchSpec, results: Path, options: RunOptions | None = None) -
     running: dict[Future[RunRecord], int] = {}
     with ThreadPoolExecutor(max_workers=options.jobs) as pool:
         while waiting or running:
-            # in plan order, every run whose inputs are in, up to the free job slots
-            for i in sorted(i for i in waiting if not needs[i] & waiting.union(running.values())):
+            # in plan order, every run whose inputs are in (none waiting or running), up to the free slots
+            unfinished = waiting | set(running.values())
+            for i in sorted(i for i in waiting if not needs[i] & unfinished):
                 if len(running) >= options.jobs:
                     break
                 waiting.discard(i)
