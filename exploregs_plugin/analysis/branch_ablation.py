@@ -20,7 +20,7 @@ from torch import Tensor, nn
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.method_configs import as_variant, default_variant
-from exploregs_plugin.model.gaussians import GaussianModel, GaussianModelConfig
+from exploregs_plugin.model.gaussians import GaussianModel, GaussianModelConfig, activate
 from exploregs_plugin.rasterizer import RasterSettings, rasterize_branched
 
 PositionPath = Literal["mean2d", "cov", "sh"]
@@ -49,8 +49,8 @@ def render_detached(
     means_2d = means.detach().requires_grad_(means.requires_grad) if "mean2d" in detach_paths else means
     means_cov = means.detach() if "cov" in detach_paths else means
     means_sh = means.detach() if "sh" in detach_paths else means
-    sh = torch.cat([params["sh0"], params["shN"]], dim=1)
-    return rasterize_branched(means_2d, params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), sh,
+    _, quats, scales, opacities, sh = activate(params)
+    return rasterize_branched(means_2d, quats, scales, opacities, sh,
                      camera, sh_degree=sh_degree, background=background, means_cov=means_cov, means_sh=means_sh,
                      settings=settings)
 

@@ -16,6 +16,7 @@ import torch
 from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
+from exploregs_plugin.model.gaussians import activate
 from exploregs_plugin.model.losses import photometric_loss
 from exploregs_plugin.rasterizer import RasterSettings, rasterize_branched
 from exploregs_plugin.rasterizer.composite import single_threaded_ops
@@ -88,9 +89,8 @@ class ViewProblem:
 
 def activated(params: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
     """(means, quats, scales, opacities, sh [N, K, 3]) activated and detached from the model."""
-    sh = torch.cat([params["sh0"], params["shN"]], dim=1)
-    return (params["means"].detach(), params["quats"].detach(), torch.exp(params["scales"].detach()),
-            torch.sigmoid(params["opacities"].detach()), sh.detach())  # fmt: skip
+    with torch.no_grad():
+        return tuple(t.detach() for t in activate(params))  # type: ignore[return-value]
 
 
 def render_branches(

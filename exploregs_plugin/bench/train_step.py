@@ -31,7 +31,7 @@ import torch
 
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.method_configs import get_method
-from exploregs_plugin.model.gaussians import render_params
+from exploregs_plugin.model.gaussians import activate, render_params
 from exploregs_plugin.model.losses import photometric_loss
 from exploregs_plugin.model.optim import set_lr
 
@@ -80,8 +80,7 @@ def measure(data: str, method: str, device: str, backend: str, warmup: int, step
         from gsplat import rasterization
 
         renders, _, _ = rasterization(
-            params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
-            torch.cat([params["sh0"], params["shN"]], dim=1), camera.viewmat.to(where)[None], camera.K.to(where)[None],
+            *activate(params), camera.viewmat.to(where)[None], camera.K.to(where)[None],
             int(camera.width), int(camera.height), sh_degree=degree, packed=False,
         )  # fmt: skip
         optimise(renders[0])

@@ -185,6 +185,17 @@ class GaussianModel(nn.Module):
         )
 
 
+def activate(params: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """(means, quats, scales, opacities, sh [N, K, 3]) as every rasterizer takes them.
+
+    scales = exp(log-scales), opacities = sigmoid(logits), sh = [sh0 | shN] along the coefficient
+    axis; means and quats pass through (the rasterizer normalises quaternions). The results stay in
+    the autograd graph: a caller that only reads them calls this under ``torch.no_grad()``.
+    """
+    sh = torch.cat([params["sh0"], params["shN"]], dim=1)
+    return params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), sh
+
+
 def render_params(
     params: Mapping[str, Tensor],
     camera: Camera,
@@ -193,9 +204,7 @@ def render_params(
     settings: RasterSettings | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
     """Activate raw parameters and rasterize them (shared by the model, viewer and exports)."""
-    sh = torch.cat([params["sh0"], params["shN"]], dim=1)
-    return rasterize(params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]),
-                     sh, camera, sh_degree=sh_degree, background=background, settings=settings)
+    return rasterize(*activate(params), camera, sh_degree=sh_degree, background=background, settings=settings)
 
 
 def render_camera(
