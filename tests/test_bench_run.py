@@ -97,6 +97,9 @@ def test_rerun_reuses_finished_runs_and_resumes_unfinished(bench):
     assert (default_dir / "metrics.json").stat().st_mtime_ns == stamp
     assert (default_dir / "bench.log").read_text() == log_before  # no process was started for it
     assert "reused" in logs[0] and "trained in" in logs[1]
+    # a resumed run reports its whole training time (metrics.json sums it over resumes), not this call's
+    resumed_seconds = _metrics(out, "seed")["wall_seconds"]
+    assert f"resumed, trained in {resumed_seconds:.0f} s in all (" in logs[1]
     commands = [ln for ln in (seed_dir / "bench.log").read_text().splitlines() if ln.startswith("$ ")]
     assert len(commands) == 2 and commands[1].endswith(" --resume")
     resumed = _metrics(out, "seed")

@@ -55,6 +55,8 @@ class RunRecord:
     metrics: dict[str, Any] | None = None
     trained: bool = False
     """True when this invocation trained (or resumed) it; False when reused."""
+    resumed: bool = False
+    """True when this invocation went on from the run's checkpoint instead of starting it."""
     attempts: int = 0
     wall_seconds: float = 0.0
     """Wall-clock seconds of this invocation's subprocesses (start-up and evaluation included)."""
@@ -189,7 +191,7 @@ def run_one(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry
             save_config(config, run_dir / JOB_NAME)
         _write_state(run_dir, fingerprint=fingerprint, status="running", attempts=attempt + 1)
         rc, error = _launch(run_dir, resume, options.timeout)
-        record.attempts = attempt + 1
+        record.attempts, record.resumed = attempt + 1, resume
         if error is None:
             record.status, record.metrics, record.error = "done", read_json(run_dir / METRICS_NAME), None
             _write_state(run_dir, fingerprint=fingerprint, status="done", attempts=attempt + 1)
@@ -243,7 +245,7 @@ def execute(spec: BenchSpec, results: Path, options: RunOptions | None = None) -
             done["count"] += 1
             if record.trained:
                 done["trained"] += 1
-                done["trained_seconds"] += record.wall_seconds
+                done["trained_seconds"] += _run_seconds(record)
             options.log(_progress_line(record, done["count"], len(plan), done, options.jobs))
         return record
 
@@ -270,11 +272,23 @@ def execute(spec: BenchSpec, results: Path, options: RunOptions | None = None) -
     return [records[i] for i in range(len(plan))]
 
 
+def _run_seconds(record: RunRecord) -> float:
+    """The run's own wall-clock seconds over all its sessions (metrics.json keeps the sum across
+    resumes); this invocation's when the metrics lack it. A resumed run's invocation alone would
+    make the estimate of what is left far too short."""
+    seconds = (record.metrics or {}).get("wall_seconds")
+    return float(seconds) if isinstance(seconds, (int, float)) and seconds > 0 else record.wall_seconds
+
+
 def _progress_line(record: RunRecord, count: int, total: int, done: dict[str, Any], jobs: int) -> str:
     head = f"[{count}/{total}] {record.scene}/{record.entry}/seed{record.seed}: "
     if record.status == "done" and record.metrics is not None:
         m = record.metrics
-        how = f"trained in {record.wall_seconds:.0f} s" if record.trained else "reused"
+        how = "reused"
+        if record.trained:
+            how = f"trained in {_run_seconds(record):.0f} s"
+            if record.resumed:
+                how = f"resumed, {how} in all ({record.wall_seconds:.0f} s now)"
         text = f"{how}, PSNR {m.get('psnr', float('nan')):.2f} dB, {m.get('num_gaussians')} Gaussians"
     elif record.status == "failed":
         text = f"FAILED: {record.error}"
