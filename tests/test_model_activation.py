@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import torch
 
-from exploregs_plugin.analysis.branches import activated
-from exploregs_plugin.model.gaussians import activate
+from exploregs_plugin.model.gaussians import activate, activate_detached
 
 
 def _raw(n: int = 5, k: int = 4) -> dict[str, torch.Tensor]:
@@ -30,9 +29,9 @@ def test_activate_applies_exp_sigmoid_and_stacks_the_sh_bands_in_the_graph():
     assert torch.equal(raw["shN"].grad, torch.ones_like(raw["shN"]))
 
 
-def test_activated_is_the_same_values_cut_from_the_graph():
+def test_activate_detached_is_the_same_values_cut_from_the_graph():
     raw = _raw()
-    live, cut = activate(raw), activated(raw)
+    live, cut = activate(raw), activate_detached(raw)
     for a, b in zip(live, cut):
         assert torch.equal(a.detach(), b)
         assert not b.requires_grad and b.grad_fn is None

@@ -14,13 +14,14 @@ import torch
 from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
+from exploregs_plugin.model.gaussians import activate_detached
 from exploregs_plugin.rasterizer import RasterSettings, trace_pixel
 from exploregs_plugin.rasterizer.composite import single_threaded_ops
 from exploregs_plugin.rasterizer.projection import project_gaussians
 from exploregs_plugin.rasterizer.sh import sh_colors
 from exploregs_plugin.rasterizer.trace import blend_pairs, dcolor_dalpha
 
-from .branches import ViewProblem, activated, ndc_gradient_norm
+from .branches import ViewProblem, ndc_gradient_norm
 
 ROW_BAND = 2  # image rows evaluated together in the scene-wide pass (bounds memory)
 
@@ -57,7 +58,7 @@ def pixel_blending(view: ViewProblem, x: int, y: int) -> dict[str, Tensor]:
     "ids", "depths", "alphas", "T_before", "grad_image" and "grad_pixel" (screen-space gradient
     norms in NDC units, see :func:`screen_gradients`), "dC_dalpha" [m, 3], plus "color" [3] and
     "T_final" []."""
-    means, quats, scales, opacities, sh = activated(view.params)
+    means, quats, scales, opacities, sh = activate_detached(view.params)
     camera = view.camera
     trace = trace_pixel(
         means, quats, scales, opacities, sh, camera, x, y,
@@ -105,7 +106,7 @@ def composited_pairs(
     alpha_max). Summed over a Gaussian's pixels it is the screen-space gradient (tested).
     """
     settings = settings or RasterSettings()
-    means, quats, scales, opacities, sh = activated(params)
+    means, quats, scales, opacities, sh = activate_detached(params)
     dtype = means.dtype
     width, height = int(camera.width), int(camera.height)
     # many small [P, M] ops: OpenMP barriers cost far more than they save (100x on a busy 2-core box)

@@ -16,7 +16,7 @@ import torch
 from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
-from exploregs_plugin.model.gaussians import activate
+from exploregs_plugin.model.gaussians import activate_detached
 from exploregs_plugin.model.losses import photometric_loss
 from exploregs_plugin.rasterizer import RasterSettings, rasterize_branched
 from exploregs_plugin.rasterizer.composite import single_threaded_ops
@@ -87,12 +87,6 @@ class ViewProblem:
         return render_branches(self.params, self.camera, self.sh_degree, self.background, self.settings)
 
 
-def activated(params: dict[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
-    """(means, quats, scales, opacities, sh [N, K, 3]) activated and detached from the model."""
-    with torch.no_grad():
-        return tuple(t.detach() for t in activate(params))  # type: ignore[return-value]
-
-
 def render_branches(
     params: dict[str, Tensor],
     camera: Camera,
@@ -105,7 +99,7 @@ def render_branches(
     Returns ((m_mean2d, m_cov, m_sh) leaves [N, 3] requiring grad, image [H, W, 3],
     depth [H, W, 1], info). The other parameters are detached: only the means' paths are measured.
     """
-    means, quats, scales, opacities, sh = activated(params)
+    means, quats, scales, opacities, sh = activate_detached(params)
     leaves = tuple(means.clone().requires_grad_(True) for _ in BRANCHES)
     with torch.enable_grad():
         image, _, depth, info = rasterize_branched(

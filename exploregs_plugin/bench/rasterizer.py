@@ -78,7 +78,7 @@ def beer_scene(data_factor: int = 4, image_index: int = 0) -> GaussianScene:
 def checkpoint_scene(path: str, view: int = 0) -> GaussianScene:
     """A trained set: the Gaussians of a checkpoint (a ``.pt`` file, or a run folder's newest),
     seen from training view ``view`` of its run (loaded on the CPU)."""
-    from exploregs_plugin.analysis.branches import activated
+    from exploregs_plugin.model.gaussians import activate_detached
     from exploregs_plugin.runs.load import load_run
 
     run = load_run(Path(path), "cpu")
@@ -86,7 +86,7 @@ def checkpoint_scene(path: str, view: int = 0) -> GaussianScene:
     if not 0 <= view < len(cameras):
         raise ValueError(f"bench: {path} has {len(cameras)} training views, no view {view}")
     cam = cameras[view]
-    scene = GaussianScene(*activated(run.pipeline.model.params), cam.viewmat, cam.K, int(cam.width), int(cam.height))
+    scene = GaussianScene(*activate_detached(run.pipeline.model.params), cam.viewmat, cam.K, int(cam.width), int(cam.height))
     return scene.to(torch.float32)
 
 

@@ -196,6 +196,15 @@ def activate(params: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tens
     return params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), sh
 
 
+def activate_detached(params: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
+    """:func:`activate` cut from the autograd graph, for readers of a model (analysis, benchmarks).
+
+    ``no_grad`` keeps exp/sigmoid/cat out of the graph; ``detach`` is still needed because means and
+    quats pass through :func:`activate` as the parameters themselves."""
+    with torch.no_grad():
+        return tuple(t.detach() for t in activate(params))  # type: ignore[return-value]
+
+
 def render_params(
     params: Mapping[str, Tensor],
     camera: Camera,
