@@ -25,8 +25,8 @@ LAYERS: list[tuple[str, ...]] = [
 LAYER_OF = {name: depth for depth, names in enumerate(LAYERS) for name in names}
 
 
-def _module_name(path: Path) -> str:
-    parts = list(path.relative_to(PACKAGE.parent).with_suffix("").parts)
+def _module_name(path: Path, root: Path = PACKAGE.parent) -> str:
+    parts = list(path.relative_to(root).with_suffix("").parts)
     if parts[-1] == "__init__":
         parts.pop()
     return ".".join(parts)
@@ -102,18 +102,14 @@ def test_training_loads_the_viewer_and_tensorboard_only_when_used():
     assert out.stdout.strip() == "[]"
 
 
-def _runtime_imports(path: Path, modules: set[str]) -> set[str]:
-    """The package's modules ``path`` imports when it runs: at module level or inside functions,
-    not under ``if TYPE_CHECKING:``; ``from pkg import sub`` names the submodule ``pkg.sub``."""
-    module = _module_name(path)
+def _module_imports(path: Path, modules: set[str], root: Path = PACKAGE.parent) -> set[str]:
+    """The package's modules ``path`` imports: at module level, inside functions and under
+    ``if TYPE_CHECKING:`` (a typing-only import still makes the two modules depend on each
+    other); ``from pkg import sub`` names the submodule ``pkg.sub``."""
+    module = _module_name(path, root)
     package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
-    tree = ast.parse(path.read_text())
-    typing_only = {id(n) for node in ast.walk(tree) if isinstance(node, ast.If)
-                   and "TYPE_CHECKING" in ast.unparse(node.test) for n in ast.walk(node)}
     found: set[str] = set()
-    for node in ast.walk(tree):
-        if id(node) in typing_only:
-            continue
+    for node in ast.walk(ast.parse(path.read_text())):
         if isinstance(node, ast.ImportFrom):
             base = package[: len(package) - (node.level - 1)] if node.level else []
             name = ".".join(base + ([node.module] if node.module else []))
@@ -156,12 +152,27 @@ def _circles(graph: dict[str, set[str]]) -> list[list[str]]:
     return found
 
 
-def test_no_import_circle_at_run_time():
-    # a circle makes import order matter and hides which part depends on which; a config that
-    # builds its object imports it inside setup(), and the object names the config's type only
-    # under TYPE_CHECKING (viewer.config -> viewer.viewer)
+def test_no_import_circle():
+    # a circle makes import order matter and hides which part depends on which. A config that
+    # builds its object imports it inside setup(), so the object must not import the config back,
+    # not even for a type: the viewer reads ViewerSettings, and ViewerConfig(ViewerSettings).setup
+    # builds it (viewer.config -> viewer.viewer -> viewer.settings)
     paths = sorted(PACKAGE.rglob("*.py"))
     modules = {_module_name(p) for p in paths}
-    assert _circles({_module_name(p): _runtime_imports(p, modules) for p in paths}) == []
-    # the checker sees a circle where there is one: a typing-only import counted as a run-time one
+    assert _circles({_module_name(p): _module_imports(p, modules) for p in paths}) == []
+    # the checker sees a circle where there is one
     assert _circles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+
+
+def test_the_circle_checker_counts_typing_only_imports(tmp_path):
+    # the circle the viewer had: the config imports the object in setup(), the object imports
+    # the config's type under TYPE_CHECKING
+    package = tmp_path / "exploregs_plugin"
+    package.mkdir()
+    (package / "config.py").write_text("def setup():\n    from exploregs_plugin.obj import Obj\n")
+    (package / "obj.py").write_text("from typing import TYPE_CHECKING\nif TYPE_CHECKING:\n"
+                                    "    from exploregs_plugin.config import Config\n")
+    paths = sorted(package.glob("*.py"))
+    modules = {_module_name(p, tmp_path) for p in paths}
+    graph = {_module_name(p, tmp_path): _module_imports(p, modules, tmp_path) for p in paths}
+    assert _circles(graph) == [["exploregs_plugin.config", "exploregs_plugin.obj"]]

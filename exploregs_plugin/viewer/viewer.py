@@ -14,7 +14,7 @@ import threading
 import time
 from collections import deque
 from collections.abc import Callable, Mapping
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import numpy as np
 import torch
@@ -28,10 +28,9 @@ from exploregs_plugin.io.frames import to_uint8
 from exploregs_plugin.viewer.display import render_frame
 from exploregs_plugin.viewer.render_loop import BrowserCamera, Frame, RenderLoop, ViewSettings
 from exploregs_plugin.viewer.scene import ViewerScene, scene_centre
+from exploregs_plugin.viewer.settings import ViewerSettings
 from exploregs_plugin.viewer.snapshot import SnapshotStore
 
-if TYPE_CHECKING:  # the config builds the viewer (ViewerConfig.setup); this module needs only its type
-    from exploregs_plugin.viewer.config import ViewerConfig
 
 _RECENT_STEPS = 20
 """Train PSNR and seconds per iteration are averaged over this many recent steps."""
@@ -74,13 +73,14 @@ def thumbnail_image(image: Tensor, height: int) -> np.ndarray:
 
 
 class Viewer:
-    """Serves one scene; see ``ViewerConfig`` for the settings and ``docs/viewer.md``.
+    """Serves one scene; see ``ViewerSettings`` for the settings (``ViewerConfig.setup`` builds the
+    viewer) and ``docs/viewer.md``.
 
     training=True: ``update`` is called after each step, and the GUI has a pause control.
     training=False: a fixed scene (``eg-view``); frames are rendered without CPU throttling.
     """
 
-    def __init__(self, config: ViewerConfig, scene: ViewerScene, training: bool = True) -> None:
+    def __init__(self, config: ViewerSettings, scene: ViewerScene, training: bool = True) -> None:
         self.config = config
         self.scene = scene
         self.training = training
