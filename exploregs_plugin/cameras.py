@@ -42,10 +42,11 @@ class Camera:
         """The camera with viewmat and K moved like ``Tensor.to`` (a dtype, a device, or both)."""
         return replace(self, viewmat=self.viewmat.to(*args, **kwargs), K=self.K.to(*args, **kwargs))
 
-    def scaled(self, factor: float) -> "Camera":
-        """The same camera for an image resized by ``factor`` (e.g. 0.5 halves each side)."""
-        width = max(1, int(round(self.width * factor)))
-        height = max(1, int(round(self.height * factor)))
+    def scaled(self, factor: float, size: tuple[int, int] | None = None) -> "Camera":
+        """The same camera for an image resized by ``factor`` (e.g. 0.5 halves each side), or to
+        exactly ``size`` = (width, height) when given (each axis by its own ratio)."""
+        width = max(1, int(round(self.width * factor))) if size is None else int(size[0])
+        height = max(1, int(round(self.height * factor))) if size is None else int(size[1])
         sx, sy = width / self.width, height / self.height
         K = self.K.clone()
         K[0, :] *= sx

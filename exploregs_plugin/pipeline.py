@@ -54,6 +54,7 @@ def gather_observations(world: World, views: list[ViewObservation], n: int) -> l
         ViewObservation(
             width=int(width), height=int(height), radii=radii[i], camera_center=centers[i],
             means2d_grad=grads[i] if has_grad else None, n_cameras=int(n_cameras),
+            downscale=views[0].downscale,  # one step, one coarse-to-fine level on every rank
             visibility=None if visibility is None else visibility[i], error=None if errors is None else errors[i],
         )
         for i, (has_grad, width, height, n_cameras) in enumerate(header[:, :4].tolist())
@@ -238,14 +239,15 @@ class Pipeline:
         """Render one training view, back-propagate its share of the step's loss, add its values
         to ``totals``; returns what the strategy observes of this view."""
         batch = self.batch_size
-        camera, target, extras = self.datamanager.train_item(index, self.device)
+        downscale = self.schedule.downscale_at(step)  # coarse-to-fine: the step's level (1 = full size)
+        camera, target, extras = self.datamanager.train_item(index, self.device, downscale)
         target = self._target_on(background, target, extras)
         image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background)
         error = None
         if VIEW_ERRORS in self.requires:  # guided exploration: where this view is still wrong
             error = ViewError(index, camera.viewmat, camera.K, target, (image.detach() - target).abs().mean(dim=-1))
         # n_cameras = B: the strategies undo the 1/B of the batch's mean loss in the 2D-mean gradients
-        view = observe_render(info, n_cameras=batch, error=error)
+        view = observe_render(info, n_cameras=batch, error=error, downscale=downscale)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, view)
         loss, terms = view_loss(self.loss_terms, ViewLossInput(image, target, depth, extras, index))
         if batch > 1:

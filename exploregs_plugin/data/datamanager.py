@@ -18,7 +18,7 @@ from ..configs import unset
 from .backgrounds import NAMED, default_background, evident_background
 from .cache import cache_root
 from .errors import DataError
-from .images import read_image_alpha
+from .images import box_downscaled, read_image_alpha, resized_size
 from .parsed import REGION_LABELS, ImageRecord, ParsedScene, ParseOptions
 from .dataparser import parse_dataset
 from .depth_maps import read_depth_map, warn_masked_depth
@@ -200,6 +200,7 @@ class DataManager:
         self._order: Tensor = torch.randperm(len(self._train), generator=self._generator, device="cpu")
         self._position = 0
         self._epoch = 0
+        self._coarse: dict[tuple[int, int], _Item] = {}  # (train index, downscale) -> its coarse level
 
     def _render_background(self, composited: np.ndarray) -> np.ndarray:
         """The colour renders are drawn over: the one transparent pixels were composited on, unless
@@ -291,10 +292,18 @@ class DataManager:
         """Every training image has an alpha channel (extras["alpha"] [H, W, 1] in [0, 1])."""
         return all(item.alpha is not None for item in self._train)
 
-    def train_item(self, index: int, device: torch.device | None = None) -> tuple[Camera, Tensor, dict[str, Any]]:
+    def train_item(self, index: int, device: torch.device | None = None,
+                   downscale: int = 1) -> tuple[Camera, Tensor, dict[str, Any]]:
         """(camera, image [H, W, 3] float32 in [0, 1], extras) of training image ``index``; the
-        image on ``device`` when given (converted there from the stored uint8), else on the host."""
-        return self._item(self._train[index], device)
+        image on ``device`` when given (converted there from the stored uint8), else on the host.
+        ``downscale`` > 1: the view of a coarse-to-fine level, its image, alpha, depth and masks
+        ``downscale`` times smaller per side (see :meth:`_downscaled`)."""
+        if downscale == 1:
+            return self._item(self._train[index], device)
+        key = (index, downscale)
+        if key not in self._coarse:
+            self._coarse[key] = _downscaled(self._train[index], downscale)
+        return self._item(self._coarse[key], device)
 
     def test_item(self, index: int, device: torch.device | None = None) -> tuple[Camera, Tensor, dict[str, Any]]:
         """(camera, image [H, W, 3] float32 in [0, 1], extras) of test image ``index``; the image on
@@ -345,6 +354,31 @@ class DataManager:
     @property
     def epoch(self) -> int:
         return self._epoch
+
+
+def _downscaled(item: _Item, factor: int) -> _Item:
+    """``item`` at 1/``factor`` of its size per side, as --data-factor makes it: the image and
+    alpha area-filtered (:func:`box_downscaled`), depth and region labels nearest, and the camera
+    by :meth:`Camera.scaled`, which scales K's rows by the exact size ratio: with pixel centres at
+    +0.5, a box of ``factor`` pixels [f j, f (j + 1)) has its centre f (j + 0.5), i.e. pixel j + 0.5
+    of the small image, so u' = u / f maps centres to centres with no offset."""
+    size = resized_size(item.camera.width, item.camera.height, factor)
+    width, height = size
+    small = item.camera.scaled(1.0 / factor, size)
+
+    def nearest(array: Tensor) -> Tensor:
+        mode = "F" if array.dtype == torch.float32 else "L"
+        image = Image.fromarray(np.ascontiguousarray(array.numpy().reshape(array.shape[0], array.shape[1])), mode)
+        out = torch.from_numpy(np.asarray(image.resize(size, Image.Resampling.NEAREST)).copy())
+        return out.reshape(height, width, *array.shape[2:])
+
+    return _Item(
+        small,
+        torch.from_numpy(box_downscaled(item.image.numpy(), size)),
+        None if item.depth is None else nearest(item.depth),
+        None if item.labels is None else nearest(item.labels),
+        None if item.alpha is None else torch.from_numpy(box_downscaled(item.alpha.numpy(), size)),
+    )
 
 
 def _tensor(array: np.ndarray | None) -> Tensor | None:

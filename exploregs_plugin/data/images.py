@@ -114,6 +114,15 @@ def resized_size(width: int, height: int, factor: int) -> tuple[int, int]:
     return max(1, int(round(width / factor))), max(1, int(round(height / factor)))
 
 
+def box_downscaled(pixels: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """uint8 [H, W, C] (C 1 or 3) resized to ``size`` = (width, height) with the area (box) filter
+    of the --data-factor resize, so a coarse level holds the same pixels a data factor would."""
+    mode = "L" if pixels.shape[-1] == 1 else "RGB"
+    image = Image.fromarray(np.ascontiguousarray(pixels.reshape(pixels.shape[:2]) if mode == "L" else pixels), mode)
+    out = np.asarray(image.resize(size, Image.Resampling.BOX), dtype=np.uint8)
+    return out.reshape(out.shape[0], out.shape[1], pixels.shape[-1]).copy()
+
+
 def resize_to_cache(src: Path, dst: Path, size: tuple[int, int]) -> Path:
     """Resize ``src`` to ``size`` (area filter) into ``dst`` once; later calls reuse ``dst``."""
     if dst.is_file():

@@ -42,6 +42,7 @@ def accumulate_grad_stats(
     width: int,
     height: int,
     n_cameras: int = 1,
+    downscale: int = 1,
 ) -> int:
     """Add this step's NDC gradient norms to ``stats["grad2d"]`` and views to ``stats["count"]``.
 
@@ -58,7 +59,7 @@ def accumulate_grad_stats(
             f"strategy statistics have {stats['grad2d'].shape[0]} rows but the gradient has {n}: "
             f"the Gaussian set was changed without strategies.ops"
         )
-    norms = ndc_gradient_norms(pixel_grads, width, height, n_cameras)
+    norms = ndc_gradient_norms(pixel_grads, width, height, n_cameras, downscale)
     finite = torch.isfinite(norms)
     take = visible & finite
     _, ids = torch.where(take)
@@ -67,12 +68,32 @@ def accumulate_grad_stats(
     return int((visible & ~finite).sum())
 
 
-def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: int = 1) -> Tensor:
+def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: int = 1,
+                       downscale: int = 1) -> Tensor:
     """|dL/d(mean2d)| in NDC units, float32: [..., 2] pixel gradients -> [...].
 
     NDC spans [-1, 1] over W (H) pixels: d/d(ndc) = d/d(pixel) * W/2 (H/2). The n_cameras
-    factor undoes the loss's mean over a batch of views, as gsplat does."""
+    factor undoes the loss's mean over a batch of views, as gsplat does.
+
+    ``downscale`` s > 1 (a coarse-to-fine level; W, H are the level's): the norm is divided by s,
+    so that the threshold means at every level what it means at full size. Why, for the L1 loss
+    L = (1/N) sum_p |r_p| over the level's N = W H pixels (the photometric loss is 0.8 L1 +
+    0.2 D-SSIM): dL/du = (1/N) sum_p sign(r_p) c da_p/du over the Gaussian's footprint.
+    - A Gaussian of about one pixel at the level (the size 3DGS densifies down to; the
+      rasterizer's 0.3 px^2 blur keeps it there): the sum over its few pixels does not depend on
+      the level, so |dL/du| ~ 1/N and the NDC norm ~ (W/2)/N = 1/(2H): s times its full-size
+      value at H / s. This is the full bench's 720 / H rule of the threshold
+      (``bench/presets.py``, FULL_GROW_GRAD2D).
+    - A Gaussian of many pixels: u' = u / s, its footprint A / s^2 pixels, da/du' = s da/du, so
+      dL/du' = s dL/du and W'/2 = W/(2 s): the NDC norm is the same at every level.
+    The gradient of a Gaussian thus grows by a factor between 1 and s at level s (measured on
+    beer --data-factor 4 after 600 steps: median 1.38 at s = 2 and 1.87 at s = 4, docs/training.md).
+    Dividing by s holds the pixel-sized Gaussians' statistic, the one that decides when
+    densification stops, to its full-size value: a level densifies down to its own pixel and not
+    below (detail it cannot show), and never more than full size would."""
     scale = torch.tensor([width / 2.0, height / 2.0], dtype=torch.float32, device=pixel_grads.device) * float(n_cameras)
+    if downscale != 1:
+        scale = scale / float(downscale)
     return (pixel_grads.detach().to(torch.float32) * scale).norm(dim=-1)
 
 
@@ -206,7 +227,8 @@ class DefaultStrategy(Strategy):
                 f"the observation must come from rendering the current Gaussian set"
             )
         return accumulate_grad_stats(
-            state["stats"], grad.reshape(1, n, 2), view.visible().reshape(1, n), view.width, view.height, view.n_cameras
+            state["stats"], grad.reshape(1, n, 2), view.visible().reshape(1, n), view.width, view.height, view.n_cameras,
+            view.downscale,
         )
 
     def growth(self, params: Params, state: dict[str, Any]) -> tuple[Tensor, Tensor]:

@@ -61,6 +61,10 @@ class ViewObservation:
     n_cameras: int = 1
     """How many views the loss averages: the gradient carries 1/n_cameras, which the NDC
     statistic undoes (as gsplat does)."""
+    downscale: int = 1
+    """The coarse-to-fine level's factor: the view was rendered at 1/downscale of its full size
+    per side (``width`` and ``height`` are the level's), which the NDC statistic undoes
+    (``ndc_gradient_norms``)."""
     visibility: Tensor | None = None
     """[N, 2] each Gaussian's summed alpha T and alpha over the view's pixels
     (``VISIBILITY_STATS``); None when not asked for."""
@@ -109,9 +113,11 @@ class ViewObservation:
             )
 
 
-def observe_render(info: dict[str, Any], n_cameras: int = 1, error: ViewError | None = None) -> ViewObservation:
+def observe_render(info: dict[str, Any], n_cameras: int = 1, error: ViewError | None = None,
+                   downscale: int = 1) -> ViewObservation:
     """The observation of one view from the info dict of ``exploregs_plugin.rasterizer.rasterize``
-    (every backend gives the same keys; ``visibility`` only when the settings asked for it)."""
+    (every backend gives the same keys; ``visibility`` only when the settings asked for it);
+    ``downscale``: the coarse-to-fine factor the view was rendered at (1: full size)."""
     return ViewObservation(
         width=int(info["width"]),
         height=int(info["height"]),
@@ -119,6 +125,7 @@ def observe_render(info: dict[str, Any], n_cameras: int = 1, error: ViewError | 
         camera_center=info["camera_center"],
         means2d=info["means2d"],
         n_cameras=int(n_cameras),
+        downscale=int(downscale),
         visibility=info.get("visibility"),
         error=error,
     )

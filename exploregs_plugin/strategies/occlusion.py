@@ -86,7 +86,7 @@ class OcclusionSplitting(RandomSplitting):
         grad = view.screen_gradient()
         if grad is None:
             return counts
-        norm = ndc_gradient_norms(grad, view.width, view.height, view.n_cameras)
+        norm = ndc_gradient_norms(grad, view.width, view.height, view.n_cameras, view.downscale)
         t_view = mean_transmittance(vis[:, 0], vis[:, 1]).clamp_min(self.occlusion_t_floor)
         seen = view.visible() & torch.isfinite(norm) & (vis[:, 1] > 0)
         error = stats[OCC_ERROR]
