@@ -224,6 +224,8 @@ class Pipeline:
         counts = self.strategy.step_post_backward(
             self.params, self.optimizers, self.strategy_state, step, views, lr=means_lr,
             generator=self.generator,
+            # the data loss, a tensor as summed (MCMC's cap_max auto reads it once per refinement)
+            loss=totals["loss"] - totals["reg"] if "reg" in totals else totals["loss"],
         )
         return {
             "loss": loss_value,

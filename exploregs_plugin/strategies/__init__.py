@@ -6,6 +6,7 @@ from .budget import BUDGET_PRESETS, ExplorationBudget, resolve_budget, scaled_bu
 from .default import DefaultStrategy
 from .exploration import ExplorationStrategy
 from .mcmc import MCMCStrategy
+from .mcmc_explore import MCMCExploreStrategy
 from .operator import Operator
 from .perturbation import PositionNoise, position_noise
 from .ray import RayPerturbationStrategy
@@ -25,6 +26,7 @@ __all__ = [
     "GuidedOcclusionStrategy",
     "GuidedSeeding",
     "GuidedSeedingStrategy",
+    "MCMCExploreStrategy",
     "MCMCStrategy",
     "OcclusionSplitting",
     "OcclusionSplittingStrategy",

@@ -10,7 +10,8 @@ Call shape (the same as gsplat's, so strategies can be reused across trainers)::
     loss = loss + strategy.regularization_loss(params)                  # zero unless regularised
     loss.backward(); optimizer.step() for each; zero_grad()
     counts = strategy.step_post_backward(params, optimizers, state, step, views,
-                                         lr=means_lr, generator=gen)    # dict[str, int]
+                                         lr=means_lr, generator=gen,    # dict[str, int]
+                                         loss=step_loss)                # 0-d tensor, optional
     # at each evaluation:
     strategy.exploration_summary(state)                                  # dict[str, int]
 
@@ -55,6 +56,11 @@ class StepContext:
     """The step's rendered views, in the order of the global batch (one at batch 1)."""
     lr: float = 0.0
     generator: torch.Generator | None = None
+    loss: Tensor | None = None
+    """The step's training loss (a 0-d tensor, the mean over its views of the loss terms, without
+    the regularisers), as the pipeline computed it: possibly on the device, so a strategy that
+    reads it adds it to its state as a tensor and converts it only when it decides (MCMC's
+    ``cap_max auto``, at its refinement steps). None when the caller gave none."""
 
     def rng(self, who: str) -> torch.Generator:
         """The caller's generator; a clear error when randomness is needed and none was given."""
@@ -100,7 +106,7 @@ class Strategy:
     )
 
     def __post_init__(self) -> None:
-        if self.cap_max is not None and self.cap_max < 0:
+        if isinstance(self.cap_max, int) and self.cap_max < 0:
             raise StrategyError(f"{type(self).__name__}.cap_max must be >= 0 or None, got {self.cap_max}")
         for name in ("refine_every", "reset_every"):
             value = getattr(self, name)
@@ -140,8 +146,9 @@ class Strategy:
             )
 
     def room(self, n_current: int) -> int:
-        """How many Gaussians may still be added under ``cap_max`` (a large number if None)."""
-        if self.cap_max is None:
+        """How many Gaussians may still be added under ``cap_max`` (a large number if None, or
+        'auto', whose strategy decides its growth itself)."""
+        if not isinstance(self.cap_max, int):
             return 1 << 62
         return max(0, self.cap_max - n_current)
 
@@ -194,15 +201,16 @@ class Strategy:
         views: list[ViewObservation],
         lr: float = 0.0,
         generator: torch.Generator | None = None,
+        loss: Tensor | None = None,
     ) -> dict[str, int]:
         """Called after the optimizer step; returns counts of what it did (dict[str, int]).
 
         Checks that the schedule is resolved and ``views`` is a list of observations, and hands
-        one :class:`StepContext` to :meth:`post_backward`, which subclasses implement.
-        """
+        one :class:`StepContext` to :meth:`post_backward`, which subclasses implement. ``loss`` is
+        the step's training loss as a 0-d tensor (:attr:`StepContext.loss`)."""
         self.require_schedule()
         views = require_views(views, f"{type(self).__name__}.step_post_backward")
-        return self.post_backward(StepContext(params, optimizers, state, step, views, lr, generator))
+        return self.post_backward(StepContext(params, optimizers, state, step, views, lr, generator, loss))
 
     def post_backward(self, ctx: StepContext) -> dict[str, int]:
         """The strategy's work after each optimizer step. Default: nothing."""

@@ -3,7 +3,11 @@
 Every ``refine_every`` steps inside the refinement window: dead Gaussians (opacity <=
 ``min_opacity``) are relocated onto live ones drawn in proportion to opacity, with the paper's
 opacity/scale update (:mod:`.relocation`); then the set grows by ``growth_rate`` (5%) of its size,
-by sampling new copies the same way, up to ``cap_max``. After every step the positions get the
+by sampling new copies the same way, up to ``cap_max``. With ``cap_max = 'auto'`` the training
+loss decides instead (:func:`keeps_growing`): the set grows while the mean training loss over the
+steps between two refinements still falls by at least ``auto_min_drop`` of itself per refinement,
+and stops for good, at its count then, after ``auto_patience`` refinements in a row where it does
+not. After every step the positions get the
 opacity-gated, covariance-shaped noise (isotropic, or along the camera ray in 'ray' mode). The
 paper's L1 regularisers on opacity and scale come back from :meth:`MCMCStrategy.regularization_loss`
 for the trainer to add to its loss.
@@ -13,7 +17,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, Literal
 
 import torch
 from torch import Tensor
@@ -28,13 +32,42 @@ from .relocation import N_MAX, binomial_table
 MCMC_STOP_FRACTION = 25_000 / 30_000
 """3DGS-MCMC refines until step 25k of 30k; a run of any length stops at the same fraction."""
 
+AUTO = "auto"
+"""``cap_max = 'auto'``: the count is decided by the training loss (:func:`keeps_growing`)."""
+AUTO_LOSS, AUTO_STEPS, AUTO_PREVIOUS, AUTO_BELOW, AUTO_CAP = (
+    "auto_loss", "auto_steps", "auto_previous", "auto_below", "auto_cap")
+"""State of the automatic cap: the loss summed over the current window (a 0-d tensor on the
+loss's device, or None), its steps, the previous window's mean, the refinements in a row below
+the drop, and the cap once growth has stopped (None while it grows)."""
+NO_CAP = 1 << 62
+
+
+def keeps_growing(previous: float | None, mean: float, below: int, min_drop: float, patience: int
+                  ) -> tuple[bool, int]:
+    """One refinement of the automatic cap: (grow now?, refinements in a row below the drop).
+
+    ``mean`` is the mean training loss over the steps since the previous refinement, ``previous``
+    the one before it (None at the first refinement: grow). The relative drop is
+    (previous - mean) / previous; a window whose drop is below ``min_drop`` (a flat or rising
+    loss, or one that is not finite) adds one to ``below``, any other resets it to 0, and growth
+    stops when ``below`` reaches ``patience``.
+    """
+    if previous is None:
+        return True, 0
+    usable = math.isfinite(previous) and math.isfinite(mean) and previous > 0.0
+    drop = (previous - mean) / previous if usable else 0.0
+    below = below + 1 if drop < min_drop else 0
+    return below < patience, below
+
 
 @dataclass
 class MCMCStrategy(Strategy):
     """3DGS-MCMC: relocation of dead Gaussians, 5% growth to cap_max, noise after every step."""
 
-    cap_max: int | None = 30_000
-    """Largest number of Gaussians (required for MCMC; the paper uses 1-3M on GPU)."""
+    cap_max: int | Literal["auto"] | None = 30_000
+    """Largest number of Gaussians (required for MCMC; the paper uses 1-3M on GPU), or 'auto':
+    grow while the mean training loss between refinements still falls by auto_min_drop per
+    refinement, stop for good after auto_patience refinements in a row where it does not."""
     min_opacity: float = 0.005
     """Gaussians at or below this opacity are dead and get relocated."""
     growth_rate: float = 0.05
@@ -46,11 +79,21 @@ class MCMCStrategy(Strategy):
     noise: PositionNoise = field(default_factory=PositionNoise)
     """The position noise after every step: isotropic (3DGS-MCMC), or along the camera ray
     (``--strategy.noise.mode ray``)."""
+    auto_min_drop: float = 0.01
+    """cap_max 'auto': the relative fall of the mean training loss between refinements (one
+    refinement interval apart) below which a refinement counts as not worth growing."""
+    auto_patience: int = 2
+    """cap_max 'auto': growth stops for good after this many refinements in a row below auto_min_drop."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.cap_max is None:
             raise StrategyError("MCMCStrategy needs cap_max: its 5% growth per refinement is bounded only by it")
+        if isinstance(self.cap_max, str) and self.cap_max != AUTO:
+            raise StrategyError(f"cap_max must be a count >= 0 or '{AUTO}', got {self.cap_max!r}")
+        if not (math.isfinite(self.auto_min_drop) and self.auto_min_drop >= 0.0) or self.auto_patience < 1:
+            raise StrategyError(f"auto_min_drop must be >= 0 and auto_patience >= 1, got "
+                                f"{self.auto_min_drop}, {self.auto_patience}")
         if not 0.0 <= self.growth_rate:
             raise StrategyError(f"growth_rate must be >= 0, got {self.growth_rate}")
         if not 0.0 < self.min_opacity < 1.0:
@@ -66,6 +109,8 @@ class MCMCStrategy(Strategy):
     def initialize_state(self, scene_scale: float = 1.0, scene_center: Tensor | None = None) -> dict[str, Any]:
         state = super().initialize_state(scene_scale, scene_center)
         state["binoms"] = binomial_table(N_MAX)
+        if self.cap_max == AUTO:
+            state.update({AUTO_LOSS: None, AUTO_STEPS: 0, AUTO_PREVIOUS: None, AUTO_BELOW: 0, AUTO_CAP: None})
         return state
 
     def regularization_loss(self, params: Params) -> Tensor:
@@ -82,25 +127,71 @@ class MCMCStrategy(Strategy):
     def post_backward(self, ctx: StepContext) -> dict[str, int]:
         params, optimizers, state, step = ctx.params, ctx.optimizers, ctx.state, ctx.step
         counts = {"relocated": 0, "added": 0}
+        if self.cap_max == AUTO and step < self.refine_stop_iter and state[AUTO_CAP] is None:
+            self.track_loss(state, ctx.loss)
         if self.refine_start_iter < step < self.refine_stop_iter and step % self.refine_every == 0:
-            gen = ctx.rng("MCMC relocation")
-            counts["relocated"] = self.relocate_dead(params, optimizers, state, gen)
-            counts["added"] = self.grow(params, optimizers, state, gen)
+            counts.update(self.refine(params, optimizers, state, ctx.rng("MCMC relocation")))
         counts["perturbed"] = self.noise.perturb(ctx, type(self).__name__)
         return counts
+
+    def refine(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator
+               ) -> dict[str, int]:
+        """One refinement: relocation of the dead, then growth."""
+        return {"relocated": self.relocate_dead(params, optimizers, state, generator),
+                "added": self.grow(params, optimizers, state, generator)}
+
+    def track_loss(self, state: dict[str, Any], loss: Tensor | None) -> None:
+        """Add the step's loss to the current window of the automatic cap, as a tensor where it
+        lies (no wait for the device: it is read once per refinement, :meth:`growth_cap`)."""
+        if loss is None:
+            raise StrategyError(f"{type(self).__name__} with cap_max '{AUTO}' reads the training loss: pass "
+                                f"loss=<the step's loss, a 0-d tensor> to step_post_backward")
+        value = loss.detach().reshape(()).to(torch.float64)
+        state[AUTO_LOSS] = value if state[AUTO_LOSS] is None else state[AUTO_LOSS] + value
+        state[AUTO_STEPS] += 1
+
+    def growth_cap(self, state: dict[str, Any], n: int) -> int:
+        """The cap of this refinement's growth: ``cap_max``, or for 'auto' the count at which the
+        loss stopped falling (no cap while it still falls). Called once per refinement: for
+        'auto' it closes the loss window and applies :func:`keeps_growing`."""
+        if self.cap_max != AUTO:
+            return self.cap_max
+        if state[AUTO_CAP] is None and state[AUTO_STEPS] > 0:
+            mean = float(state[AUTO_LOSS]) / state[AUTO_STEPS]  # the one read of the loss per refinement
+            state[AUTO_LOSS], state[AUTO_STEPS] = None, 0
+            grow, state[AUTO_BELOW] = keeps_growing(state[AUTO_PREVIOUS], mean, state[AUTO_BELOW],
+                                                    self.auto_min_drop, self.auto_patience)
+            state[AUTO_PREVIOUS] = mean
+            if not grow:
+                state[AUTO_CAP] = n
+        return NO_CAP if state[AUTO_CAP] is None else state[AUTO_CAP]
+
+    def growth_count(self, state: dict[str, Any], n: int) -> int:
+        """How many to add at this refinement: growth_rate x N, never beyond the cap."""
+        return max(0, min(self.growth_cap(state, n), int((1.0 + self.growth_rate) * n)) - n)
+
+    def exploration_summary(self, state: dict[str, Any]) -> dict[str, int]:
+        """With cap_max 'auto': ``auto_cap``, the count at which growth stopped (0 while it grows)."""
+        if self.cap_max != AUTO:
+            return {}
+        return {"auto_cap": int(state[AUTO_CAP] or 0)}
+
+    def dead_mask(self, params: Params) -> Tensor:
+        """[N] bool: opacity at or below min_opacity, or not finite (NaN counts as dead)."""
+        return ~(torch.sigmoid(params["opacities"].detach().flatten()) > self.min_opacity)
 
     def relocate_dead(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator) -> int:
         """Move dead Gaussians (and rows with non-finite opacity) onto live ones."""
         if num_gaussians(params) == 0:
             return 0
-        opacity = torch.sigmoid(params["opacities"].detach().flatten())
-        dead = ~(opacity > self.min_opacity)  # NaN counts as dead
+        dead = self.dead_mask(params)
         return ops.relocate(params, optimizers, state["stats"], dead, generator, state["binoms"], self.min_opacity)
 
     def grow(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator) -> int:
-        """Add growth_rate x N new Gaussians, never beyond cap_max."""
-        n = num_gaussians(params)
-        target = min(self.cap_max, int((1.0 + self.growth_rate) * n))
-        return ops.sample_add(
-            params, optimizers, state["stats"], max(0, target - n), generator, state["binoms"], self.min_opacity
-        )
+        """Add growth_rate x N new Gaussians, never beyond the cap (:meth:`growth_count`)."""
+        return self.sample_copies(params, optimizers, state, self.growth_count(state, num_gaussians(params)), generator)
+
+    def sample_copies(self, params: Params, optimizers: Optimizers, state: dict[str, Any], n: int,
+                      generator: torch.Generator) -> int:
+        """Append ``n`` copies of live Gaussians drawn by opacity, with the relocation update."""
+        return ops.sample_add(params, optimizers, state["stats"], n, generator, state["binoms"], self.min_opacity)

@@ -24,6 +24,7 @@ def builtin_strategies() -> dict[str, type[Strategy]]:
     from .default import DefaultStrategy
     from .guided import GuidedSeedingStrategy
     from .mcmc import MCMCStrategy
+    from .mcmc_explore import MCMCExploreStrategy
     from .occlusion import GuidedOcclusionStrategy, OcclusionSplittingStrategy
     from .ray import RayPerturbationStrategy
     from .seeding import SeedingStrategy
@@ -37,6 +38,7 @@ def builtin_strategies() -> dict[str, type[Strategy]]:
         "seedsplit": SeedSplitStrategy,
         "ray": RayPerturbationStrategy,
         "mcmc": MCMCStrategy,
+        "mcmc-explore": MCMCExploreStrategy,
         "guided": GuidedSeedingStrategy,
         "occlusion": OcclusionSplittingStrategy,
         "guided-occlusion": GuidedOcclusionStrategy,

@@ -136,6 +136,17 @@ def seed_rows(
     }
 
 
+def add_seeds(params: Params, optimizers: Optimizers, stats: dict[str, Tensor], rows: dict[str, Tensor]) -> int:
+    """Append seed ``rows`` (raw, every parameter key) flagged as seeds (``SEED_FLAG``, with
+    ``SEED_SEEN`` counting the views that see them from now on). Returns the count added."""
+    n_before = num_gaussians(params)
+    for key in (SEED_FLAG, SEED_SEEN):
+        stats.setdefault(key, torch.zeros(n_before, device=params["means"].device))
+    added = ops.append(params, optimizers, stats, rows)
+    stats[SEED_FLAG][n_before:] = 1.0
+    return added
+
+
 @dataclass
 class RandomSeeding(Operator):
     """Random Seeding: ``n_seed`` new Gaussians in the seed box every ``every`` steps while the
@@ -238,6 +249,12 @@ class RandomSeeding(Operator):
                       ) -> dict[str, Tensor] | None:
         """Raw rows of ``n`` new seeds (None: nowhere to seed): uniform in the box of the centres.
         Other placements (guided seeding) override this; flags and probation stay the same."""
+        return self.box_seed_rows(params, state, n, generator)
+
+    def box_seed_rows(self, params: Params, state: dict[str, Any], n: int, generator: torch.Generator
+                      ) -> dict[str, Tensor] | None:
+        """Raw rows of ``n`` seeds uniform in the seed box (``box_mode``), the paper's placement,
+        whatever :meth:`new_seed_rows` a subclass chose (MCMC-explore draws from both)."""
         return seed_rows(
             params["means"],
             params["scales"],
@@ -263,12 +280,7 @@ class RandomSeeding(Operator):
         rows = self.new_seed_rows(params, state, n, generator)
         if rows is None:
             return 0
-        stats = state["stats"]
-        for key in (SEED_FLAG, SEED_SEEN):
-            stats.setdefault(key, torch.zeros(n_before, device=params["means"].device))
-        added = ops.append(params, optimizers, stats, rows)
-        stats[SEED_FLAG][n_before:] = 1.0
-        return added
+        return add_seeds(params, optimizers, state["stats"], rows)
 
 
 @dataclass

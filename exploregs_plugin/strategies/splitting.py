@@ -49,6 +49,16 @@ def draw_rows(weights: Tensor, n: int, generator: torch.Generator) -> Tensor:
     return torch.multinomial(weights, m, replacement=False, generator=generator)
 
 
+def split_drawn(params: Params, optimizers: Optimizers, stats: dict[str, Tensor], weights: Tensor, n: int,
+                generator: torch.Generator, scale_factor: float = 1.6) -> int:
+    """Split up to ``n`` distinct rows drawn in proportion to ``weights`` [N] (``ops.split``: two
+    children from the parent's Gaussian, scales / ``scale_factor``). Returns the number split."""
+    idx = draw_rows(weights, n, generator)
+    mask = torch.zeros(num_gaussians(params), dtype=torch.bool, device=params["means"].device)
+    mask[idx] = True
+    return ops.split(params, optimizers, stats, mask, generator, scale_factor)
+
+
 @dataclass
 class RandomSplitting(Operator):
     """Random Splitting: ``n_split`` Gaussians drawn by size and split every ``every`` steps
@@ -87,10 +97,8 @@ class RandomSplitting(Operator):
         budget = min(self.n_split, n, owner.room(n))
         if budget <= 0:
             return 0
-        idx = draw_rows(self.candidate_weights(params, state), budget, generator)
-        mask = torch.zeros(n, dtype=torch.bool, device=params["means"].device)
-        mask[idx] = True
-        return ops.split(params, optimizers, state["stats"], mask, generator, owner.split_scale_factor)
+        return split_drawn(params, optimizers, state["stats"], self.candidate_weights(params, state), budget,
+                           generator, owner.split_scale_factor)
 
 
 @dataclass
