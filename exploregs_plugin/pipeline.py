@@ -17,7 +17,7 @@ from exploregs_plugin.loss_terms import DepthTerm, LossTerm, PhotometricTerm, Vi
 from exploregs_plugin.model.losses import DepthSpace, psnr
 from exploregs_plugin.model.optim import OptimizerConfig, OptimizerSet, batch_betas, batch_lr_scale
 from exploregs_plugin.strategies.observation import ViewError, ViewObservation, observe_render
-from exploregs_plugin.rasterizer import BackendError, backend_line, backend_problem
+from exploregs_plugin.rasterizer import BackendError, backend_problem
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
 from exploregs_plugin.strategies.requirements import VIEW_ERRORS, VISIBILITY_STATS
@@ -143,8 +143,6 @@ class Pipeline:
         problem = backend_problem(model_config.raster, device)
         if problem is not None:
             raise BackendError(problem)
-        if world.is_main:
-            print(backend_line(model_config.raster, device), flush=True)
         self.generator = make_generator(device, seed)
         self.generator_restored = True  # False after loading a generator state of another device type
         # One run seed drives everything, the camera order and random initial points included.

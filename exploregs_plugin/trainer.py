@@ -28,6 +28,7 @@ from exploregs_plugin.io.atomic import create_new_folder
 from exploregs_plugin.io.checkpoint import (CheckpointError, checkpoint_path, load_checkpoint, load_run_checkpoint,
                                             save_checkpoint)
 from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig, resolve_batch_size
+from exploregs_plugin.rasterizer import backend_line
 from exploregs_plugin.run_logger import RunLogger
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.threads import IdleCpus, apply_threads, available_cpus, threads_for, threads_from_environment
@@ -153,6 +154,8 @@ class Trainer:
         config = self.config = replace(config, pipeline=replace(config.pipeline, batch_size=batch))
         self.schedule = config.schedule.resolve(config.max_steps, batch)
         self.pipeline: Pipeline = config.pipeline.setup(self.schedule, config.seed, self.device, self.world)
+        if self.world.is_main:  # after the data were read and checked: a data error is the first line
+            print(backend_line(self.pipeline.model.config.raster, self.device), flush=True)
         # one run folder for all ranks: rank 0's (it claims a new timestamped folder unless one is named)
         named = run_dir or config.run_dir
         if named is None and self.world.is_main:

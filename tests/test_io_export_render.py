@@ -8,7 +8,7 @@ import torch
 from PIL import Image
 from plyfile import PlyData
 
-from exploregs_plugin.data import ParseOptions, parse_dataset
+from exploregs_plugin.data import DataManagerConfig, ParseOptions, parse_dataset
 from exploregs_plugin.io import ply as P
 from exploregs_plugin.io.frames import to_uint8
 from exploregs_plugin.runs.scene import dataset_normalization, load_scene
@@ -104,19 +104,40 @@ def test_cli_render_run_and_ply_give_the_same_frames(run, tmp_path):
 def test_cli_render_path_depth_and_alpha(run, tmp_path, capsys):
     out = render_script.main(render_script.RenderArgs(run.run_dir, out=tmp_path / "depth", trajectory="path",
                                                       mode="depth", num_frames=6, max_keys=3, video=False,
-                                                      resolution_scale=0.5))
+                                                      data_factor=2))
     printed = capsys.readouterr().out
     assert "near" in printed and f"{out.near:.6g}" in printed and f"{out.far:.6g}" in printed
     assert 0.0 < out.near < out.far
     first = np.array(Image.open(out.frames[0]))
-    width, height = run.pipeline.datamanager.train_cameras[0].scaled(0.5).width, \
-        run.pipeline.datamanager.train_cameras[0].scaled(0.5).height
-    assert first.shape == (height, width, 3) and len(out.frames) >= 6
+    half = DataManagerConfig(data="builtin:tiny", data_factor=2).setup().train_cameras[0]  # the run's at factor 2
+    assert half.width < run.pipeline.datamanager.train_cameras[0].width
+    assert first.shape == (half.height, half.width, 3) and len(out.frames) >= 6
     alpha = render_script.main(render_script.RenderArgs(run.run_dir, out=tmp_path / "alpha", trajectory="train",
                                                         mode="alpha", video=False))
     grey = np.array(Image.open(alpha.frames[0]))
     camera = run.pipeline.datamanager.train_cameras[0]
     assert np.array_equal(grey[..., 1], to_uint8(_render(run.pipeline.model.params, camera, run)[1][..., 0].numpy()))
+
+
+def test_render_takes_the_data_factor_of_the_dataset_it_reads_cameras_from(run, tmp_path, monkeypatch, capsys):
+    # eg-render scene.ply --cameras-from DATASET --data-factor N: the dataset's views at 1/N size,
+    # as eg-train --data DATASET --data-factor N trains on them
+    ply_path = tmp_path / "s.ply"
+    export_script.main(export_script.ExportArgs(run.run_dir, out=ply_path))
+    monkeypatch.setattr(sys, "argv", ["eg-render", str(ply_path), "--cameras-from", "builtin:tiny", "--data-factor",
+                                      "2", "--out", str(tmp_path / "half"), "--no-video"])
+    render_script.entrypoint()
+    half = DataManagerConfig(data="builtin:tiny", data_factor=2).setup().test_cameras
+    frames = sorted((tmp_path / "half").glob("frame_*.png"))
+    assert len(frames) == len(half)
+    assert np.array(Image.open(frames[0])).shape == (half[0].height, half[0].width, 3)
+    assert half[0].width < run.pipeline.datamanager.test_cameras[0].width
+    capsys.readouterr()
+    monkeypatch.setattr(sys, "argv", ["eg-render", str(ply_path), "--cameras-from", "builtin:tiny", "--data-factor", "0"])
+    with pytest.raises(SystemExit) as exit_info:
+        render_script.entrypoint()
+    assert exit_info.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == ["eg-render: error: --data-factor: must be an integer >= 1, got 0"]
 
 
 def test_cli_errors_are_clear(run, tmp_path, monkeypatch, capsys):

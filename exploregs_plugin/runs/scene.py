@@ -7,7 +7,7 @@ is mapped into that frame with the dataset's normalisation.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal, Mapping
 
@@ -103,9 +103,10 @@ def _is_run(path: Path) -> bool:
     return path.is_file() and path.suffix == ".pt"
 
 
-def cameras_from(source: str | Path) -> CameraSource:
+def cameras_from(source: str | Path, data_factor: int | None = None) -> CameraSource:
     """Cameras of a run folder (its dataset, from config.yml; no checkpoint needed), or of any
-    dataset the datamanager reads (a path or ``builtin:NAME``)."""
+    dataset the datamanager reads (a path or ``builtin:NAME``). ``data_factor``: the dataset's
+    images at 1/N size, as eg-train's ``--data-factor`` (unset: the run's factor, or 1)."""
     from exploregs_plugin.configs import load_config
     from exploregs_plugin.data import DataManagerConfig
     from exploregs_plugin.io.checkpoint import resolve_run
@@ -122,24 +123,28 @@ def cameras_from(source: str | Path) -> CameraSource:
         if not text.startswith("builtin:") and not Path(text).exists():
             raise FileNotFoundError(f"--cameras-from {text}: no such run folder or dataset")
         dm_config = DataManagerConfig(data=text)
+    if data_factor is not None:
+        dm_config = replace(dm_config, data_factor=data_factor)
     dm = dm_config.setup()
     return CameraSource(dm.scene_name, list(dm.train_cameras), list(dm.test_cameras), dm.background,
                         dataset_normalization(dm), settings)
 
 
 def load_scene(path: Path, cameras: str | Path | None = None, ply_frame: PlyFrame = "original",
-               device: str = "auto") -> RenderableScene:
+               device: str = "auto", data_factor: int | None = None) -> RenderableScene:
     """Gaussians (on ``device``) and cameras from a run folder / checkpoint, or from a PLY with ``cameras``.
 
     ply_frame: whether the PLY holds the dataset's original coordinates (``original``, mapped
     into the cameras' normalised frame) or already the normalised ones (``normalized``).
+    data_factor: the cameras of the dataset's images at 1/N size, as eg-train's ``--data-factor``
+    (unset: the run's own factor, or 1 for a dataset).
     """
     path = Path(path)
     if is_ply(path):
         if cameras is None:
             raise ValueError(f"{path}: a PLY holds no cameras; pass --cameras-from RUN_OR_DATASET "
                              f"(a run folder, a dataset folder or builtin:NAME)")
-        source = cameras_from(cameras)
+        source = cameras_from(cameras, data_factor)
         if ply_frame not in ("original", "normalized"):
             raise ValueError(f"ply_frame must be original or normalized, got {ply_frame!r}")
         scene = read_ply(path, source.normalization if ply_frame == "original" else None)
@@ -152,8 +157,11 @@ def load_scene(path: Path, cameras: str | Path | None = None, ply_frame: PlyFram
 
     run = load_run(path, device)
     model, dm = run.pipeline.model, run.pipeline.datamanager
-    source = CameraSource(dm.scene_name, list(dm.train_cameras), list(dm.test_cameras), dm.background,
-                          dataset_normalization(dm), model.config.raster)
+    if data_factor is None or data_factor == run.config.pipeline.datamanager.data_factor:
+        source = CameraSource(dm.scene_name, list(dm.train_cameras), list(dm.test_cameras), dm.background,
+                              dataset_normalization(dm), model.config.raster)
+    else:  # the run's dataset at another factor, drawn as the run draws
+        source = replace(cameras_from(run.run_dir, data_factor), settings=model.config.raster)
     params = {name: value.detach() for name, value in model.params.items()}
     return RenderableScene(params, model.config.sh_degree, source, str(run.checkpoint), run.run_dir, run.step,
                            model=model)

@@ -18,8 +18,10 @@ from typing import Literal
 import tyro
 
 from exploregs_plugin.data import DataManagerConfig
+from exploregs_plugin.device import resolve_device
 from exploregs_plugin.evaluation import evaluate, write_metrics_json
 from exploregs_plugin.io.ply import read_ply
+from exploregs_plugin.rasterizer import backend_line
 from exploregs_plugin.runs.scene import dataset_normalization, is_ply, model_from_params
 from exploregs_plugin.runs import load_run
 from exploregs_plugin.scripts import run_cli
@@ -61,6 +63,7 @@ def main(args: EvalArgs) -> dict:
         model, dm = run.pipeline.model, run.pipeline.datamanager
         out = args.out or run.run_dir / f"eval-step-{run.step:07d}"
         extra = {"method": run.config.method_name, "step": run.step, "checkpoint": str(run.checkpoint)}
+    print(backend_line(model.config.raster, resolve_device(args.device)))
     metrics = evaluate(model, dm, save_dir=out if args.save_images else None)
     metrics.update({"scene": dm.scene_name, **extra})
     write_metrics_json(out / "metrics.json", metrics)

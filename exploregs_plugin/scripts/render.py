@@ -14,10 +14,13 @@ import torch
 import tyro
 
 from exploregs_plugin.cameras import Camera
+from exploregs_plugin.data.errors import DataError
+from exploregs_plugin.device import resolve_device
 from exploregs_plugin.io.camera_path import CameraOrder, Trajectory, trajectory_cameras
 from exploregs_plugin.io.frames import RenderedSequence, RenderMode, render_sequence
 from exploregs_plugin.io.ply import normalization_terms
 from exploregs_plugin.model.gaussians import render_camera
+from exploregs_plugin.rasterizer import RasterSettings, backend_line
 from exploregs_plugin.runs.scene import PlyFrame, RenderableScene, load_scene
 from exploregs_plugin.scripts import run_cli
 
@@ -45,8 +48,10 @@ class RenderArgs:
     """Path trajectory: order of the key cameras (nearest-neighbour chain, by name, or as listed)."""
     loop: bool = False
     """Path trajectory: close the path back to the first key camera."""
-    resolution_scale: float = 1.0
-    """Render at this fraction of the cameras' resolution (e.g. 0.5 halves each side)."""
+    data_factor: int | None = None
+    """Render the dataset's images at 1/N size, as eg-train's --data-factor: the cameras of
+    --cameras-from DATASET for a PLY; for a run (or --cameras-from RUN), instead of the factor it
+    trained at (unset: the run's factor, or 1 for a dataset)."""
     sh_degree: int | None = None
     """SH degree to render with (default: the scene's)."""
     background: tuple[float, float, float] | None = None
@@ -101,19 +106,18 @@ def _progress(i: int, n: int) -> None:
 
 
 def main(args: RenderArgs) -> RenderedSequence:
-    if not args.resolution_scale > 0:
-        raise ValueError(f"--resolution-scale must be > 0, got {args.resolution_scale}")
+    if args.data_factor is not None and args.data_factor < 1:
+        raise DataError("--data-factor", f"must be an integer >= 1, got {args.data_factor}")
     if args.background is not None and not all(0.0 <= c <= 1.0 for c in args.background):
         raise ValueError(f"--background must be three values in [0, 1], got {args.background}")
-    scene = load_scene(args.path, args.cameras_from, args.ply_frame, args.device)
+    scene = load_scene(args.path, args.cameras_from, args.ply_frame, args.device, args.data_factor)
     source = scene.cameras
+    print(backend_line(source.settings or RasterSettings(), resolve_device(args.device)))
     if scene.dropped:
         print(f"{scene.label}: left out {scene.dropped} Gaussians with non-finite values")
     cameras = frame_times(scene, trajectory_cameras(source.train_cameras, source.test_cameras, args.trajectory,
                                                     args.num_frames, args.max_keys, args.order, args.loop),
                           args.trajectory, args.time)
-    if args.resolution_scale != 1.0:
-        cameras = [c.scaled(args.resolution_scale) for c in cameras]
     sh_degree = scene.sh_degree if args.sh_degree is None else args.sh_degree
     if not 0 <= sh_degree <= scene.sh_degree:
         raise ValueError(f"--sh-degree must be in 0..{scene.sh_degree} for this scene, got {sh_degree}")

@@ -17,6 +17,7 @@ import tyro
 
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.io.checkpoint import CheckpointError
+from exploregs_plugin.rasterizer import RasterSettings, backend_line
 from exploregs_plugin.runs.scene import PlyFrame, is_ply, load_scene
 from exploregs_plugin.threads import apply_threads
 from exploregs_plugin.viewer import Viewer, ViewerConfig, ViewerScene
@@ -68,7 +69,9 @@ def load_viewer_scene(args: ViewArgs) -> ViewerScene:
 
 def main(args: ViewArgs) -> Viewer:
     """Start the viewer (it serves from background threads) and return it."""
-    return args.viewer_config.setup(load_viewer_scene(args), training=False)
+    scene = load_viewer_scene(args)
+    print(backend_line(scene.raster_settings or RasterSettings(), resolve_device(args.device)))
+    return args.viewer_config.setup(scene, training=False)
 
 
 class _Terminated(Exception):
