@@ -13,6 +13,7 @@ from typing import Any
 from exploregs_plugin.bench.far_region import describe_rule, fill_far_regions
 from exploregs_plugin.bench.runner import RunRecord
 from exploregs_plugin.bench.spec import BenchSpec
+from exploregs_plugin.bench.time_quality import markdown_lines, time_to_quality
 from exploregs_plugin.io.atomic import atomic_write_text
 
 REGIONS = ("far", "occluded", "other", "moving")
@@ -143,7 +144,7 @@ def _grouped(spec: BenchSpec, summary: list[dict[str, Any]], columns: list[Colum
 
 
 def markdown(spec: BenchSpec, rows: list[dict[str, Any]], summary: list[dict[str, Any]],
-             command: str | None = None) -> str:
+             command: str | None = None, quality_times: list[str] | None = None) -> str:
     seeds = ", ".join(str(s) for s in spec.seeds)
     base = spec.baseline
     lines = [f"# Benchmark: {spec.name}", ""]
@@ -203,6 +204,8 @@ def markdown(spec: BenchSpec, rows: list[dict[str, Any]], summary: list[dict[str
     lines += [""] + _grouped(spec, summary, [("Gaussians", "num_gaussians", 0, 1.0, False),
                                              ("train s", "train_seconds", 1, 1.0, False),
                                              ("render ms", "render_seconds_per_image", 1, 1000.0, False)])
+    if quality_times:
+        lines += ["", "## Time to quality", "", TIME_TO_QUALITY_NOTE, ""] + quality_times
     failed = [r for r in rows if r["status"] == "failed"]
     missing = [r for r in rows if r["status"] == "missing"]
     lines += ["", "## Runs", "",
@@ -238,6 +241,12 @@ def summary_rows(summary: list[dict[str, Any]]) -> list[dict[str, Any]]:
     return flat
 
 
+TIME_TO_QUALITY_NOTE = (
+    "Training seconds (evaluations excluded) at the first evaluation that reaches each test PSNR; the "
+    "levels are the baseline's final PSNR on the scene and 0.5 to 3 dB below it, and (Nx) is the ratio to "
+    "the baseline's seconds at the same level (bench/time_quality.py).")
+
+
 RUN_COLUMNS = ["scene", "entry", "method", "seed", "status", "steps", *METRICS, "attempts", "error", "run_dir"]
 
 
@@ -248,9 +257,11 @@ def write_tables(results: Path, spec: BenchSpec, records: list[RunRecord],
     rows = [run_row(spec, r) for r in records]
     fill_far_regions(Path(results), spec, rows)  # captured scenes: far by the reference run's depth
     summary = summarize(spec, rows)
+    quality = time_to_quality(spec, records)
+    quality_lines = markdown_lines(spec, quality)
     results = Path(results)
     results.mkdir(parents=True, exist_ok=True)
-    atomic_write_text(results / "results.md", markdown(spec, rows, summary, command))
+    atomic_write_text(results / "results.md", markdown(spec, rows, summary, command, quality_lines))
     write_csv(results / "results.csv", rows, RUN_COLUMNS)
     flat = summary_rows(summary)
     write_csv(results / "summary.csv", flat, list(dict.fromkeys(k for r in flat for k in r)))
@@ -264,6 +275,8 @@ def write_tables(results: Path, spec: BenchSpec, records: list[RunRecord],
         "command": command,
         "runs": [{**row, "history": histories[(row["scene"], row["entry"], row["seed"])]} for row in rows],
         "summary": summary,
+        "time_to_quality": quality,
+        "time_to_quality_md": quality_lines,
     }
     atomic_write_text(results / "results.json", json.dumps(payload, indent=2))
     return payload

@@ -43,7 +43,9 @@ class BenchCommand:
     2, resumable), real-gpu (the same recipe at full resolution, for a GPU), dynamic (the 4D
     methods on the built-in dynamic scene, docs/dynamic.md), dnerf (the 4D and two static methods on
     the D-NeRF lego in ../shared/scenes), branch-ablation, depth-supervision, split-ablation (the
-    paper's ablations, docs/analysis.md). Options below change it."""
+    paper's ablations, docs/analysis.md), time-to-quality (training seconds to test PSNRs of
+    coarse-to-fine and the short schedule against the default, beer and fox at --data-factor 4 and
+    builtin:default). Options below change it."""
     out: Path = Path("bench-results")
     """Results folder: tables and plots here, each run in OUT/runs/<scene>/<entry>/seed<k>/."""
     spec: Annotated[Optional[Path], unset("none")] = None
@@ -130,6 +132,8 @@ def main(argv: list[str]) -> dict | None:
         raise SystemExit(130) from None
     payload = report(cmd.out, spec, records, command=shlex.join(["eg-bench", *argv]))
     failed = sum(r.status == "failed" for r in records)
+    print("\n".join(["time to quality (training seconds to each test PSNR; ratio to "
+                     f"{spec.baseline!r}):", ""] + payload["time_to_quality_md"]))
     print(f"results: {cmd.out / 'results.md'} ({len(records)} runs, {failed} failed)", file=sys.stderr)
     return payload
 
