@@ -503,8 +503,9 @@ class Stopped(KeyboardInterrupt):
         name = signal.Signals(signum).name
         if signum == LAUNCHER_GONE:
             name += " (its launcher is gone)"
-        if step is not None:
-            where = f"before step {step}; checkpoint {checkpoint}"
+        if step is not None:  # ``step`` steps are done (the progress line's count); the checkpoint holds them
+            where = f"after step {step}" if step else "before the first step"
+            where += f", saved in {checkpoint}"
         super().__init__(f"stopped by {name} {where}")
 
     @property

@@ -342,7 +342,7 @@ def test_ctrl_c_or_sigterm_stops_a_launched_job_with_one_line(tmp_path, tiny_sce
     # one stop line (rank 0's), nothing from the other rank or torch's launcher
     assert all(ln.startswith(QUIET_START) for ln in lines[:-1]), err[-3000:]
     step = load_checkpoint(latest_checkpoint(run_dir))["step"]
-    assert lines[-1] == (f"eg-train: error: stopped by {name} before step {step}; checkpoint "
+    assert lines[-1] == (f"eg-train: error: stopped by {name} after step {step}, saved in "
                          f"{latest_checkpoint(run_dir)}; resume with: eg-train --resume {run_dir}")
 
 
@@ -392,7 +392,7 @@ def test_ranks_stop_when_their_launcher_is_killed(tmp_path, tiny_scene_dir):
     # take the repeats as one request, agree on a step and checkpoint there (rank 0 says where)
     step = load_checkpoint(latest_checkpoint(run_dir))["step"]
     assert err.strip().splitlines()[-1] == (
-        f"eg-train: error: stopped by SIGHUP (its launcher is gone) before step {step}; checkpoint "
+        f"eg-train: error: stopped by SIGHUP (its launcher is gone) after step {step}, saved in "
         f"{latest_checkpoint(run_dir)}; resume with: eg-train --resume {run_dir}"), err[-3000:]
     assert "Traceback" not in err
     good = load_checkpoint(latest_checkpoint(run_dir))  # they checkpointed on the way out

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import io
+import shlex
 import signal
 import sys
 from dataclasses import replace
@@ -94,6 +95,16 @@ def _stop_before_training(signum: int, frame: object) -> None:
     raise Stopped(signum)
 
 
+def _how_to_go_on(trainer: Trainer | None, argv: list[str]) -> str:
+    """The end of a stop line, true to what is on disk: resume when the run has a checkpoint (one
+    written now, one resumed from), else that nothing was saved and the command that starts it again."""
+    if trainer is not None and trainer.last_checkpoint is not None:
+        return f"resume with: eg-train --resume {trainer.run_dir}"
+    if argv[:1] == ["--resume"]:  # stopped while loading the run: its checkpoints are as they were
+        return f"resume with: eg-train {shlex.join(argv)}"
+    return f"no checkpoint was saved, so there is nothing to resume; start again with: eg-train {shlex.join(argv)}"
+
+
 def resume_options(argv: list[str]) -> tuple[Path, str | None, int | None]:
     """``--resume RUN_DIR [--device D] [--machine.num-devices N]`` -> (run, device, num_devices)."""
     if len(argv) < 2 or len(argv) % 2:
@@ -151,11 +162,9 @@ def main(argv: list[str]) -> dict:
     except Stopped as err:
         if trainer is not None and not trainer.world.is_main:  # rank 0 speaks for the run
             raise SystemExit(err.exit_code) from None
-        resume = f"; resume with: eg-train --resume {trainer.run_dir}" if err.checkpoint is not None else ""
-        raise _fail(f"{err}{resume}", err.exit_code) from None
+        raise _fail(f"{err}; {_how_to_go_on(trainer, argv)}", err.exit_code) from None
     except KeyboardInterrupt:
-        where = f"; resume with: eg-train --resume {trainer.run_dir}" if trainer is not None else ""
-        raise _fail(f"interrupted{where}", 130) from None
+        raise _fail(f"interrupted; {_how_to_go_on(trainer, argv)}", 130) from None
     except PeerLostError as err:
         if launched_by_eg_train():  # the launcher names the rank that was lost
             raise SystemExit(1) from None
