@@ -109,3 +109,37 @@ def test_occlusion_aware_splitting_spends_the_split_budget(tmp_path, tiny_scene_
     trainer, m = train_method("exploregs-guided-occlusion", tmp_path / "both", seeding={"n_seed": 7},
                                splitting={"n_split": 2})
     assert m["strategy_counts"]["seeded"] == 7 and m["strategy_counts"]["random_split"] == 2 * 14
+
+
+def test_mcmc_explore_with_the_automatic_cap_grows_then_stops(tmp_path, tiny_scene_dir):
+    """400 steps on the tiny scene, refinement every 25 steps until step 333: the count grows 5%
+    per refinement while the loss falls by 3% per window, then stays at the cap the rule chose;
+    explored seeds are in the set and the fit is sound."""
+    import math
+    from dataclasses import replace
+
+    from exploregs_plugin.callbacks import TrainingCallback
+
+    class Counts(TrainingCallback):
+        def __init__(self):
+            self.n = {}
+
+        def after_step(self, trainer, step, stats):
+            self.n[step] = trainer.pipeline.model.num_gaussians
+
+    config = get_method("exploregs-mcmc-explore").config
+    strategy = replace(config.pipeline.strategy, cap_max="auto", auto_min_drop=0.03)
+    config = replace(config, data="builtin:tiny", max_steps=400, run_dir=tmp_path, quiet=True, tensorboard=False,
+                     eval_count=2, save_eval_images=False, checkpoint_every=1000,
+                     schedule=ScheduleConfig(min_refine_every=25), pipeline=replace(config.pipeline, strategy=strategy))
+    counts = Counts()
+    trainer = config.setup(callbacks=[counts])
+    n0 = trainer.pipeline.model.num_gaussians
+    m = trainer.train()
+    cap = m["exploration"]["auto_cap"]
+    assert n0 < cap == m["num_gaussians"]
+    assert counts.n[26] == int(1.05 * n0)  # the first refinement (step 25) grows
+    stopped = min(step for step, n in counts.n.items() if n == cap)
+    assert stopped < 300 and all(counts.n[s] == cap for s in range(stopped, 401))  # then it never grows again
+    assert m["strategy_counts"]["explored"] > 0 and m["exploration"]["seeds_alive"] > 0
+    assert math.isfinite(m["psnr"]) and m["psnr"] > 16.0

@@ -68,10 +68,12 @@ def stratified_depths(n: int, near: Tensor, far: Tensor, mode: DepthSampling, ge
     raise StrategyError(f"guide_depth must be 'log' or 'inverse', got {mode!r}")
 
 
-def far_bounds(means: Tensor, viewmats: Tensor, minimum: Tensor) -> Tensor:
-    """Per camera [V]: the largest camera depth z of the 8 corners of the centres' box (so seeds
-    can reach the farthest content), at least ``minimum`` [V]. viewmats: [V, 4, 4]."""
-    bounds = seed_box(means.detach())
+def far_bounds(means: Tensor, viewmats: Tensor, minimum: Tensor,
+               box: tuple[Tensor, Tensor] | None = None) -> Tensor:
+    """Per camera [V]: the largest camera depth z of the 8 corners of ``box`` (default: the
+    centres' box, so seeds can reach the farthest content), at least ``minimum`` [V].
+    viewmats: [V, 4, 4]."""
+    bounds = seed_box(means.detach()) if box is None else box
     if bounds is None:
         return minimum
     lo, hi = bounds
@@ -94,12 +96,14 @@ def guided_seed_rows(
     depth: DepthSampling,
     opacity: float,
     scale_mult: float,
+    box: tuple[Tensor, Tensor] | None = None,
 ) -> dict[str, Tensor] | None:
     """Raw rows of ``n`` guided seeds from the stored views (None when no view has error).
 
     views: view index -> {"error" [h, w], "colour" [h, w, 3], "viewmat" [4, 4], "K" [3, 3],
     "size" [2] (W, H), "cell" [] (the map's cell side in pixels)}; means: [N, 3] current centres
-    (for the far bound); near, far: world units.
+    (for the far bound); near, far: world units; ``box`` (lo [3], hi [3]) bounds the far depth
+    instead of the centres' box when given.
     """
     if not views or n <= 0:
         return None
@@ -124,7 +128,7 @@ def guided_seed_rows(
     px = torch.minimum((cx + jitter[:, 0]) * cells, sizes[which, 0])
     py = torch.minimum((cy + jitter[:, 1]) * cells, sizes[which, 1])
     near_t = torch.full((n,), near, dtype=dtype, device=dev)
-    far_v = far_bounds(means, viewmats, torch.full((len(keys),), 2.0 * near, dtype=dtype, device=dev))
+    far_v = far_bounds(means, viewmats, torch.full((len(keys),), 2.0 * near, dtype=dtype, device=dev), box)
     far_t = far_v[which] if far is None else torch.full((n,), max(far, 2.0 * near), dtype=dtype, device=dev)
     z = stratified_depths(n, near_t, far_t, depth, generator)
     K = Ks[which]
@@ -160,7 +164,8 @@ class GuidedSeeding(RandomSeeding):
     """Nearest seed depth, as a fraction of the scene extent."""
     guide_far: float | None = None
     """Farthest seed depth, as a fraction of the scene extent. None: per camera, the farthest
-    corner of the box of the current centres (so far content is in reach)."""
+    corner of the seed box (box_mode; 'aabb': the box of the current centres, so far content is
+    in reach)."""
     guide_depth: DepthSampling = "log"
     """Depth sampling between the bounds: 'log' (each octave of distance gets the same share of
     seeds, so far content gets its share) or 'inverse' (uniform in disparity, near-heavy)."""
@@ -201,11 +206,14 @@ class GuidedSeeding(RandomSeeding):
     def new_seed_rows(self, params: Params, state: dict[str, Any], n: int, generator: torch.Generator
                       ) -> dict[str, Tensor] | None:
         extent = state["scene_scale"]
+        # the far bound comes from the seed box (box_mode); the paper's 'aabb' is the centres' box
+        box = None if self.box_mode == "aabb" else seed_box(params["means"].detach(), self.box_mode, self.box_quantile,
+                                                            state["scene_center"], extent)
         return guided_seed_rows(
             state.get("views", {}), n, generator, params["means"].detach(), params["shN"].shape[1],
             power=self.guide_power, near=self.guide_near * extent,
             far=None if self.guide_far is None else self.guide_far * extent, depth=self.guide_depth,
-            opacity=self.guide_opacity, scale_mult=self.guide_scale,
+            opacity=self.guide_opacity, scale_mult=self.guide_scale, box=box,
         )
 
 

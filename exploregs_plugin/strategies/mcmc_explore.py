@@ -8,10 +8,11 @@ opacity, and growth copies live ones the same way. Here, at every refinement, a 
 remainders, :func:`apportion`) between
 
 - random size-weighted splits (Random Splitting's rule, :func:`~.splitting.split_drawn`),
-- seeds uniform in the seed box (Random Seeding's placement, ``seeding.box_seed_rows``),
+- seeds uniform in the seed box (Random Seeding's placement, ``seeding.box_seed_rows``; by
+  default the cube of the scene extent around the cameras, ``box_mode='cameras'``),
 - seeds on the rays of the pixels with the highest recent error, at depths sampled along the ray
-  (guided seeding's placement, ``seeding.new_seed_rows``; ``--strategy.seeding.guide-power 0``
-  makes them uniform over the training cameras' frusta).
+  up to the far corner of that box (guided seeding's placement, ``seeding.new_seed_rows``;
+  ``--strategy.seeding.guide-power 0`` makes them uniform over the training cameras' frusta).
 
 A relocation removes the k dead rows it explores and adds the explorers (the count is kept); the
 other dead rows are relocated as MCMC does. Seeds start at opacity ``explore_opacity``, low
@@ -77,11 +78,14 @@ class MCMCExploreStrategy(MCMCStrategy):
     """Weight of seeds uniform in the seed box (``seeding.box_mode``) among the explorers."""
     explore_guided: float = 1.0
     """Weight of guided seeds (on the rays of high-error pixels) among the explorers."""
-    seeding: GuidedSeeding = field(default_factory=GuidedSeeding)
-    """Where seeds go: box_mode, box_quantile and min_scale for the box seeds; guide_* for the
-    guided ones (guide_power 0: uniform over the training cameras' frusta). Its schedule, count,
-    probation and opacity fields are not used here (MCMC's refinement schedules the explorers,
-    explore_opacity sets their opacity, relocation removes the dead)."""
+    seeding: GuidedSeeding = field(default_factory=lambda: GuidedSeeding(box_mode="cameras"))
+    """Where seeds go: box_mode, box_quantile and min_scale for the box seeds and the guided
+    seeds' far bound; guide_* for the guided ones (guide_power 0: uniform over the training
+    cameras' frusta). Box 'cameras' by default: MCMC's noise carries transparent Gaussians far
+    away, so the box of the centres ('aabb') grows, and with it the seeds' spread, scale and
+    noise, without bound. Its schedule, count, probation and opacity fields are not used here
+    (MCMC's refinement schedules the explorers, explore_opacity sets their opacity, relocation
+    removes the dead)."""
 
     requires = frozenset({VIEW_ERRORS})
 
