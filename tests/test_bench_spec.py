@@ -37,6 +37,33 @@ def test_controls_are_default_with_seedings_prune_and_a_lower_threshold():
     assert spec.seeds == (0, 1, 2) and len(spec.runs()) == 7 * 3 * len(spec.scenes)
 
 
+def test_full_explore_preset_adds_mcmc_explore_to_fulls_recipe_and_reuses_its_entries(tmp_path):
+    from exploregs_plugin.strategies import MCMCExploreStrategy
+
+    for name in ("beer", "fox"):
+        (tmp_path / name).mkdir()
+    from exploregs_plugin.bench.presets import full_explore
+
+    base = full(tmp_path)
+
+    spec = full_explore(tmp_path)
+    assert (spec.steps, spec.seeds, spec.eval_count, spec.scenes) == (base.steps, base.seeds, base.eval_count, base.scenes)
+    runs = [(entry.name, seed) for _, entry, seed in spec.runs()]
+    assert {e for e, s in runs if s > 0} == {"default", "mcmc", "mcmc-explore", "seedsplit"}
+    assert len(runs) == 2 * (4 * 3 + 3)
+    shared = {e.name: e for e in base.entries}
+    for name in ("default", "seedsplit", "default-relaxed-prune"):  # the same runs as full's: reused
+        assert spec.entry(name) == shared[name]
+    assert spec.entry("mcmc").overrides == shared["mcmc"].overrides
+    capped = spec.entry("mcmc-explore").resolved(lambda entry, field: 1234)  # Default's count, once known
+    explore = build_config(spec, spec.scenes[0], capped, 0, Path("/tmp/unused-run")).pipeline.strategy
+    assert type(explore) is MCMCExploreStrategy and explore.cap_max == 1234
+    assert spec.entry("mcmc-explore").depends_on() == {"default"}
+    assert _config(spec, "mcmc-explore-auto").pipeline.strategy.cap_max == "auto"
+    assert _config(spec, "guided-occlusion").pipeline.strategy.budget == "cpu-small"
+    assert named_entries()["mcmc-auto"].overrides == ("--strategy.cap-max", "auto")
+
+
 def test_build_config_applies_bench_fields_then_scene_options_then_entry_overrides():
     spec = BenchSpec(entries=(BenchEntry("s50", "exploregs-seed", ("--strategy.seeding.n-seed", "50", "--data-factor", "3")),),
                      scenes=(BenchScene("t", "builtin:tiny", ("--data-factor", "2", "--eval-count", "7")),),

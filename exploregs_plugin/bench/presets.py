@@ -33,6 +33,10 @@ DYNAMIC_ENTRIES = (
 """The dynamic bench's entries (also named entries for --methods)."""
 
 
+AUTO_CAP = ("--strategy.cap-max", "auto")
+"""MCMC's automatic cap: growth stops when the training loss stops falling (docs/strategies.md)."""
+
+
 def relaxed_prune_scale3d() -> float:
     """The world-size prune threshold Seeding uses while it seeds (x extent), read from the
     strategy so the control follows any change of Seeding's default."""
@@ -57,6 +61,11 @@ def named_entries() -> dict[str, BenchEntry]:
         BenchEntry("ray", "exploregs-ray", (), "Default + ray-constrained position noise"),
         BenchEntry("mcmc", "exploregs-mcmc", (), "3DGS-MCMC"),
         BenchEntry("mcmc-ray", "exploregs-mcmc-ray", (), "3DGS-MCMC with ray-only noise"),
+        BenchEntry("mcmc-auto", "exploregs-mcmc", AUTO_CAP, "3DGS-MCMC with the count chosen by the training loss"),
+        BenchEntry("mcmc-explore", "exploregs-mcmc-explore", (),
+                   "3DGS-MCMC with a share of relocation and growth explored (splits, uniform and guided seeds)"),
+        BenchEntry("mcmc-explore-auto", "exploregs-mcmc-explore", AUTO_CAP,
+                   "MCMC-explore with the count chosen by the training loss"),
         BenchEntry("guided", "exploregs-guided", (), "guided seeding: seeds on the rays of the highest-error pixels"),
         BenchEntry("occlusion", "exploregs-occlusion", (), "occlusion-aware splitting"),
         BenchEntry("guided-occlusion", "exploregs-guided-occlusion", (), "guided seeding + occlusion-aware splitting"),
@@ -285,6 +294,32 @@ def time_to_quality(root: Path | None = None) -> BenchSpec:
                      eval_count=TTQ_EVAL_COUNT, name="time-to-quality", notes=notes)
 
 
+def full_explore(root: Path | None = None) -> BenchSpec:
+    """Issue 49's matrix: exploration inside MCMC's budget at the full schedule, with ``full``'s
+    recipe (scenes, steps, seeds, evaluations). MCMC and MCMC-explore capped at Default's final
+    count, three seeds each; MCMC-explore with the automatic cap, guided + occlusion-aware
+    exploration and, for reference, Seed+Split (three seeds) and the relaxed-prune control. The
+    entries it shares with ``full`` are ``full``'s own, so in ``full``'s output folder their
+    finished runs are reused."""
+    spec = full(root)
+    named, once = named_entries(), (0,)
+    reused = {e.name: e for e in spec.entries}
+    count = ("--strategy.cap-max", "{default:num_gaussians}")
+    grad = ("--strategy.grow-grad2d", repr(FULL_GROW_GRAD2D))
+    entries = (
+        reused["default"],
+        replace(reused["mcmc"], seeds=None),
+        BenchEntry("mcmc-explore", "exploregs-mcmc-explore", count,
+                   "3DGS-MCMC with a share of relocation and growth explored, capped at Default's final count"),
+        replace(named["mcmc-explore-auto"], seeds=once),
+        BenchEntry("guided-occlusion", "exploregs-guided-occlusion", ("--strategy.budget", FULL_BUDGET) + grad,
+                   "guided seeding + occlusion-aware splitting", seeds=once),
+        reused["seedsplit"],
+        reused["default-relaxed-prune"],
+    )
+    return replace(spec, entries=entries, name="full-explore")
+
+
 DYNAMIC_SEEDS = (0, 1, 2)
 
 
@@ -331,6 +366,7 @@ PRESETS = {
     "standard": standard,
     "real": real,
     "full": full,
+    "full-explore": full_explore,
     "real-gpu": real_gpu,
     "dynamic": dynamic,
     "dnerf": dnerf,
