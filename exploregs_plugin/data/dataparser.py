@@ -2,7 +2,10 @@
 
 ``builtin:NAME`` -> generated (or cached) built-in scene, read as COLMAP (static scenes) or
 Neu3D (dynamic ones); a folder with ``sparse/`` -> COLMAP; a folder with ``poses_bounds.npy``
--> Neu3D / DyNeRF; a ``transforms.json`` file, or a folder holding one -> transforms.json.
+-> Neu3D / DyNeRF; a ``transforms.json`` file, or a folder holding one -> transforms.json; a
+capture without poses (a folder of photos, a dataset folder with ``images/`` but no ``sparse/``,
+a video file, a folder of videos) -> posed by :mod:`exploregs_plugin.data.process` into the cache
+once, then read as COLMAP.
 """
 
 from __future__ import annotations
@@ -11,15 +14,37 @@ import sys
 from dataclasses import replace
 from pathlib import Path
 
+import yaml
+
+from exploregs_plugin.io.checkpoint import CHECKPOINT_DIR, RUN_CONFIG
+
 from .builtin import ensure_builtin
 from .colmap import read_colmap
 from .errors import DataError
-from .images import conversion_note
+from .images import conversion_note, derived_cache_dir
 from .neu3d import is_neu3d, read_neu3d
+from .process import is_capture, process_capture
+from .process.report import REPORT_NAME
 from .parsed import ParsedScene, ParseOptions, normalize_scene
 from .transforms_json import BLENDER_LAYOUT, read_transforms
 
 BUILTIN_PREFIX = "builtin:"
+
+
+def another_commands_input(path: Path) -> str | None:
+    """Why ``path`` is not a dataset when it is another input of the commands: a PLY of trained
+    Gaussians, or an eg-train run folder (or a checkpoint in one), named with the dataset it
+    trained on, so that the one line says what the path is."""
+    if path.is_file() and path.suffix.lower() == ".ply":
+        return "a PLY of trained Gaussians, not a dataset"
+    run = path.parent.parent if path.is_file() and path.parent.name == CHECKPOINT_DIR else path
+    if not (run / RUN_CONFIG).is_file():
+        return None
+    try:
+        data = yaml.safe_load((run / RUN_CONFIG).read_text())["pipeline"]["datamanager"]["data"]
+    except (OSError, yaml.YAMLError, KeyError, TypeError):
+        data = f"the dataset named in {run / RUN_CONFIG}"
+    return f"an eg-train run, not a dataset: it trained on {data} (eg-train --resume {run} continues it)"
 
 
 def resolve_data(data: str, cache_dir: Path) -> tuple[str, Path]:
@@ -33,9 +58,14 @@ def resolve_data(data: str, cache_dir: Path) -> tuple[str, Path]:
     path = Path(data).expanduser()
     if not path.exists():
         raise DataError(f"--data {data}", "path does not exist (and is not builtin:NAME)")
+    other = another_commands_input(path)
+    if other is not None:
+        raise DataError(path, other)
     if path.is_file():
         if path.suffix.lower() == ".json":
             return "transforms", path
+        if is_capture(path):  # a video
+            return "colmap", posed_capture(path, Path(cache_dir).expanduser())
         raise DataError(path, "a data file must be a transforms.json; otherwise pass the dataset folder")
     if (path / "sparse").is_dir():
         return "colmap", path
@@ -45,8 +75,23 @@ def resolve_data(data: str, cache_dir: Path) -> tuple[str, Path]:
         return "transforms", path / "transforms.json"
     if (path / "transforms_train.json").is_file():
         return "transforms", path  # Blender / NeRF-synthetic: transforms_{train,val,test}.json
-    raise DataError(path, "not a dataset: expected sparse/0 (COLMAP), transforms.json, transforms_train.json "
-                    "or poses_bounds.npy (Neu3D)")
+    if is_capture(path):  # photos or videos without poses
+        return "colmap", posed_capture(path, Path(cache_dir).expanduser())
+    raise DataError(path, "not a dataset: expected sparse/0 (COLMAP), transforms.json, transforms_train.json, "
+                    "poses_bounds.npy (Neu3D), or photos or videos to pose")
+
+
+def posed_capture(path: Path, cache_dir: Path) -> Path:
+    """The COLMAP dataset posed from the capture ``path`` in the cache (``derived/``, beside the
+    derived images; never in the user's folder): made on first use, reused after."""
+    out = derived_cache_dir(path, "posed", cache_dir)
+    if (out / REPORT_NAME).is_file():
+        print(f"note: {path} has no camera poses: using those posed earlier in {out}", file=sys.stderr, flush=True)
+    else:
+        print(f"note: {path} has no camera poses: posing it (as eg-process does) into {out}; the next run "
+              "reuses it", file=sys.stderr, flush=True)
+    process_capture([path], out, replace_other=True)  # a changed capture is posed again
+    return out
 
 
 def parse_dataset(data: str, options: ParseOptions, normalize: bool = True) -> ParsedScene:

@@ -1,0 +1,138 @@
+"""The pycolmap stages: features (SIFT), matching (pairs chosen here), mapping (incremental or
+global). Each works on the database in the output folder and can be cut at any point: extraction
+skips images that have features, matching skips pairs already matched.
+
+pycolmap's calls take one chunk of images or pairs at a time, so a progress bar advances between
+chunks; every call gets the thread count explicitly.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import itertools
+import math
+from pathlib import Path
+from typing import Callable, Iterator, Literal, Sequence
+
+import pycolmap
+
+Matching = Literal["exhaustive", "sequential", "spatial"]
+Mapper = Literal["incremental", "global"]
+EXHAUSTIVE_MAX_IMAGES = 300
+"""Above this many photos, exhaustive matching (n^2 / 2 pairs) gives way to sequential."""
+SEQUENTIAL_OVERLAP = 10
+"""Sequential matching pairs each frame with the next 10 and with those 2^k frames ahead."""
+CROSS_VIDEO_KEYFRAMES = 30
+"""Between different videos, this many evenly spaced frames of each are matched exhaustively."""
+
+
+@contextlib.contextmanager
+def colmap_logs(verbose: bool) -> Iterator[None]:
+    """pycolmap's own log lines: all of them to stderr with ``verbose``, none otherwise."""
+    log = pycolmap.logging
+    before = (log.minloglevel, log.logtostderr)
+    log.minloglevel = 0 if verbose else 3  # glog levels: 0 INFO, 1 WARNING, 2 ERROR, 3 FATAL
+    log.logtostderr = verbose
+    try:
+        yield
+    finally:
+        log.minloglevel, log.logtostderr = before
+
+
+def chunks(items: Sequence, count: int) -> list[Sequence]:
+    """``items`` in about ``count`` consecutive chunks (each non-empty)."""
+    size = max(1, math.ceil(len(items) / max(count, 1)))
+    return [items[i:i + size] for i in range(0, len(items), size)]
+
+
+def camera_mode(per_folder: bool, sizes: Sequence[tuple[int, int]]) -> pycolmap.CameraMode:
+    """One camera per video (frames in one folder per video), one for same-sized photos, else one
+    per photo."""
+    if per_folder:
+        return pycolmap.CameraMode.PER_FOLDER
+    return pycolmap.CameraMode.SINGLE if len(set(sizes)) <= 1 else pycolmap.CameraMode.PER_IMAGE
+
+
+def extract(database: Path, image_dir: Path, names: list[str], mode: pycolmap.CameraMode, camera_model: str,
+            max_image_size: int, threads: int, advance: Callable[[int], None]) -> None:
+    """Import every image (its camera from ``mode``) into the database, then SIFT in chunks."""
+    pycolmap.Database.open(database).close()  # pycolmap's import wants the file to exist
+    reader = pycolmap.ImageReaderOptions()
+    reader.camera_model = camera_model
+    with pycolmap.Database.open(database) as db:
+        missing = [n for n in names if not db.exists_image(n)] if db.num_images() else names
+    if missing:
+        pycolmap.import_images(database, image_dir, camera_mode=mode, image_names=missing, options=reader)
+    options = pycolmap.FeatureExtractionOptions()
+    options.max_image_size = max_image_size
+    options.num_threads = threads
+    for chunk in chunks(names, min(10, math.ceil(len(names) / 16))):  # a call costs about 1 s to set up
+        pycolmap.extract_features(database, image_dir, image_names=list(chunk), reader_options=reader,
+                                  extraction_options=options, device=pycolmap.Device.cpu)
+        advance(len(chunk))
+
+
+def exhaustive_pairs(names: Sequence[str]) -> list[tuple[str, str]]:
+    return list(itertools.combinations(names, 2))
+
+
+def sequential_pairs(names: Sequence[str], overlap: int = SEQUENTIAL_OVERLAP) -> list[tuple[str, str]]:
+    """Each frame with the next ``overlap`` and with the frames 2^k ahead (loops of a walk)."""
+    offsets = set(range(1, overlap + 1)) | {2 ** k for k in range(overlap) if 2 ** k < len(names)}
+    return [(names[i], names[i + o]) for i in range(len(names)) for o in sorted(offsets) if i + o < len(names)]
+
+
+def video_pairs(videos: Sequence[Sequence[str]]) -> list[tuple[str, str]]:
+    """Sequential pairs inside each video, and keyframes of different videos all against all."""
+    pairs = [p for frames in videos for p in sequential_pairs(frames)]
+    keyframes = [list(frames[::max(1, len(frames) // CROSS_VIDEO_KEYFRAMES)]) for frames in videos]
+    for a, b in itertools.combinations(range(len(videos)), 2):
+        pairs += [(x, y) for x in keyframes[a] for y in keyframes[b]]
+    return pairs
+
+
+def match_pairs(database: Path, pairs: list[tuple[str, str]], pairs_file: Path, threads: int,
+                advance: Callable[[int], None]) -> None:
+    """Match and verify ``pairs`` in chunks (pycolmap reads each chunk from ``pairs_file``)."""
+    options = pycolmap.FeatureMatchingOptions()
+    options.num_threads = threads
+    for chunk in chunks(pairs, min(25, math.ceil(len(pairs) / 100))):  # a call costs about 0.1 s
+        pairs_file.write_text("".join(f"{a} {b}\n" for a, b in chunk))
+        pairing = pycolmap.ImportedPairingOptions()
+        pairing.match_list_path = str(pairs_file)
+        pycolmap.match_image_pairs(database, matching_options=options, pairing_options=pairing,
+                                   device=pycolmap.Device.cpu)
+        advance(len(chunk))
+
+
+def pose_prior_count(database: Path) -> int:
+    with pycolmap.Database.open(database) as db:
+        return db.num_pose_priors()
+
+
+def match_spatial(database: Path, threads: int) -> None:
+    """Pairs of photos near each other by their GPS positions (pycolmap's spatial matcher)."""
+    options = pycolmap.FeatureMatchingOptions()
+    options.num_threads = threads
+    pairing = pycolmap.SpatialPairingOptions()
+    pairing.num_threads = threads
+    pycolmap.match_spatial(database, matching_options=options, pairing_options=pairing, device=pycolmap.Device.cpu)
+
+
+def map_scene(database: Path, image_dir: Path, out_dir: Path, mapper: Mapper, threads: int,
+              on_registered: Callable[[int], None]) -> dict[int, pycolmap.Reconstruction]:
+    """Every model the mapper finds, written to ``out_dir/<index>``; ``on_registered(n)`` reports
+    the images the incremental mapper registers (the global one reports nothing until done)."""
+    out_dir.mkdir(parents=True, exist_ok=True)
+    pycolmap.set_random_seed(0)  # the same capture gives the same model
+    if mapper == "global":
+        options = pycolmap.GlobalPipelineOptions()
+        options.num_threads = threads
+        options.random_seed = 0
+        return pycolmap.global_mapping(database, image_dir, out_dir, options=options)
+    options = pycolmap.IncrementalPipelineOptions()
+    options.num_threads = threads
+    options.random_seed = 0
+    return pycolmap.incremental_mapping(database, image_dir, out_dir, options=options,
+                                        initial_image_pair_callback=lambda: on_registered(2),
+                                        next_image_callback=lambda: on_registered(1))

@@ -1,0 +1,317 @@
+"""eg-process: photos and videos in, a COLMAP dataset out (exploregs_plugin/data/process).
+
+A capture of known cameras is rendered from the built-in scenes' ray caster (an arc of 24 views,
+320x240, around textured objects on a mosaic ground: a tiled ground repeats and misleads SIFT), and
+the recovered cameras are compared with the true ones after a similarity (Umeyama) alignment.
+"""
+
+from __future__ import annotations
+
+import json
+import shutil
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from exploregs_plugin.data.process import ProcessConfig, process_capture
+from exploregs_plugin.data.process import run as process_run
+from exploregs_plugin.data.process import sfm
+from exploregs_plugin.data.process.inputs import IMAGE_SUFFIXES
+from exploregs_plugin.data.process.report import PLOT_NAME, REPORT_NAME
+from exploregs_plugin.data.process.video import sharpness, upright, window_length
+from exploregs_plugin.data.raycast import GroundPlane, Material
+from exploregs_plugin.data.scene_layouts import build_world, intrinsics, look_at
+from exploregs_plugin.data.scene_render import RenderSettings, render_view
+from exploregs_plugin.data.textures import Mosaic
+
+N_VIEWS = 24
+WIDTH, HEIGHT = 320, 240
+PALETTE = np.array([[0.9, 0.1, 0.1], [0.1, 0.6, 0.9], [0.95, 0.85, 0.1], [0.1, 0.7, 0.3],
+                    [0.6, 0.2, 0.7], [0.95, 0.95, 0.95], [0.1, 0.1, 0.1]])
+CONFIG = ProcessConfig(num_threads=2)
+
+
+def render_capture(folder: Path, n_views: int = N_VIEWS, arc_deg: float = 120.0) -> tuple[list[np.ndarray], np.ndarray]:
+    """PNG views ``folder/NNNN.png`` on an arc (radius 3.5, height 1.6) looking at the objects;
+    returns the images and the true camera-to-world matrices [V, 4, 4] (OpenCV axes)."""
+    prims = [GroundPlane(0.0, Material(Mosaic(0.1, PALETTE, 5)))] + build_world("combined", 0)[1:]
+    K = intrinsics(WIDTH, HEIGHT, 60.0)
+    folder.mkdir(parents=True, exist_ok=True)
+    images, c2ws = [], []
+    for i, az in enumerate(np.radians(np.linspace(0.0, arc_deg, n_views))):
+        c2w = look_at(np.array([3.5 * np.cos(az), 3.5 * np.sin(az), 1.6]), np.array([0.0, 0.0, 0.4]))
+        view = render_view(prims, K, c2w, RenderSettings(WIDTH, HEIGHT, supersample=1, n_points=0))
+        rgb = np.clip(np.round(view.image * 255.0), 0, 255).astype(np.uint8)
+        Image.fromarray(rgb).save(folder / f"{i:04d}.png")
+        images.append(rgb)
+        c2ws.append(c2w)
+    return images, np.stack(c2ws)
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) minimising sum |s R src_i + t - dst_i|^2 (Umeyama 1991)."""
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
+    R = U @ D @ Vt
+    s = float(np.trace(np.diag(S) @ D) / max((xs ** 2).sum(1).mean(), 1e-12))
+    return s, R, mu_d - s * R @ mu_s
+
+
+def recovered_cameras(dataset: Path) -> dict[str, np.ndarray]:
+    """Image name -> camera-to-world [4, 4] of the written model."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(dataset / "sparse" / "0"))
+    out = {}
+    for im in rec.images.values():
+        w2c = np.eye(4)
+        w2c[:3, :4] = im.cam_from_world().matrix()
+        out[im.name] = np.linalg.inv(w2c)
+    return out
+
+
+@pytest.fixture(scope="module")
+def capture(tmp_path_factory) -> tuple[Path, list[np.ndarray], np.ndarray]:
+    folder = tmp_path_factory.mktemp("capture") / "photos"
+    images, c2ws = render_capture(folder)
+    return folder, images, c2ws
+
+
+@pytest.fixture(scope="module")
+def processed(capture, tmp_path_factory) -> tuple[Path, dict]:
+    out = tmp_path_factory.mktemp("processed") / "dataset"
+    return out, process_capture([capture[0]], out, CONFIG)
+
+
+def _subset(capture, folder: Path, step: int = 3) -> Path:
+    """Every ``step``-th view of the capture copied into ``folder`` (a small, quick capture)."""
+    folder.mkdir(parents=True)
+    for path in sorted(capture[0].iterdir())[::step]:
+        shutil.copy(path, folder / path.name)
+    return folder
+
+
+def test_recovered_cameras_match_the_true_ones_after_a_similarity(capture, processed):
+    _, _, true_c2ws = capture
+    out, report = processed
+    assert report["registered"] == report["images_in"] == N_VIEWS and report["not_registered"] == []
+    cams = recovered_cameras(out)
+    names = sorted(cams)
+    assert names == [f"{i:04d}.png" for i in range(N_VIEWS)]
+    est = np.stack([cams[n] for n in names])
+    s, R, t = umeyama(est[:, :3, 3], true_c2ws[:, :3, 3])
+    aligned_centres = s * est[:, :3, 3] @ R.T + t
+    extent = max(np.linalg.norm(a - b) for a in true_c2ws[:, :3, 3] for b in true_c2ws[:, :3, 3])
+    centre_error = np.linalg.norm(aligned_centres - true_c2ws[:, :3, 3], axis=1)
+    assert centre_error.max() < 0.01 * extent, centre_error.max() / extent
+    # rotation error: the angle of R_true^T (R R_est), trace = 1 + 2 cos(angle)
+    rel = np.einsum("vji,jk,vkl->vil", true_c2ws[:, :3, :3], R, est[:, :3, :3])
+    angles = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    assert angles.max() < 1.0, angles.max()
+
+
+def test_the_dataset_folder_holds_images_model_report_and_plot(capture, processed):
+    out, report = processed
+    assert sorted(p.name for p in (out / "images").iterdir()) == sorted(p.name for p in capture[0].iterdir())
+    # an upright PNG is copied byte for byte; the input folder is untouched
+    assert (out / "images" / "0000.png").read_bytes() == (capture[0] / "0000.png").read_bytes()
+    assert sorted(p.name for p in capture[0].iterdir()) == [f"{i:04d}.png" for i in range(N_VIEWS)]
+    written = json.loads((out / REPORT_NAME).read_text())
+    assert written == report
+    assert written["points3D"] > 500 and 0.0 < written["mean_reprojection_error_px"] < 2.0
+    assert written["mean_track_length"] > 2.0
+    assert set(written["seconds"]) == {"import", "features", "matching", "mapping"}
+    assert written["settings"]["matching"] == "exhaustive" and written["settings"]["threads"] == 2
+    with Image.open(out / PLOT_NAME) as plot:
+        assert plot.size[0] > 300 and plot.size[1] > 300
+
+
+def test_a_processed_folder_reads_and_trains(processed, tmp_path):
+    from exploregs_plugin.method_configs import get_method
+
+    out, _ = processed
+    config = get_method("exploregs-default").config
+    config = replace(config, data=str(out), max_steps=20, run_dir=tmp_path / "run", quiet=True, tensorboard=False,
+                     eval_count=1, save_eval_images=False, checkpoint_every=1000)
+    config.pipeline.datamanager.data_factor = 4
+    trainer = config.setup()
+    assert len(trainer.pipeline.datamanager.parsed.images) == N_VIEWS
+    metrics = trainer.train()
+    assert np.isfinite(metrics["psnr"]) and metrics["psnr"] > 10.0
+
+
+def test_data_given_photos_poses_them_into_the_cache_once(capture, tmp_path, capsys):
+    from exploregs_plugin.data.dataparser import resolve_data
+
+    photos = _subset(capture, tmp_path / "my photos")
+    before = sorted(p.name for p in photos.iterdir())
+    kind, path = resolve_data(str(photos), tmp_path / "cache")
+    assert kind == "colmap" and path.parent.parent == tmp_path / "cache" / "derived"
+    assert (path / "sparse" / "0").is_dir() and sorted(p.name for p in photos.iterdir()) == before
+    err = capsys.readouterr().err
+    assert f"note: {photos} has no camera poses: posing it (as eg-process does) into {path}; the next run reuses it" in err
+    stamp = (path / "sparse" / "0" / "images.bin").stat().st_mtime_ns
+    assert resolve_data(str(photos), tmp_path / "cache") == ("colmap", path)
+    assert f"note: {photos} has no camera poses: using those posed earlier in {path}" in capsys.readouterr().err
+    assert (path / "sparse" / "0" / "images.bin").stat().st_mtime_ns == stamp  # reused, not posed again
+
+
+def write_mp4(frames: list[np.ndarray], path: Path, fps: int = 30) -> None:
+    import av
+
+    with av.open(str(path), "w") as container:
+        stream = container.add_stream("libx264", rate=fps)
+        stream.width, stream.height, stream.pix_fmt = frames[0].shape[1], frames[0].shape[0], "yuv420p"
+        stream.options = {"crf": "18"}
+        for rgb in frames:
+            for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+
+
+def test_a_video_of_the_same_views_registers_at_least_90_percent(capture, tmp_path):
+    video = tmp_path / "walk.mp4"
+    write_mp4(capture[1], video)
+    report = process_capture([video], tmp_path / "dataset", CONFIG)
+    assert report["images_in"] == N_VIEWS  # fewer frames than --num-frames: every frame kept
+    assert report["settings"]["matching"] == "sequential"
+    assert report["registered"] >= 0.9 * N_VIEWS
+
+
+def test_sharpest_frame_of_each_window_and_rotation():
+    rng = np.random.default_rng(0)
+    sharp = (rng.random((60, 80, 3)) * 255).astype(np.uint8)
+    blurred = ((sharp.astype(np.float32) + np.roll(sharp, 1, 0) + np.roll(sharp, 1, 1) + np.roll(sharp, 2, 1)) / 4).astype(np.uint8)
+    assert sharpness(sharp) > 2 * sharpness(blurred)
+    assert (window_length(300, 150), window_length(71, 150), window_length(0, 150)) == (2, 1, 1)
+    tall = upright(sharp, 90)  # 90 degrees counter-clockwise: the top row becomes the left column
+    assert tall.shape == (80, 60, 3) and (tall[:, 0] == sharp[0, ::-1]).all()
+
+
+def test_blurred_frames_are_dropped(tmp_path):
+    from exploregs_plugin.data.process.video import extract_frames
+
+    rng = np.random.default_rng(1)
+    sharp = [(rng.random((64, 96, 3)) * 255).astype(np.uint8) for _ in range(3)]
+    blur = [np.asarray(Image.fromarray(f).resize((24, 16)).resize((96, 64), Image.Resampling.BILINEAR)) for f in sharp]
+    frames = [blur[0], sharp[0], blur[1], sharp[1], blur[2], sharp[2]]  # a sharp frame in every window of 2
+    write_mp4(frames, tmp_path / "clip.mp4")
+    (tmp_path / "frames").mkdir()
+    assert extract_frames(tmp_path / "clip.mp4", tmp_path / "frames", "", 3) == ["00001.jpg", "00003.jpg", "00005.jpg"]
+
+
+def test_resume_after_a_killed_matching_stage_redoes_only_the_rest(capture, tmp_path, monkeypatch):
+    photos = _subset(capture, tmp_path / "photos")
+    out = tmp_path / "dataset"
+    real_match = sfm.match_pairs
+
+    def killed_after_one_chunk(database, pairs, pairs_file, threads, advance):
+        real_match(database, pairs[:5], pairs_file, threads, advance)
+        raise KeyboardInterrupt  # the run is killed inside the matching stage
+
+    monkeypatch.setattr(sfm, "match_pairs", killed_after_one_chunk)
+    with pytest.raises(KeyboardInterrupt):
+        process_capture([photos], out, CONFIG)
+    state = json.loads((out / "process_state.json").read_text())
+    assert set(state["stages"]) == {"import", "features"} and not (out / "sparse").exists()
+    import pycolmap
+    with pycolmap.Database.open(out / "database.db") as db:
+        assert db.num_matched_image_pairs() == 5  # the work done before the kill is kept
+
+    matched: list[int] = []
+
+    def counting_match(database, pairs, pairs_file, threads, advance):
+        matched.append(len(pairs))
+        real_match(database, pairs, pairs_file, threads, advance)
+
+    monkeypatch.setattr(sfm, "match_pairs", counting_match)
+    monkeypatch.setattr(sfm, "extract", lambda *a, **k: pytest.fail("features were extracted again"))
+    report = process_capture([photos], out, CONFIG)
+    assert matched == [28] and report["registered"] == 8
+    assert set(report["seconds"]) == {"import", "features", "matching", "mapping"}
+
+
+@pytest.mark.slow
+def test_changed_mapper_redoes_only_mapping(processed, tmp_path, monkeypatch):
+    out, first = processed
+    copy = tmp_path / "dataset"
+    shutil.copytree(out, copy)
+    monkeypatch.setattr(sfm, "extract", lambda *a, **k: pytest.fail("features were extracted again"))
+    monkeypatch.setattr(sfm, "match_pairs", lambda *a, **k: pytest.fail("pairs were matched again"))
+    report = process_capture([Path(json.loads((out / "process_state.json").read_text())["input"][0][0]).parent],
+                             copy, replace(CONFIG, mapper="global"))
+    assert report["settings"]["mapper"] == "global" and report["registered"] == N_VIEWS
+    assert report["seconds"]["features"] == first["seconds"]["features"]
+
+
+def _error_line(capsys, argv: list[str]) -> str:
+    from exploregs_plugin.scripts.process import main
+    from exploregs_plugin.scripts import run_cli
+
+    with pytest.raises(SystemExit) as exit_:
+        run_cli("eg-process", main, argv)
+    assert exit_.value.code == 2
+    return capsys.readouterr().err.strip().splitlines()[-1]  # after the progress bars of the stages it ran
+
+
+def test_fewer_than_three_images_is_one_line(capture, tmp_path, capsys):
+    photos = tmp_path / "two"
+    photos.mkdir()
+    for name in ("0000.png", "0001.png"):
+        shutil.copy(capture[0] / name, photos / name)
+    assert _error_line(capsys, [str(photos), "--out", str(tmp_path / "out")]) == (
+        f"eg-process: error: {photos}: holds 2 image(s) ({', '.join(IMAGE_SUFFIXES)}); posing needs at least 3 "
+        "overlapping photos")
+    assert not (tmp_path / "out").exists()
+
+
+def test_an_unreadable_image_is_one_line(capture, tmp_path, capsys):
+    photos = _subset(capture, tmp_path / "photos", step=8)
+    (photos / "broken.jpg").write_bytes(b"not a jpeg")
+    assert _error_line(capsys, [str(photos), "--out", str(tmp_path / "out")]) == (
+        f"eg-process: error: {photos / 'broken.jpg'}: cannot read this image "
+        f"(cannot identify image file {str(photos / 'broken.jpg')!r})")
+
+
+def test_a_video_without_a_decodable_frame_is_one_line(tmp_path, capsys):
+    video = tmp_path / "clip.mp4"
+    video.write_bytes(b"\x00" * 4096)
+    assert _error_line(capsys, [str(video), "--out", str(tmp_path / "out")]) == (
+        f"eg-process: error: {video}: no decodable video frame")
+
+
+def test_an_output_folder_holding_something_else_is_one_line(capture, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert _error_line(capsys, [str(capture[0]), "--out", str(out)]) == (
+        f"eg-process: error: {out}: holds other files (notes.txt); --out must be a new or empty folder, "
+        "or an earlier eg-process output to resume")
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_an_output_inside_the_input_is_one_line(capture, tmp_path, capsys):
+    photos = _subset(capture, tmp_path / "photos", step=8)
+    assert _error_line(capsys, [str(photos), "--out", str(photos / "dataset")]) == (
+        f"eg-process: error: {photos / 'dataset'}: is inside the input folder {photos}; the output goes elsewhere "
+        "(the input is never written to)")
+
+
+def test_a_reconstruction_under_half_registered_is_one_line(capture, tmp_path, capsys):
+    photos = _subset(capture, tmp_path / "photos", step=3)  # 8 views that pose
+    rng = np.random.default_rng(2)
+    for i in range(9):  # and 9 photos of nothing in common
+        Image.fromarray((rng.random((HEIGHT, WIDTH, 3)) * 255).astype(np.uint8)).save(photos / f"noise{i}.png")
+    out = tmp_path / "out"
+    line = _error_line(capsys, [str(photos), "--out", str(out), "--num-threads", "2"])
+    report = json.loads((out / REPORT_NAME).read_text())  # written before the error, to look at
+    assert 3 <= report["registered"] <= 8 and set(report["not_registered"]) >= {f"noise{i}.png" for i in range(9)}
+    assert line == (f"eg-process: error: {out}: only {report['registered']} of 17 images registered (under half); "
+                    "try photos with more overlap, --matching exhaustive or --mapper global")
