@@ -315,3 +315,30 @@ def test_a_reconstruction_under_half_registered_is_one_line(capture, tmp_path, c
     assert 3 <= report["registered"] <= 8 and set(report["not_registered"]) >= {f"noise{i}.png" for i in range(9)}
     assert line == (f"eg-process: error: {out}: only {report['registered']} of 17 images registered (under half); "
                     "try photos with more overlap, --matching exhaustive or --mapper global")
+
+
+def test_photos_are_imported_upright_heic_included(tmp_path):
+    from exploregs_plugin.data.process.photos import ORIENTATION_TAG, import_photo, output_name, register_heif
+
+    assert register_heif()  # pillow-heif is a dependency
+    yy, xx = np.mgrid[0:40, 0:60]
+    upright_rgb = np.stack([xx * 4, yy * 6, np.full_like(xx, 90)], axis=-1).astype(np.uint8)
+    upright_rgb[:10, :15] = (250, 20, 20)  # a red corner: top left when upright
+    photos, out = tmp_path / "photos", tmp_path / "images"
+    photos.mkdir()
+    out.mkdir()
+    Image.fromarray(upright_rgb).save(photos / "a.heic")
+    exif = Image.Exif()
+    exif[ORIENTATION_TAG] = 6  # "rotate 90 degrees clockwise to display": stored turned counter-clockwise
+    Image.fromarray(np.rot90(upright_rgb, 1)).save(photos / "b.jpg", quality=95, exif=exif)
+    Image.fromarray(upright_rgb).save(photos / "c.png")
+    taken = {"a.heic", "b.jpg", "c.png"}
+    for name in sorted(taken):
+        written = output_name(photos / name, taken)
+        assert import_photo(photos / name, out, written) == (60, 40)
+    assert sorted(p.name for p in out.iterdir()) == ["a.jpg", "b.jpg", "c.png"]
+    assert (out / "c.png").read_bytes() == (photos / "c.png").read_bytes()
+    for name in ("a.jpg", "b.jpg"):
+        with Image.open(out / name) as im:
+            assert im.size == (60, 40) and im.getexif().get(ORIENTATION_TAG, 1) == 1
+            assert np.abs(np.asarray(im.convert("RGB")).astype(int) - upright_rgb).mean() < 8.0
