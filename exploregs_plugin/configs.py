@@ -208,6 +208,24 @@ def tyro_error_text(captured: str) -> str:
         if line and not line.startswith("usage:"):
             lines.append(line)
     text = " ".join(dict.fromkeys(lines)).replace("__tyro-dummy-inner__.", "")
+    # "Unrecognized options Unrecognized options: --data, PATH, ... Arguments similar to ..." -> the
+    # options alone (a flag of another command, with its value): "unrecognized option --data"
+    unknown = re.match(r"^Unrecognized options Unrecognized options: (.*?)(?: Arguments similar to .*)?"
+                       r"(?: Available subcommands: (.*))?$", text)
+    misplaced = re.match(r"^Unrecognized options Unrecognized or misplaced options: (.*)$", text)
+    if unknown or misplaced:  # a subcommand's misplaced flag is named without its dashes
+        given = (unknown.group(1).split(", ") if unknown else
+                 [item if not re.fullmatch(r"\w+", item) else f"--{item.replace('_', '-')}"
+                  for item in re.findall(r"(\S+) \(applied to [^)]*\)", misplaced.group(1))])
+        flags = [item for item in given if item.startswith("-")] or given
+        words = f"unrecognized {'option' if flags[0].startswith('-') else 'argument'}{'s' * (len(flags) > 1)} "
+        subcommands = f" (a subcommand comes first: {unknown.group(2)})" if unknown and unknown.group(2) else ""
+        return words + ", ".join(flags) + subcommands
+    text = re.sub(r"^Invalid choice invalid choice", "invalid choice", text)
+    # "Required options Missing from X: PATH A run folder ... (required)" -> "missing PATH"
+    missing = re.match(r"^Required options Missing from [^:]*: (\S+)", text)
+    if missing:
+        return f"missing {missing.group(1)}"
     # Python's conversion errors in words: "--seed: expected an integer, got 'abc'"
     text = re.sub(r"^Value error Error parsing (--[\w.-]+): invalid literal for int\(\) with base 10: (.*)$",
                   r"\1: expected an integer, got \2", text)

@@ -99,3 +99,86 @@ def test_a_stop_names_the_last_finished_step_and_the_checkpoint_that_holds_it(tm
     assert capsys.readouterr().err.strip().splitlines()[-1] == (
         f"eg-train: error: stopped by SIGINT after step 4, saved in {checkpoint}; "
         f"resume with: eg-train --resume {run_dir}")
+
+
+def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[str, list[str], str]]:
+    """(command, arguments, its one line): the sweep of issue 48 over every command."""
+    R, P, D, M = str(run), str(ply), str(dataset), str(missing)
+    is_run = f"{R}: an eg-train run, not a dataset: it trained on builtin:tiny (eg-train --resume {R} continues it)"
+    is_dataset = f"{D} is a dataset, not a run folder (it has no config.yml): eg-train METHOD --data {D} trains a run on it"
+    is_ply = f"{P} is a PLY of Gaussians, not a run folder or a checkpoint (.pt) of one"
+    no_run = f"{M} is neither a run folder nor a checkpoint file"
+    return [
+        ("eg-train", ["exploregs-default", "--data", M], f"--data {M}: path does not exist (and is not builtin:NAME)"),
+        ("eg-train", ["exploregs-default", "--data", R], is_run),
+        ("eg-train", ["exploregs-default", "--data", P], f"{P}: a PLY of trained Gaussians, not a dataset"),
+        ("eg-train", ["--resume", M], no_run),
+        ("eg-train", ["--resume", D], is_dataset),
+        ("eg-train", ["--resume", P], is_ply),
+        ("eg-train", [D], f"{D} is a path, not a method: eg-train METHOD --data {D} trains on it (eg-train --help "
+                          "lists the methods)"),
+        ("eg-train", [R], f"{R} is an eg-train run, not a method: eg-train --resume {R} continues it"),
+        ("eg-train", ["exploregs-default", "--data", D, "--cameras-from", R], "unrecognized option --cameras-from"),
+        ("eg-eval", [M], no_run),
+        ("eg-eval", [D], is_dataset),
+        ("eg-eval", [P], f"{P}: a PLY holds no cameras or images; pass --data DATASET to score it"),
+        ("eg-eval", [P, "--data", R], is_run),
+        ("eg-eval", [R, "--data", D], f"--data is for PLY input; {R} is a run, scored on the test views of its own "
+                                      "dataset at the factor it trained at"),
+        ("eg-eval", [R, "--max-steps", "3"], "unrecognized option --max-steps (eg-eval --help lists its options)"),
+        ("eg-export", [M], no_run),
+        ("eg-export", [D], is_dataset),
+        ("eg-export", [P], is_ply),
+        ("eg-export", [R, "--cameras-from", D], "unrecognized option --cameras-from (eg-export --help lists its options)"),
+        ("eg-render", [M], no_run),
+        ("eg-render", [D], is_dataset),
+        ("eg-render", [P], f"{P}: a PLY holds no cameras; pass --cameras-from RUN_OR_DATASET (a run folder, a dataset "
+                           "folder or builtin:NAME)"),
+        ("eg-render", [P, "--cameras-from", P], f"{P}: a PLY of trained Gaussians, not a dataset"),
+        ("eg-render", [R, "--cameras-from", D], f"--cameras-from is for PLY input; {R} is a run, which has its own cameras"),
+        ("eg-render", [R, "--data", D], "unrecognized option --data (eg-render --help lists its options)"),
+        ("eg-view", [M], f"{M}: no such run folder, checkpoint or PLY file"),
+        ("eg-view", [D], is_dataset),
+        ("eg-view", [R, "--data", D], "unrecognized option --data (eg-view --help lists its options)"),
+        ("eg-scenes", ["stats", M], f"{M}: no such folder"),
+        ("eg-scenes", ["stats", R], f"{R}: not a scene written by eg-scenes make (it has no scene.json)"),
+        ("eg-scenes", ["list", "--data", D], "unrecognized option --data (eg-scenes --help lists its options)"),
+        ("eg-analyze", ["blending", "--run", M], no_run),
+        ("eg-analyze", ["blending", "--run", D], is_dataset),
+        ("eg-analyze", ["blending", "--run", P], is_ply),
+        ("eg-analyze", ["grad-branches", "--data", R, "--out", f"{M}-out"], is_run),
+        ("eg-analyze", [R], f"unrecognized argument {R} (a subcommand comes first: grad-branches, grad-directions, "
+                            "blending, nearside) (eg-analyze --help lists its options)"),
+        ("eg-bench", ["--out", f"{M}-bench", "--spec", P], f"spec file {P}: not a YAML or JSON text file"),
+        ("eg-bench", ["--out", f"{M}-bench", "--data", D], "unrecognized option --data (eg-bench --help lists its options)"),
+    ]
+
+
+ENTRYPOINTS = {"eg-train": "train", "eg-eval": "eval", "eg-export": "export", "eg-render": "render", "eg-view": "view",
+               "eg-scenes": "scenes", "eg-analyze": "analyze", "eg-bench": "bench"}
+
+
+def test_every_commands_mistakes_give_one_true_line_and_exit_code_2(run, ply, tiny_scene_dir, tmp_path, monkeypatch,
+                                                                     capsys):
+    import importlib
+    import signal
+
+    sigterm = signal.getsignal(signal.SIGTERM)  # eg-train and eg-view set their own
+    wrong = []
+    cases = _mistakes(run, ply, tiny_scene_dir, tmp_path / "missing")
+    assert {command for command, _, _ in cases} == set(ENTRYPOINTS)  # every command
+    try:
+        for command, argv, line in cases:
+            module = importlib.import_module(f"exploregs_plugin.scripts.{ENTRYPOINTS[command]}")
+            monkeypatch.setattr(sys, "argv", [command, *argv])
+            capsys.readouterr()
+            with pytest.raises(SystemExit) as exit_:
+                module.entrypoint()
+            out, err = capsys.readouterr()
+            got = [ln for ln in (out + err).splitlines() if ln.strip()]
+            if exit_.value.code != 2 or got != [f"{command}: error: {line}"]:
+                wrong.append((command, argv, exit_.value.code, got))
+    finally:
+        signal.signal(signal.SIGTERM, sigterm)
+    assert wrong == []
+    assert not (tmp_path / "missing-out").exists() and not (tmp_path / "missing-bench").exists()

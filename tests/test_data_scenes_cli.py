@@ -66,7 +66,7 @@ def test_stats_describes_a_generated_scene(tiny_scene_dir: Path, tmp_path: Path,
     assert shares == pytest.approx(1.0)
     assert 0 < stats["far_points_share"] < stats["test_far_share"]
     assert main(["stats", str(tmp_path)]) == 2
-    assert "not a generated scene" in capsys.readouterr().err
+    assert "not a scene written by eg-scenes make (it has no scene.json)" in capsys.readouterr().err
 
 
 def test_make_and_describe_a_dynamic_scene(tmp_path: Path, capsys: pytest.CaptureFixture) -> None:

@@ -58,6 +58,8 @@ def read_spec_file(path: Path) -> dict[str, Any]:
         text = path.read_text()
     except OSError as err:
         raise BenchSpecError(f"spec file {path}: cannot read it: {err}") from err
+    except UnicodeDecodeError as err:  # a PLY, a checkpoint, an image: not a YAML or JSON spec
+        raise BenchSpecError(f"spec file {path}: not a YAML or JSON text file") from err
     if path.suffix == ".json":
         try:
             data = json.loads(text)

@@ -14,6 +14,8 @@ from typing import Any, Callable
 import torch
 
 CHECKPOINT_DIR = "checkpoints"
+DATASET_MARKS = ("sparse", "images", "transforms.json", "transforms_train.json", "poses_bounds.npy")
+"""What a dataset folder holds (the layouts of docs/data.md), to say so when one is passed as a run."""
 RUN_CONFIG = "config.yml"  # what makes a folder a run folder (the trainer writes it first)
 _NAME = re.compile(r"^step-(\d{7,})\.pt$")
 
@@ -119,6 +121,10 @@ def resolve_run(path: Path) -> tuple[Path, Path]:
     """Accept a run folder or a checkpoint file; return (run_dir, checkpoint_file)."""
     path = Path(path)
     if path.is_file():
+        if path.suffix.lower() == ".ply":
+            raise CheckpointError(f"{path} is a PLY of Gaussians, not a run folder or a checkpoint (.pt) of one")
+        if path.suffix != ".pt":
+            raise CheckpointError(f"{path} is neither a run folder nor a checkpoint file (.pt)")
         run_dir = path.parent.parent if path.parent.name == CHECKPOINT_DIR else path.parent
         return run_dir, path
     if path.is_dir():
@@ -133,6 +139,9 @@ def check_run_folder(path: Path) -> None:
     path = Path(path)
     if (path / RUN_CONFIG).is_file():
         return
+    if any((path / mark).exists() for mark in DATASET_MARKS):
+        raise CheckpointError(f"{path} is a dataset, not a run folder (it has no {RUN_CONFIG}): "
+                              f"eg-train METHOD --data {path} trains a run on it")
     inside = [c.parent for depth in ("*", "*/*", "*/*/*") for c in path.glob(f"{depth}/{RUN_CONFIG}")]
     hint = ""
     if inside:

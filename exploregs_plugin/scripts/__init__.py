@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import contextlib
+import io
 import os
 import sys
 from typing import Any, Callable, TypeVar
 
-from exploregs_plugin.configs import use_joined_help_lines
+from exploregs_plugin.configs import tyro_error_text, use_joined_help_lines
 from exploregs_plugin.io.checkpoint import CheckpointError
 from exploregs_plugin.threads import apply_threads
 
@@ -16,6 +18,25 @@ use_joined_help_lines()  # --help: a docstring's sentences are not broken where 
 
 USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, FileNotFoundError, CheckpointError)
 """Problems with the user's input: reported as one clear line, not a traceback."""
+
+
+def parse_cli(command: str, spec: Any, description: str, argv: list[str] | None = None) -> Any:
+    """``tyro.cli(spec)`` with a wrong command line as one line, ``COMMAND: error: ...`` (a flag of
+    another command, a missing path, a value of the wrong type), exit code 2; --help as tyro writes it."""
+    import tyro
+
+    captured = io.StringIO()
+    try:
+        with contextlib.redirect_stderr(captured):
+            return tyro.cli(spec, args=argv, description=description)
+    except SystemExit as exit_:
+        if exit_.code in (0, None):
+            sys.stderr.write(captured.getvalue())
+            raise
+        text = tyro_error_text(captured.getvalue()) or f"invalid arguments {argv if argv is not None else sys.argv[1:]}"
+        hint = f" ({command} --help lists its options)" if text.startswith(("unrecognized", "missing")) else ""
+        print(f"{command}: error: {text}{hint}", file=sys.stderr)
+        raise SystemExit(2) from None
 
 
 def run_cli(command: str, main: Callable[[T], Any], args: T) -> Any:

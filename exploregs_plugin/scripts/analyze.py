@@ -32,7 +32,7 @@ from exploregs_plugin.analysis.tensorboard import pipeline_branch_norms
 from exploregs_plugin.io.checkpoint import list_checkpoints, resolve_run
 from exploregs_plugin.pipeline import Pipeline
 from exploregs_plugin.runs import load_run
-from exploregs_plugin.scripts import run_cli
+from exploregs_plugin.scripts import parse_cli, run_cli
 from exploregs_plugin.strategies import DefaultStrategy
 
 Train = Annotated[TrainSpec, tyro.conf.arg(name="")]
@@ -337,8 +337,8 @@ def parse(argv: list[str] | None = None) -> GradBranches | GradDirections | Blen
     descriptions = {name: (cls.__doc__ or "").strip() for name, (cls, _) in COMMANDS.items()}
     union = tyro.extras.subcommand_type_from_defaults({name: cls() for name, (cls, _) in COMMANDS.items()},
                                                       descriptions)  # fmt: skip
-    return tyro.cli(union, args=argv, description="Blur-Trap diagnostics: gradient branches, their "
-                    "directions, alpha-blending attenuation, the near-side trap (figures + CSV/JSON).")  # fmt: skip
+    return parse_cli("eg-analyze", union, "Blur-Trap diagnostics: gradient branches, their directions, "
+                     "alpha-blending attenuation, the near-side trap (figures + CSV/JSON).", argv)
 
 
 def entrypoint() -> None:

@@ -23,7 +23,7 @@ from exploregs_plugin.bench.presets import PRESETS
 from exploregs_plugin.bench.spec import BenchSpec
 from exploregs_plugin.configs import unset
 from exploregs_plugin.device import resolve_device
-from exploregs_plugin.scripts import run_cli
+from exploregs_plugin.scripts import parse_cli, run_cli
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # every key of bench.presets.PRESETS
 
@@ -115,7 +115,7 @@ def main(argv: list[str]) -> dict | None:
     from exploregs_plugin.bench.runner import RunOptions, execute
     from exploregs_plugin.bench.specfile import compose
 
-    cmd = tyro.cli(BenchCommand, args=argv, description=__doc__.split("\n")[0])
+    cmd = parse_cli("eg-bench", BenchCommand, __doc__.split("\n")[0], argv)
     spec = compose(cmd.preset, cmd.spec, cmd.methods, cmd.scenes, cmd.seeds, cmd.steps, cmd.eval_count,
                    cmd.baseline, cmd.override, cmd.scene_option, cmd.data_factor)
     spec = replace(spec, device=str(resolve_device(cmd.device)))

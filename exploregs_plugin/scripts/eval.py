@@ -24,7 +24,7 @@ from exploregs_plugin.io.ply import read_ply
 from exploregs_plugin.rasterizer import backend_line
 from exploregs_plugin.runs.scene import dataset_normalization, is_ply, model_from_params
 from exploregs_plugin.runs import load_run
-from exploregs_plugin.scripts import run_cli
+from exploregs_plugin.scripts import parse_cli, run_cli
 
 
 @dataclass
@@ -37,8 +37,9 @@ class EvalArgs:
     """Save render | ground truth | error map PNGs."""
     data: str | None = None
     """For a PLY: the dataset whose test views score it (a dataset path or builtin:NAME)."""
-    data_factor: int = 1
-    """For a PLY: image downscale factor of --data."""
+    data_factor: int | None = None
+    """For a PLY: image downscale factor of --data, as eg-train's --data-factor (unset: 1). A run is
+    scored at the factor it trained at."""
     ply_frame: Literal["original", "normalized"] = "original"
     """For a PLY: it holds the dataset's original coordinates (as eg-export writes by default) or
     the normalised training frame."""
@@ -50,7 +51,7 @@ def main(args: EvalArgs) -> dict:
     if is_ply(args.path):
         if args.data is None:
             raise ValueError(f"{args.path}: a PLY holds no cameras or images; pass --data DATASET to score it")
-        dm = DataManagerConfig(data=args.data, data_factor=args.data_factor).setup()
+        dm = DataManagerConfig(data=args.data, data_factor=args.data_factor or 1).setup()
         scene = read_ply(args.path, dataset_normalization(dm) if args.ply_frame == "original" else None)
         if scene.dropped:
             print(f"{args.path}: left out {scene.dropped} of {scene.dropped + scene.num_gaussians} Gaussians "
@@ -59,6 +60,10 @@ def main(args: EvalArgs) -> dict:
         out = args.out or args.path.with_name(args.path.stem + "-eval")
         extra = {"ply": str(args.path), "data": args.data, "dropped_nonfinite": scene.dropped}
     else:
+        for flag, value in (("--data", args.data), ("--data-factor", args.data_factor)):
+            if value is not None:
+                raise ValueError(f"{flag} is for PLY input; {args.path} is a run, scored on the test views of its "
+                                 "own dataset at the factor it trained at")
         run = load_run(args.path, args.device)
         model, dm = run.pipeline.model, run.pipeline.datamanager
         out = args.out or run.run_dir / f"eval-step-{run.step:07d}"
@@ -74,7 +79,7 @@ def main(args: EvalArgs) -> dict:
 
 
 def entrypoint() -> None:
-    run_cli("eg-eval", main, tyro.cli(EvalArgs, description="Evaluate an ExploreGS run or a 3DGS PLY."))
+    run_cli("eg-eval", main, parse_cli("eg-eval", EvalArgs, "Evaluate an ExploreGS run or a 3DGS PLY."))
 
 
 if __name__ == "__main__":

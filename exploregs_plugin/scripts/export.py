@@ -16,7 +16,7 @@ import tyro
 from exploregs_plugin.io.ply import PlyExport, export_ply, normalization_terms
 from exploregs_plugin.runs.scene import dataset_normalization
 from exploregs_plugin.runs import load_run
-from exploregs_plugin.scripts import run_cli
+from exploregs_plugin.scripts import parse_cli, run_cli
 
 
 @dataclass
@@ -60,7 +60,7 @@ def main(args: ExportArgs) -> PlyExport:
 
 
 def entrypoint() -> None:
-    run_cli("eg-export", main, tyro.cli(ExportArgs, description="Export a trained ExploreGS run as a standard 3DGS PLY."))
+    run_cli("eg-export", main, parse_cli("eg-export", ExportArgs, "Export a trained ExploreGS run as a standard 3DGS PLY."))
 
 
 if __name__ == "__main__":

@@ -22,7 +22,7 @@ from exploregs_plugin.io.ply import normalization_terms
 from exploregs_plugin.model.gaussians import render_camera
 from exploregs_plugin.rasterizer import RasterSettings, backend_line
 from exploregs_plugin.runs.scene import PlyFrame, RenderableScene, load_scene
-from exploregs_plugin.scripts import run_cli
+from exploregs_plugin.scripts import parse_cli, run_cli
 
 
 @dataclass
@@ -147,7 +147,7 @@ def main(args: RenderArgs) -> RenderedSequence:
 
 
 def entrypoint() -> None:
-    run_cli("eg-render", main, tyro.cli(RenderArgs, description="Render an ExploreGS run or a 3DGS PLY to frames and video."))
+    run_cli("eg-render", main, parse_cli("eg-render", RenderArgs, "Render an ExploreGS run or a 3DGS PLY to frames and video."))
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from exploregs_plugin.data.colmap import read_colmap
 from exploregs_plugin.data.neu3d import is_neu3d, read_neu3d
 from exploregs_plugin.data.errors import DataError
 from exploregs_plugin.data.parsed import REGION_LABELS, ParseOptions
+from exploregs_plugin.scripts import parse_cli
 from exploregs_plugin.threads import apply_threads
 
 
@@ -115,7 +116,7 @@ def preset_table(settings: dict[str, dict]) -> str:
 
 
 def main(argv: list[str]) -> int:
-    command = tyro.cli(Command, args=argv, description="Built-in ExploreGS scenes with ground truth.")
+    command = parse_cli("eg-scenes", Command, "Built-in ExploreGS scenes with ground truth.", argv)
     if isinstance(command, List):
         settings = {name: asdict(preset) for name, preset in PRESETS.items()}
         dynamic = {name: asdict(preset) for name, preset in DYNAMIC_PRESETS.items()}
@@ -125,6 +126,11 @@ def main(argv: list[str]) -> int:
             print(preset_table(settings) + "\n\ndynamic scenes:\n" + preset_table(dynamic))
         return 0
     if isinstance(command, Stats):
+        if not (command.folder / "scene.json").is_file():
+            why = ("no such folder" if not command.folder.exists() else
+                   "not a scene written by eg-scenes make (it has no scene.json)")
+            print(f"eg-scenes: error: {command.folder}: {why}", file=sys.stderr)
+            return 2
         try:
             stats = scene_stats(command.folder)
         except (DataError, OSError, KeyError, ValueError) as err:

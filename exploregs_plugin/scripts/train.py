@@ -48,6 +48,11 @@ def parse_config(argv: list[str]) -> TrainerConfig:
         methods = all_methods()
     except MethodRegistryError as err:
         raise _fail(str(err), 2) from err
+    if argv and not argv[0].startswith("-") and argv[0] not in methods and Path(argv[0]).expanduser().exists():
+        if (Path(argv[0]).expanduser() / CONFIG_NAME).is_file():
+            raise _fail(f"{argv[0]} is an eg-train run, not a method: eg-train --resume {argv[0]} continues it", 2)
+        raise _fail(f"{argv[0]} is a path, not a method: eg-train METHOD --data {argv[0]} trains on it "
+                    "(eg-train --help lists the methods)", 2)
     if argv and not argv[0].startswith("-") and argv[0] not in methods:
         raise _fail(f"unknown method {argv[0]!r}; known methods: {', '.join(sorted(methods))}", 2)
     try:

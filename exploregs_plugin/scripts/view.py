@@ -19,6 +19,7 @@ from exploregs_plugin.device import resolve_device
 from exploregs_plugin.io.checkpoint import CheckpointError
 from exploregs_plugin.rasterizer import RasterSettings, backend_line
 from exploregs_plugin.runs.scene import PlyFrame, is_ply, load_scene
+from exploregs_plugin.scripts import parse_cli
 from exploregs_plugin.threads import apply_threads
 from exploregs_plugin.viewer import Viewer, ViewerConfig, ViewerScene
 
@@ -88,7 +89,7 @@ def entrypoint() -> None:
     # one line instead (exit 143 = 128 + SIGTERM); Ctrl-C stops the same way with exit 0
     signal.signal(signal.SIGTERM, _on_sigterm)
     apply_threads()  # one thread per CPU this process may use, as in every command
-    args = tyro.cli(ViewArgs, description="Serve a trained ExploreGS scene (run, checkpoint or PLY) in the browser.")
+    args = parse_cli("eg-view", ViewArgs, "Serve a trained ExploreGS scene (run, checkpoint or PLY) in the browser.")
     viewer = None
     try:
         try:
