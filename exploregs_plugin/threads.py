@@ -92,9 +92,27 @@ class IdleCpus:
         return max(0.0, len(self.cpus) - others)
 
 
+IDLE_SHARE_FOR_A_THREAD = 0.75
+"""How much of a CPU other processes must leave idle for it to get a thread of its own."""
+
+
 def threads_for(idle: float | None, cpus: int) -> int:
-    """One thread per idle CPU (rounded, at least one); every CPU when that is unknown."""
-    return cpus if idle is None else max(1, min(cpus, int(idle + 0.5)))
+    """One thread per CPU that other processes leave idle, counting a partly idle CPU only when at
+    least IDLE_SHARE_FOR_A_THREAD of it is free (at least one thread); every CPU when unknown.
+
+    Why not rounding to the nearest (1.5 idle CPUs -> 2 threads): a parallel region split into
+    equal parts (torch's element-wise ops, the kernels' ``schedule(static)`` loops) ends when its
+    slowest thread does. With n threads, one of which gets a share s < 1 of its core, the region
+    takes W / (n s) instead of W / n: two threads beat one only when s > 1/2, and every region's
+    end also waits until that thread is scheduled again. At s = 1/2 the second thread gains
+    nothing and pays those waits, so the default could lose to one thread beside a process that
+    takes half a CPU; a thread per CPU that is 3/4 free keeps the default at one thread until a
+    second thread can be clearly ahead. With k processes that keep a CPU busy each on C CPUs, n
+    threads measure C - k C / (n + k) idle (the scheduler's fair shares), so from n = C the count
+    falls to C - k and stays there (tests/test_framework_threads.py)."""
+    if idle is None:
+        return cpus
+    return max(1, min(cpus, int(idle + 1.0 - IDLE_SHARE_FOR_A_THREAD)))
 
 
 def default_threads(measure_seconds: float = 0.2) -> int:

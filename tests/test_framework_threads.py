@@ -77,6 +77,45 @@ def test_idle_cpus_subtract_other_processes_but_not_this_one(tmp_path, monkeypat
     assert watch.sample() is None and threads_for(None, 2) == 2
 
 
+def test_a_cpu_gets_a_thread_only_when_three_quarters_of_it_is_idle():
+    from exploregs_plugin.threads import threads_for
+
+    # a CPU half taken by another process gets no thread: a second thread with half a core makes
+    # every equally split parallel region as slow as one thread, plus the waits at its end
+    assert [threads_for(idle, 2) for idle in (0.0, 0.7, 1.0, 1.5, 1.74, 1.75, 2.0)] == [1, 1, 1, 1, 1, 2, 2]
+    assert [threads_for(idle, 4) for idle in (3.6, 3.75, 2.5, 0.1)] == [3, 4, 2, 1]
+    assert threads_for(None, 4) == 4  # unknown: every CPU
+
+    def settle(cpus: int, busy: int) -> int:
+        # ``busy`` processes keep a CPU busy each; with n threads of ours beside them on ``cpus``
+        # CPUs the scheduler's fair shares leave cpus - busy cpus / (n + busy) idle as measured
+        # (cpus - busy while there are enough CPUs); the run starts at every CPU and re-checks
+        n = cpus
+        for _ in range(cpus + 2):
+            n = threads_for(cpus - busy if n + busy <= cpus else cpus - busy * cpus / (n + busy), cpus)
+        return n
+
+    # one thread beside one or two busy processes on two CPUs (the issue-48 setting); one per free CPU on four
+    assert [settle(2, busy) for busy in (0, 1, 2)] == [2, 1, 1]
+    assert [settle(4, busy) for busy in (0, 1, 2, 3, 4)] == [4, 3, 2, 1, 1]
+    for cpus in (2, 3, 4, 8, 16, 64):  # where it settles no thread of ours has less than 3/4 of a core
+        for busy in range(2 * cpus + 2):
+            n = settle(cpus, busy)
+            assert n == 1 or n + busy <= cpus or cpus / (n + busy) >= 0.75, (cpus, busy, n)
+
+
+def test_the_thread_bench_tables_medians_threads_and_the_ratio():
+    from exploregs_plugin.bench.threads import table
+
+    rows = [{"competitors": 0, "setting": "default", "seconds": 10.0, "threads": [2]},
+            {"competitors": 0, "setting": "one thread", "seconds": 12.0, "threads": [1]},
+            {"competitors": 1, "setting": "default", "seconds": 13.0, "threads": [1]},
+            {"competitors": 1, "setting": "default", "seconds": 15.0, "threads": [1, 2]},
+            {"competitors": 1, "setting": "one thread", "seconds": 12.0, "threads": [1]}]
+    assert table(rows).splitlines()[2:] == ["| 0 | 10.00 (10.00-10.00) | [2] | 12.00 (12.00-12.00) | 0.83 |",
+                                            "| 1 | 14.00 (13.00-15.00) | [1, 2] | 12.00 (12.00-12.00) | 1.17 |"]
+
+
 def test_a_wait_policy_or_thread_count_the_user_set_is_kept():
     line, runtime = probe(OMP_WAIT_POLICY="ACTIVE", OMP_NUM_THREADS="1")
     assert line == "threads 1 ACTIVE" and "GOMP_SPINCOUNT = '0'" not in runtime
