@@ -39,6 +39,9 @@ CONFIG_NAME = "config.yml"
 METRICS_NAME = "metrics.json"
 EVAL_PANELS = 2  # test views shown in tensorboard at each evaluation (render | truth | error)
 THREADS_CHECK_SECONDS = 5.0  # how often a run without --num-threads follows the CPUs left idle
+# ... and the first time, after this much training: the count the run starts with was measured when
+# the command started, before the data loaded, and a competitor may have come or gone since
+FIRST_THREADS_CHECK_SECONDS = 1.0
 
 
 @dataclass
@@ -444,7 +447,7 @@ class _FollowIdleCpus:
         self.watch = IdleCpus()
         self.cpus = available_cpus()
         self.before = torch.get_num_threads()
-        self.checked = time.monotonic()
+        self.checked = time.monotonic() - THREADS_CHECK_SECONDS + FIRST_THREADS_CHECK_SECONDS
 
     def check(self) -> None:
         if time.monotonic() - self.checked < THREADS_CHECK_SECONDS:

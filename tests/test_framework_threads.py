@@ -141,6 +141,7 @@ def test_a_run_follows_the_idle_cpus_between_steps_and_restores_the_count(tmp_pa
 
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.setattr(trainer_module, "THREADS_CHECK_SECONDS", 0.0)
+    monkeypatch.setattr(trainer_module, "FIRST_THREADS_CHECK_SECONDS", 0.0)
     monkeypatch.setattr(trainer_module, "available_cpus", lambda: 2)
     idle = iter([2.0, 2.0, 1.0, 1.0, 2.0, 2.0])  # a competitor comes and goes
     monkeypatch.setattr(IdleCpus, "sample", lambda self: next(idle, 2.0))
@@ -156,6 +157,39 @@ def test_a_run_follows_the_idle_cpus_between_steps_and_restores_the_count(tmp_pa
     metrics = trainer_module.Trainer(config, callbacks=[Threads()]).train()
     assert seen == [2, 2, 1, 1, 2, 2] and torch.get_num_threads() == before
     assert metrics["threads"] == sorted({before, 1, 2})
+
+
+def test_a_run_checks_the_idle_cpus_soon_after_it_starts(tmp_path, tiny_scene_dir, monkeypatch):
+    # the count a run starts with was measured when the command started, before its data loaded:
+    # the first check comes after FIRST_THREADS_CHECK_SECONDS of training, the next ones every
+    # THREADS_CHECK_SECONDS
+    import torch
+
+    from exploregs_plugin import trainer as trainer_module
+    from exploregs_plugin.callbacks import TrainingCallback
+    from exploregs_plugin.threads import IdleCpus
+
+    monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
+    monkeypatch.setattr(trainer_module, "THREADS_CHECK_SECONDS", 1e6)
+    monkeypatch.setattr(trainer_module, "FIRST_THREADS_CHECK_SECONDS", 0.0)
+    monkeypatch.setattr(trainer_module, "available_cpus", lambda: 2)
+    idle = iter([1.0, 2.0])  # a competitor came while the data loaded (then left: too late to be seen)
+    monkeypatch.setattr(IdleCpus, "sample", lambda self: next(idle))
+    seen: list[int] = []
+
+    class Threads(TrainingCallback):
+        def after_step(self, trainer, step, stats):
+            seen.append(torch.get_num_threads())
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        config = trainer_module.TrainerConfig(data="builtin:tiny", max_steps=3, run_dir=tmp_path / "run", quiet=True,
+                                              tensorboard=False, eval_count=1, save_eval_images=False, device="cpu")
+        trainer_module.Trainer(config, callbacks=[Threads()]).train()
+    finally:
+        torch.set_num_threads(before)
+    assert seen == [1, 1, 1]
 
 
 def test_num_threads_overrides_the_default(tmp_path, tiny_scene_dir):
