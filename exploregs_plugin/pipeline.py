@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass, field, replace
 from typing import Any
 
@@ -14,7 +13,8 @@ from exploregs_plugin.device import make_generator, restore_generator, to_device
 from exploregs_plugin.distributed import World
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
-from exploregs_plugin.model.losses import DepthSpace, psnr
+from exploregs_plugin.model.losses import DepthSpace, psnr_on_device
+from exploregs_plugin.nonfinite import NonFiniteError, NonFiniteWatch
 from exploregs_plugin.model.optim import OptimizerConfig, OptimizerSet, batch_betas, batch_lr_scale
 from exploregs_plugin.strategies.observation import ViewError, ViewObservation, observe_render
 from exploregs_plugin.rasterizer import BackendError, backend_problem
@@ -70,10 +70,6 @@ def resolve_batch_size(batch_size: int | None, world_size: int = 1) -> int:
         raise ValueError(f"--batch-size {batch} cannot be shared by {world_size} ranks: use a multiple "
                          f"of {world_size}")
     return batch
-
-
-class NonFiniteError(RuntimeError):
-    """Training produced a NaN or inf (in the loss or in a parameter)."""
 
 
 def renderer_for(model: GaussianModelConfig, requires: frozenset[str]) -> GaussianModelConfig:
@@ -145,6 +141,7 @@ class Pipeline:
             raise BackendError(problem)
         self.generator = make_generator(device, seed)
         self.generator_restored = True  # False after loading a generator state of another device type
+        self.nonfinite = NonFiniteWatch()  # read by the trainer at its read points (nonfinite_error)
         # One run seed drives everything, the camera order and random initial points included.
         self.datamanager = replace(config.datamanager, seed=seed).setup()
         dm = self.datamanager
@@ -203,7 +200,11 @@ class Pipeline:
         A step takes ``batch_size`` training views (the global batch; each rank of a
         data-parallel run renders its share) and minimises their mean loss. Each view is
         back-propagated on its own (one view's graph in memory at a time), the ranks' gradients
-        are summed with one all-reduce, and the strategy sees every view's observations."""
+        are summed with one all-reduce, and the strategy sees every view's observations.
+
+        Nothing here reads the device: the step's ``loss``, ``psnr`` and ``terms`` are 0-dim
+        float64 tensors on it, and a non-finite loss or parameter is recorded there
+        (:attr:`nonfinite`); the trainer reads both where they are needed (:meth:`nonfinite_error`)."""
         self.model.begin_step(step, self.schedule.max_steps)
         indices = self.datamanager.next_train_indices(self.batch_size)  # every rank draws the whole batch
         # the backgrounds too, so that the run's generator advances alike on every rank
@@ -213,10 +214,7 @@ class Pipeline:
         totals: dict[str, Tensor] = {}
         views = [self._train_view(step, indices[p], backgrounds[p], p == mine.start, totals) for p in mine]
         views = self._step_observations(views, totals)
-        loss_value = float(totals["loss"])
-        if not math.isfinite(loss_value):
-            raise NonFiniteError(f"step {step}: the loss is {loss_value} (terms: " + ", ".join(
-                f"{k}={float(v):.4g}" for k, v in totals.items() if k not in ("loss", "psnr")) + ")")
+        self.nonfinite.loss(step, totals)
         means_lr = self._optimizer_step(step)
         self.check_finite(step)
         counts = self.strategy.step_post_backward(
@@ -226,9 +224,9 @@ class Pipeline:
             loss=totals["loss"] - totals["reg"] if "reg" in totals else totals["loss"],
         )
         return {
-            "loss": loss_value,
-            "terms": {k: float(v) for k, v in totals.items() if k not in ("loss", "psnr")},
-            "psnr": float(totals["psnr"]),
+            "loss": totals["loss"],
+            "terms": {k: v for k, v in totals.items() if k not in ("loss", "psnr")},
+            "psnr": totals["psnr"],
             "views": tuple(int(i) for i in indices),
             "counts": dict(counts or {}),
             "means_lr": means_lr,
@@ -258,9 +256,11 @@ class Pipeline:
             loss = loss + reg
             terms["reg"] = reg.detach()
         loss.backward()
-        for key, value in {"loss": loss.detach(), "psnr": torch.tensor(psnr(image, target) / batch, device="cpu"),
-                           **terms}.items():
-            value = value.detach().reshape(()).to("cpu", torch.float64)
+        # the totals stay on the device (float64): the trainer reads them where it logs them; the
+        # PSNR (float64) goes through float32 first, as it always has
+        psnr = (psnr_on_device(image, target) / batch).to(torch.float32)
+        for key, value in {"loss": loss.detach(), "psnr": psnr, **terms}.items():
+            value = value.detach().reshape(()).to(torch.float64)
             totals[key] = totals[key] + value if key in totals else value
         return view
 
@@ -308,31 +308,20 @@ class Pipeline:
         scalars = torch.stack([totals[k] for k in keys]).to(self.device, torch.float32)
         flat = [g.to(torch.float32) for g in grads] + [present, scalars]
         self.world.all_reduce_sum_(flat)
-        for param, grad, summed, seen in zip(tensors, grads, flat, present):
-            param.grad = summed.to(grad.dtype) if float(seen) > 0 else None
-        for k, value in zip(keys, flat[-1].cpu()):
+        for param, grad, summed, seen in zip(tensors, grads, flat, flat[-2].tolist()):  # one read
+            param.grad = summed.to(grad.dtype) if seen > 0 else None
+        for k, value in zip(keys, flat[-1]):
             totals[k] = value.to(torch.float64)
 
     def check_finite(self, step: int) -> None:
-        # One reduction per tensor: NaN and inf propagate through a sum, so a finite sum means
-        # finite entries. The sums are read back together, one wait for the device per step
-        # instead of one per tensor; only a non-finite sum (or float32 overflow of a large one)
-        # pays for the element-wise scan below.
-        tensors = [(name, p) for name, p in self.trained_tensors() if p.numel() > 0]
-        if not tensors or bool(torch.isfinite(torch.stack([p.detach().sum().float() for _, p in tensors])).all()):
-            return
-        for name, p in tensors:
-            if bool(torch.isfinite(p.detach().sum())):
-                continue
-            bad = ~torch.isfinite(p.detach())
-            if not bool(bad.any()):
-                continue
-            if name.startswith("deformation."):
-                raise NonFiniteError(f"step {step}: parameter '{name}' has {int(bad.sum())} non-finite values")
-            rows = int(bad.reshape(p.shape[0], -1).any(dim=1).sum()) if p.ndim else 1
-            raise NonFiniteError(
-                f"step {step}: parameter '{name}' has non-finite values in {rows} of {p.shape[0]} Gaussians"
-            )
+        """Record, on the device, whether a trained tensor went non-finite at ``step`` (no read:
+        :meth:`nonfinite_error` reads the record)."""
+        self.nonfinite.params(step, self.trained_tensors(), self.model.num_gaussians)
+
+    def nonfinite_error(self) -> NonFiniteError | None:
+        """The error of the first step whose loss or parameters went non-finite, or None (one read
+        of the device)."""
+        return self.nonfinite.error()
 
     def state_dict(self) -> dict[str, Any]:
         state = {

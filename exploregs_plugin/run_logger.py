@@ -6,7 +6,7 @@ import sys
 import threading
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import numpy as np
 import torch
@@ -93,16 +93,24 @@ class RunLogger:
         self._guard(lambda w: w.add_scalar(tag, value, step))
 
     def log_step(self, step: int, stats: dict[str, Any], num_gaussians: int, lrs: dict[str, float]) -> None:
+        """Sum the step's counts into the window; at a log step, read the step's values and the
+        window's counts from the device (one read) and write them. ``stats``' loss, psnr, terms
+        and counts may be tensors on the device (the pipeline's are) or numbers."""
         for op, n in stats["counts"].items():
-            self.counts[op] = self.counts.get(op, 0) + int(n)
+            self.counts[op] = self.counts.get(op, 0) + n
         self.window_steps += 1
         self.progress.update(self.task, completed=step + 1)
         if (step + 1) % self.log_every and step + 1 != self.total_steps:
             return
         seconds_per_step = (time.perf_counter() - self.window_start) / max(self.window_steps, 1)
+        read = host_values({"loss": stats["loss"], "psnr": stats["psnr"],
+                            **{f"train/{name}": value for name, value in stats["terms"].items()},
+                            **{f"strategy/{op}": n for op, n in self.counts.items()}})
+        stats = {**stats, "loss": read.pop("loss"), "psnr": read.pop("psnr")}
+        self.counts = {op: int(read.pop(f"strategy/{op}")) for op in self.counts}
         self.scalar("train/loss", stats["loss"], step)
-        for name, value in stats["terms"].items():
-            self.scalar(f"train/{name}", value, step)
+        for tag, value in read.items():  # the terms
+            self.scalar(tag, value, step)
         self.scalar("train/psnr", stats["psnr"], step)
         self.scalar("gaussians/count", num_gaussians, step)
         self.scalar("perf/seconds_per_step", seconds_per_step, step)
@@ -136,6 +144,15 @@ class RunLogger:
             self._guard(lambda w: w.add_image(f"test/{name}", panel.clamp(0, 1).numpy(), step, dataformats="HWC"))
         if not self.quiet:
             self.console.print(f"eval @ {step}: PSNR {metrics['psnr']:.2f} dB  SSIM {metrics['ssim']:.4f}")
+
+
+def host_values(values: Mapping[str, Any]) -> dict[str, float]:
+    """``values`` as Python floats: the tensors among them (0-dim, on one device) read together,
+    one wait for the device instead of one per value; numbers are passed through."""
+    tensors = {key: value for key, value in values.items() if isinstance(value, torch.Tensor)}
+    read = dict(zip(tensors, torch.stack([t.detach().reshape(()).to(torch.float64) for t in tensors.values()]).tolist()
+                    if tensors else []))
+    return {key: read[key] if key in read else float(value) for key, value in values.items()}
 
 
 def _events_stopped(err: OSError) -> None:

@@ -29,7 +29,7 @@ from exploregs_plugin.io.checkpoint import (CheckpointError, checkpoint_path, lo
                                             save_checkpoint)
 from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig, resolve_batch_size
 from exploregs_plugin.rasterizer import backend_line
-from exploregs_plugin.run_logger import RunLogger
+from exploregs_plugin.run_logger import RunLogger, host_values
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.threads import IdleCpus, apply_threads, available_cpus, threads_for, threads_from_environment
 from exploregs_plugin.viewer.callback import ViewerCallback
@@ -167,12 +167,15 @@ class Trainer:
         self.start_step = 0
         self.train_seconds = 0.0
         self.history: list[dict[str, Any]] = []
-        self.op_totals: dict[str, int] = {}  # run-long sum of every strategy operation's count
+        # run-long sum of every strategy operation's count (one the strategy left on the device
+        # stays a tensor there until it is read: _op_totals)
+        self.op_totals: dict[str, Any] = {}
         self.last_checkpoint: Path | None = None
         self._checkpointed_at = 0.0  # train_seconds at the last checkpoint
         self._wall_before = 0.0  # wall-clock seconds of the run before this call to train() (a resume)
         self._wall_started: float | None = None
         self._collapse = CollapseWatch()
+        self._collapse_due: list[tuple[int, Any, Any, bool, Any]] = []  # steps the watch has not judged yet
         self.threads_used: set[int] = set()  # torch thread counts this run trained with (metrics.json)
         self.logger: RunLogger | None = None
         self._stop: _StopOnSignals | None = None
@@ -285,9 +288,14 @@ class Trainer:
         """Totals, the collapse watch, logging, callbacks, then evaluation and the periodic
         checkpoint due after ``step``."""
         self.train_seconds += stats["step_seconds"]
-        for op, n in stats["counts"].items():
-            self.op_totals[op] = self.op_totals.get(op, 0) + int(n)
-        self._check_collapse(step, stats)
+        for op, n in stats["counts"].items():  # a count may be a tensor on the device: read when saved
+            self.op_totals[op] = self.op_totals.get(op, 0) + n
+        if self._reads_at(step, eval_steps):  # the wait for the device is training time
+            start = time.perf_counter()
+            self._check_collapse(step, stats, read=True)
+            self.train_seconds += time.perf_counter() - start
+        else:
+            self._check_collapse(step, stats, read=False)
         self.logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
         for callback in self.callbacks:
             callback.after_step(self, step + 1, stats)
@@ -304,21 +312,57 @@ class Trainer:
     def _train_step(self, step: int) -> dict[str, Any]:
         try:
             return self.pipeline.train_step(step)
-        except NonFiniteError as err:
-            raise NonFiniteError(f"{err} (a learning rate too high, or non-finite values in the data?). "
-                                 f"Training stopped; {self._last_good()}") from err
+        except Exception as err:
+            # a step after the run went non-finite may fail for that reason (a strategy's draw
+            # from NaN weights): the step that first went non-finite is the one to report
+            self._raise_if_nonfinite(self.pipeline.nonfinite_error(), cause=err)
+            raise
 
-    def _check_collapse(self, step: int, stats: dict[str, Any]) -> None:
-        """Stop a run whose training PSNR collapses (see :class:`CollapseWatch`) before it writes a
-        checkpoint of the collapsed state."""
-        if not self.config.collapse_watch:
-            return
-        views, counts = stats.get("views", ()), stats["counts"]
-        restart = deliberate_setback(counts, self.pipeline.model.num_gaussians)
-        reason = self._collapse.update(step, float(stats["psnr"]), float(stats["loss"]), restart=restart,
-                                       view=views[0] if len(views) == 1 else None)
-        if reason is not None:
-            raise CollapseError(f"step {step}: {reason}. Training stopped; {self._last_good()}")
+    def _reads_at(self, step: int, eval_steps: set[int]) -> bool:
+        """Whether the trainer reads the device after ``step``: at its log line, an evaluation, a
+        periodic checkpoint and the last step. Elsewhere a step queues its work and goes on."""
+        done = step + 1
+        return (done % max(1, self.config.log_every) == 0 or done == self.schedule.max_steps or done in eval_steps
+                or done % self.config.checkpoint_every == 0)
+
+    def _check_collapse(self, step: int, stats: dict[str, Any], read: bool = True) -> None:
+        """Stop a run whose training PSNR collapses (see :class:`CollapseWatch`) or that went
+        non-finite, before it writes a checkpoint of that state.
+
+        The step's PSNR and loss stay on the device until a read point (``read``; the log line,
+        an evaluation, a checkpoint): there the steps since the last one are read in one go and
+        judged in order, as each would have been at its own step, so the error names the step
+        that collapsed. The run trains on to the read point meanwhile (at most ``log_every``
+        steps), which the checkpoints never see: :meth:`save_checkpoint` reads first."""
+        if self.config.collapse_watch:
+            views = stats.get("views", ())
+            restart = deliberate_setback(stats["counts"], self.pipeline.model.num_gaussians)
+            self._collapse_due.append((step, stats["psnr"], stats["loss"], restart,
+                                       views[0] if len(views) == 1 else None))
+        if read:
+            self._read_watches()
+
+    def _read_watches(self) -> None:
+        """The read point: the non-finite record and the collapse watch's pending steps (one read
+        of the device each). Raises the error of the first step that went bad."""
+        bad = self.pipeline.nonfinite_error()
+        due, self._collapse_due = self._collapse_due, []
+        values = host_values({f"{name}{i}": value for i, (_, psnr, loss, _, _) in enumerate(due)
+                              for name, value in (("psnr", psnr), ("loss", loss))})
+        for i, (step, _, _, restart, view) in enumerate(due):
+            if bad is not None and bad.step <= step:
+                break  # that step stopped the run before the watch saw it
+            reason = self._collapse.update(step, values[f"psnr{i}"], values[f"loss{i}"], restart=restart, view=view)
+            if reason is not None:
+                raise CollapseError(f"step {step}: {reason}. Training stopped; {self._last_good()}")
+        self._raise_if_nonfinite(bad)
+
+    def _raise_if_nonfinite(self, bad: NonFiniteError | None, cause: BaseException | None = None) -> None:
+        """Raise ``bad``, the pipeline's error of the first step whose loss or parameters went
+        non-finite, as the run's error (None: nothing went non-finite)."""
+        if bad is not None:
+            raise NonFiniteError(f"{bad} (a learning rate too high, or non-finite values in the data?). "
+                                 f"Training stopped; {self._last_good()}", bad.step) from (cause or bad)
 
     def _last_good(self) -> str:
         """Where the run can be taken up again, for error messages."""
@@ -342,6 +386,7 @@ class Trainer:
     def run_eval(self, step: int) -> dict[str, Any]:
         """Evaluate on the test views and record a point of the PSNR-against-time curve. In a
         data-parallel run each rank scores every world-size-th view and rank 0 gathers the parts."""
+        self._read_watches()
         final = step >= self.schedule.max_steps
         save_dir = self.run_dir / "renders" if (final and self.config.save_eval_images) else None
         panels: list[tuple[int, str, torch.Tensor]] = []
@@ -382,7 +427,7 @@ class Trainer:
             "seconds_per_step": self.train_seconds / max(self.schedule.max_steps, 1),
             "threads": sorted(self.threads_used),
             "history": self.history,
-            "strategy_counts": dict(sorted(self.op_totals.items())),
+            "strategy_counts": dict(sorted(self._op_totals().items())),
             "exploration": self.pipeline.exploration_summary(),
         })
         if self.world.is_main:
@@ -392,7 +437,9 @@ class Trainer:
     # ----------------------------------------------------------------------------- checkpoints
     def save_checkpoint(self, step: int) -> Path:
         """Rank 0 writes the checkpoint (atomically); first the ranks compare a checksum of their
-        parameters, so that a checkpoint never holds one of several diverged models."""
+        parameters, so that a checkpoint never holds one of several diverged models, and the
+        watches are read, so that it never holds a non-finite or collapsed one."""
+        self._read_watches()
         self.world.check_same(f"parameters at step {step}", torch.cat([
             params_checksum([p for _, p in self.pipeline.trained_tensors()]).to(self.device),
             torch.tensor([float(self.pipeline.model.num_gaussians)], dtype=torch.float64, device=self.device)]))
@@ -406,7 +453,7 @@ class Trainer:
             "train_seconds": self.train_seconds,
             "wall_seconds": self.wall_seconds,
             "history": self.history,
-            "op_totals": self.op_totals,
+            "op_totals": self._op_totals(),
             **self.pipeline.state_dict(),
         }
         try:
@@ -415,6 +462,10 @@ class Trainer:
             raise CheckpointError(f"{err}; training stopped, {self._last_good()}") from err
         self._checkpointed_at = self.train_seconds
         return self.last_checkpoint
+
+    def _op_totals(self) -> dict[str, int]:
+        """The run's operation counts as numbers (one read of the device)."""
+        return {op: int(n) for op, n in host_values(self.op_totals).items()}
 
     def _restore(self, path: Path, payload: dict[str, Any] | None = None) -> None:
         payload = load_checkpoint(path) if payload is None else payload

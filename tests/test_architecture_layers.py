@@ -17,7 +17,8 @@ LAYERS: list[tuple[str, ...]] = [
     ("scripts",),
     ("bench", "analysis", "integrations"),
     ("runs",),
-    ("trainer", "pipeline", "method_configs", "evaluation", "run_logger", "collapse", "loss_terms"),
+    ("trainer", "pipeline", "method_configs", "evaluation", "run_logger", "collapse", "loss_terms",
+     "nonfinite"),
     ("model", "data", "strategies", "viewer"),
     ("rasterizer", "io", "configs"),
     ("cameras", "schedule", "callbacks", "device", "distributed", "kernels", "threads", ""),  # "" = the package's own __init__

@@ -137,8 +137,8 @@ def test_nan_in_loss_stops_with_step_and_keeps_checkpoint(tmp_path, tiny_scene_d
     real_item = dm.train_item
     calls = {"n": 0}
 
-    def poisoned(index, device=None):
-        camera, image, extras = real_item(index, device)
+    def poisoned(index, device=None, downscale=1):
+        camera, image, extras = real_item(index, device, downscale)
         calls["n"] += 1
         if calls["n"] == 13:  # step 12
             image = image.clone()

@@ -176,6 +176,15 @@ def psnr(img: Tensor, ref: Tensor, mask: Tensor | None = None) -> float:
     return -10.0 * math.log10(mse)
 
 
+def psnr_on_device(img: Tensor, ref: Tensor) -> Tensor:
+    """PSNR in dB as a 0-dim float64 tensor on the images' device, without reading the device
+    (a training step's, read only where it is logged). The same squared error and floor as
+    :func:`psnr`, but torch's log10, which may differ from the host's in the last bit (the
+    training step rounds it to float32, as it always did): evaluations keep :func:`psnr`."""
+    err = (img.detach().double() - ref.detach().double()) ** 2
+    return -10.0 * torch.log10(err.mean().clamp_min(MSE_FLOOR))
+
+
 def pooled_psnr(squared_error: float, count: int) -> float:
     """PSNR of pixels pooled over several images, -10 log10(max(sum of squared error / count,
     MSE_FLOOR)), from their summed per-pixel squared error; NaN for no pixels (a region that no

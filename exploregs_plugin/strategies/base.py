@@ -203,7 +203,9 @@ class Strategy:
         generator: torch.Generator | None = None,
         loss: Tensor | None = None,
     ) -> dict[str, int]:
-        """Called after the optimizer step; returns counts of what it did (dict[str, int]).
+        """Called after the optimizer step; returns counts of what it did (dict[str, int]; a count
+        may be a 0-dim integer tensor on the device, which the trainer reads only where it logs,
+        so that a step that changes nothing need not wait for the device).
 
         Checks that the schedule is resolved and ``views`` is a list of observations, and hands
         one :class:`StepContext` to :meth:`post_backward`, which subclasses implement. ``loss`` is

@@ -43,12 +43,13 @@ def accumulate_grad_stats(
     height: int,
     n_cameras: int = 1,
     downscale: int = 1,
-) -> int:
+) -> Tensor:
     """Add this step's NDC gradient norms to ``stats["grad2d"]`` and views to ``stats["count"]``.
 
     pixel_grads: [C, N, 2] dL/d(mean2d) in pixels; visible: [C, N] bool. The stats are created
     (zeros [N]) on first use. Rows with a non-finite gradient are skipped (neither summed nor
-    counted); returns how many visible rows were skipped.
+    counted); returns how many visible rows were skipped, a 0-dim long tensor on the gradients'
+    device (read only where it is logged: nothing here waits for the device).
     """
     c, n, _ = pixel_grads.shape
     if "grad2d" not in stats:
@@ -62,10 +63,13 @@ def accumulate_grad_stats(
     norms = ndc_gradient_norms(pixel_grads, width, height, n_cameras, downscale)
     finite = torch.isfinite(norms)
     take = visible & finite
-    _, ids = torch.where(take)
-    stats["grad2d"].index_add_(0, ids, norms[take])
-    stats["count"].index_add_(0, ids, torch.ones_like(norms[take]))
-    return int((visible & ~finite).sum())
+    # Masked adds, camera by camera, instead of an index_add_ over torch.where(take): a nonzero
+    # has to read its size from the device. The same sums in the same order (x + 0 = x for the
+    # rows left out: the statistics are never -0).
+    for camera in range(c):
+        stats["grad2d"] += torch.where(take[camera], norms[camera], 0.0)
+        stats["count"] += take[camera]
+    return (visible & ~finite).sum()
 
 
 def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: int = 1,
@@ -213,7 +217,7 @@ class DefaultStrategy(Strategy):
         return counts
 
     # ------------------------------------------------------------------ steps
-    def _update_stats(self, params: Params, state: dict[str, Any], view: ViewObservation) -> int:
+    def _update_stats(self, params: Params, state: dict[str, Any], view: ViewObservation) -> int | Tensor:
         n = num_gaussians(params)
         if n == 0:
             return 0
