@@ -150,6 +150,9 @@ def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[
         ("eg-analyze", [R], f"unrecognized argument {R} (a subcommand comes first: grad-branches, grad-directions, "
                             "blending, nearside) (eg-analyze --help lists its options)"),
         ("eg-bench", ["--out", f"{M}-bench", "--spec", P], f"spec file {P}: not a YAML or JSON text file"),
+        ("eg-bench", ["--out", f"{M}-bench", "--scenes", M, "--methods", "default", "--dry-run"],
+         f"scene {M}: path does not exist (and is not builtin:NAME)"),
+        ("eg-bench", ["--out", f"{M}-bench", "--scenes", R, "--methods", "default"], f"scene {is_run}"),
         ("eg-bench", ["--out", f"{M}-bench", "--data", D], "unrecognized option --data (eg-bench --help lists its options)"),
     ]
 

@@ -22,6 +22,8 @@ import tyro
 from exploregs_plugin.bench.presets import PRESETS
 from exploregs_plugin.bench.spec import BenchSpec
 from exploregs_plugin.configs import unset
+from exploregs_plugin.data.dataparser import BUILTIN_PREFIX, another_commands_input
+from exploregs_plugin.data.errors import DataError
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.scripts import parse_cli, run_cli
 
@@ -110,6 +112,18 @@ def describe(spec: BenchSpec, results: Path) -> list[str]:
     return lines
 
 
+def check_scenes(spec: BenchSpec) -> None:
+    """A scene path that is missing, a run folder or a PLY is one line before any run starts (each
+    run would otherwise fail on it in turn)."""
+    for scene in spec.scenes:
+        if scene.data.startswith(BUILTIN_PREFIX):
+            continue
+        path = Path(scene.data).expanduser()
+        problem = "path does not exist (and is not builtin:NAME)" if not path.exists() else another_commands_input(path)
+        if problem is not None:
+            raise DataError(f"scene {scene.data}", problem)
+
+
 def main(argv: list[str]) -> dict | None:
     from exploregs_plugin.bench.report import report
     from exploregs_plugin.bench.runner import RunOptions, execute
@@ -119,6 +133,8 @@ def main(argv: list[str]) -> dict | None:
     spec = compose(cmd.preset, cmd.spec, cmd.methods, cmd.scenes, cmd.seeds, cmd.steps, cmd.eval_count,
                    cmd.baseline, cmd.override, cmd.scene_option, cmd.data_factor)
     spec = replace(spec, device=str(resolve_device(cmd.device)))
+    if not cmd.report_only:
+        check_scenes(spec)
     for line in describe(spec, cmd.out):
         print(line, file=sys.stderr)
     if cmd.dry_run:
