@@ -208,7 +208,7 @@ def test_blurred_frames_are_dropped(tmp_path):
 
 
 def test_resume_after_a_killed_matching_stage_redoes_only_the_rest(capture, tmp_path, monkeypatch):
-    photos = _subset(capture, tmp_path / "photos")
+    photos = _subset(capture, tmp_path / "photos", step=2)  # 12 views, 10 degrees apart
     out = tmp_path / "dataset"
     real_match = sfm.match_pairs
 
@@ -223,7 +223,8 @@ def test_resume_after_a_killed_matching_stage_redoes_only_the_rest(capture, tmp_
     assert set(state["stages"]) == {"import", "features"} and not (out / "sparse").exists()
     import pycolmap
     with pycolmap.Database.open(out / "database.db") as db:
-        assert db.num_matched_image_pairs() == 5  # the work done before the kill is kept
+        killed = db.num_matched_image_pairs()
+    assert 1 <= killed <= 5  # the work done before the kill is kept (a pair without matches may be left out)
 
     matched: list[int] = []
 
@@ -234,7 +235,7 @@ def test_resume_after_a_killed_matching_stage_redoes_only_the_rest(capture, tmp_
     monkeypatch.setattr(sfm, "match_pairs", counting_match)
     monkeypatch.setattr(sfm, "extract", lambda *a, **k: pytest.fail("features were extracted again"))
     report = process_capture([photos], out, CONFIG)
-    assert matched == [28] and report["registered"] == 8
+    assert matched == [66] and report["registered"] == report["images_in"] == 12
     assert set(report["seconds"]) == {"import", "features", "matching", "mapping"}
 
 

@@ -84,7 +84,7 @@ def plot_top_view(rec: pycolmap.Reconstruction, path: Path) -> Path:
     cams2d, pts2d, look2d = centres @ axes.T, points @ axes.T, looks @ axes.T
     fig, ax = plt.subplots(figsize=(7, 7), dpi=110)
     if len(pts2d):
-        ax.scatter(pts2d[:, 0], pts2d[:, 1], s=1, c=colors, alpha=0.6, linewidths=0)
+        ax.scatter(pts2d[:, 0], pts2d[:, 1], s=2, c=colors, alpha=0.8, linewidths=0)
     span = np.ptp(cams2d, axis=0).max() if len(cams2d) > 1 else 1.0
     ax.quiver(cams2d[:, 0], cams2d[:, 1], look2d[:, 0], look2d[:, 1], color="crimson",
               angles="xy", scale_units="xy", scale=1.0 / max(0.08 * span, 1e-9), width=0.004)

@@ -39,6 +39,18 @@ def colmap_logs(verbose: bool) -> Iterator[None]:
         log.minloglevel, log.logtostderr = before
 
 
+def with_threads(options, threads: int, depth: int = 4):
+    """``options`` with every ``num_threads`` in it, nested option groups included, set to
+    ``threads`` (pycolmap's -1 means every core, which a shared machine does not have)."""
+    if hasattr(options, "num_threads"):
+        options.num_threads = threads
+    if depth > 0:
+        for name in dir(options):
+            if not name.startswith("_") and type(getattr(options, name)).__name__.endswith("Options"):
+                with_threads(getattr(options, name), threads, depth - 1)
+    return options
+
+
 def chunks(items: Sequence, count: int) -> list[Sequence]:
     """``items`` in about ``count`` consecutive chunks (each non-empty)."""
     size = max(1, math.ceil(len(items) / max(count, 1)))
@@ -126,12 +138,10 @@ def map_scene(database: Path, image_dir: Path, out_dir: Path, mapper: Mapper, th
     out_dir.mkdir(parents=True, exist_ok=True)
     pycolmap.set_random_seed(0)  # the same capture gives the same model
     if mapper == "global":
-        options = pycolmap.GlobalPipelineOptions()
-        options.num_threads = threads
+        options = with_threads(pycolmap.GlobalPipelineOptions(), threads)
         options.random_seed = 0
         return pycolmap.global_mapping(database, image_dir, out_dir, options=options)
-    options = pycolmap.IncrementalPipelineOptions()
-    options.num_threads = threads
+    options = with_threads(pycolmap.IncrementalPipelineOptions(), threads)
     options.random_seed = 0
     return pycolmap.incremental_mapping(database, image_dir, out_dir, options=options,
                                         initial_image_pair_callback=lambda: on_registered(2),
