@@ -119,6 +119,9 @@ def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[
                           "lists the methods)"),
         ("eg-train", [R], f"{R} is an eg-train run, not a method: eg-train --resume {R} continues it"),
         ("eg-train", ["exploregs-default", "--data", D, "--cameras-from", R], "unrecognized option --cameras-from"),
+        ("eg-train", ["exploregs-default", "--data", "builtin:tiny", "--run-dir", D],
+         f"--run-dir {D} is a dataset: eg-train writes its run there; pass the dataset as --data and a folder of its "
+         "own as --run-dir"),
         ("eg-eval", [M], no_run),
         ("eg-eval", [D], is_dataset),
         ("eg-eval", [P], f"{P}: a PLY holds no cameras or images; pass --data DATASET to score it"),

@@ -133,13 +133,19 @@ def resolve_run(path: Path) -> tuple[Path, Path]:
     raise CheckpointError(f"{path} is neither a run folder nor a checkpoint file")
 
 
+def is_dataset_folder(path: Path) -> bool:
+    """Whether the folder ``path`` holds a dataset (and is not a run folder)."""
+    path = Path(path)
+    return not (path / RUN_CONFIG).is_file() and any((path / mark).exists() for mark in DATASET_MARKS)
+
+
 def check_run_folder(path: Path) -> None:
     """Raise :class:`CheckpointError` when the folder ``path`` is not a run folder (no config.yml),
     naming the newest run inside it when there is one (``outputs/SCENE`` instead of a run)."""
     path = Path(path)
     if (path / RUN_CONFIG).is_file():
         return
-    if any((path / mark).exists() for mark in DATASET_MARKS):
+    if is_dataset_folder(path):
         raise CheckpointError(f"{path} is a dataset, not a run folder (it has no {RUN_CONFIG}): "
                               f"eg-train METHOD --data {path} trains a run on it")
     inside = [c.parent for depth in ("*", "*/*", "*/*/*") for c in path.glob(f"{depth}/{RUN_CONFIG}")]
