@@ -152,19 +152,21 @@ def refinement_steps(strategy: Any) -> set[int]:
             and s % strategy.refine_every == 0}
 
 
-@pytest.mark.parametrize("method", ["exploregs-default", "exploregs-mcmc"])
-def test_a_step_reads_the_device_only_at_the_log_line_and_refinements(tmp_path, tiny_scene_dir, method):
+# Reads of a step outside the log lines and refinements, at most: none, or for Seed+Split one in
+# the window of its random splitting (every step there: how many rows may be drawn).
+@pytest.mark.parametrize("method, most", [("exploregs-default", 0), ("exploregs-mcmc", 0), ("exploregs-seedsplit", 1)])
+def test_a_step_reads_the_device_only_at_the_log_line_and_refinements(tmp_path, tiny_scene_dir, method, most):
     reads, trainer = counted_run(method, tmp_path / "run")
     logged, refined = read_points(trainer), refinement_steps(trainer.pipeline.strategy)
     assert refined and not refined & logged  # both kinds of step are seen, apart
     quiet = [s for s in range(STEPS) if s not in logged | refined]
-    # outside the log lines and the refinements a step reads nothing (it read 13 times before)
-    assert {s: reads.by_step[s] for s in quiet if reads.by_step[s]} == {}, \
+    # elsewhere a step reads nothing, or one value (12 to 21 reads before)
+    assert {s: reads.by_step[s] for s in quiet if reads.by_step[s] > most} == {}, \
         [place for place in reads.places if place[0] in quiet]
     # a log line reads the non-finite record, the collapse watch's steps and the logged values,
     # one read each (the last step also the evaluation's and the checkpoint's)
     for step in sorted(logged - {STEPS - 1}):
-        assert reads.by_step[step] == 3, [place for place in reads.places if place[0] == step]
+        assert 3 <= reads.by_step[step] <= 3 + most, [place for place in reads.places if place[0] == step]
     assert all(reads.by_step[s] > 0 for s in refined)  # a refinement learns what it grew and pruned
 
 

@@ -88,8 +88,8 @@ def test_empty_space_seeds_are_pruned_and_unseen_seeds_counted(tmp_path, tiny_sc
             surfaces.append(torch.where(a > 0.5, d / a.clamp_min(1e-6), torch.full_like(d, float("inf"))))
     train_item = dm.train_item
 
-    def explained_target(index, device=None):
-        camera, _, extras = train_item(index, device)
+    def explained_target(index, device=None, downscale=1):  # no coarse-to-fine levels in this run
+        camera, _, extras = train_item(index, device, downscale)
         return camera, targets[index] if device is None else targets[index].to(device), extras
 
     monkeypatch.setattr(dm, "train_item", explained_target)

@@ -90,7 +90,9 @@ class OcclusionSplitting(RandomSplitting):
         t_view = mean_transmittance(vis[:, 0], vis[:, 1]).clamp_min(self.occlusion_t_floor)
         seen = view.visible() & torch.isfinite(norm) & (vis[:, 1] > 0)
         error = stats[OCC_ERROR]
-        error[seen] = self.occlusion_decay * error[seen] + (1.0 - self.occlusion_decay) * (norm / t_view)[seen]
+        # a where over every row, not a boolean index (its nonzero reads its size from the device)
+        averaged = self.occlusion_decay * error + (1.0 - self.occlusion_decay) * (norm / t_view)
+        error.copy_(torch.where(seen, averaged, error))
         return counts
 
     def candidate_weights(self, params: Params, state: dict[str, Any]) -> Tensor:

@@ -98,6 +98,17 @@ def _check_mask(mask: Tensor, n: int, op: str) -> Tensor:
     return mask
 
 
+def _masked_rows(mask: Tensor, count: int | None = None) -> tuple[Tensor, Tensor]:
+    """(selected, rest): the indices of the True and of the False entries of ``mask`` [N], each
+    ascending. Without ``count`` two nonzeros, each of which reads its size from the device; with
+    ``count`` (how many entries are True, when the caller knows it) none: a stable sort puts the
+    False entries first, in order, then the True ones, the same indices."""
+    if count is None:
+        return torch.where(mask)[0], torch.where(~mask)[0]
+    order = torch.argsort(mask.to(torch.uint8), stable=True)
+    return order[mask.shape[0] - count:], order[:mask.shape[0] - count]
+
+
 @torch.no_grad()
 def duplicate(params: Params, optimizers: Optimizers, stats: Stats, mask: Tensor) -> int:
     """Append a copy of every masked Gaussian at the end (3DGS clone). Returns the count."""
@@ -122,20 +133,21 @@ def split(
     mask: Tensor,
     generator: torch.Generator,
     scale_factor: float = 1.6,
+    count: int | None = None,
 ) -> int:
     """Replace every masked Gaussian by two children sampled from its own Gaussian.
 
     Child means are mu + R diag(s) z with z ~ N(0, I) (two draws per parent), child scales are
     s / ``scale_factor`` (3DGS: 1.6), every other attribute is copied. Parents are removed;
     unselected rows keep their order and come first, then all first children, then all second
-    children. Returns the number of parents split.
+    children. Returns the number of parents split. ``count``: how many entries of ``mask`` are
+    True, when the caller knows it (then nothing is read from the device to find the rows).
     """
     if scale_factor <= 0:
         raise ValueError(f"ops.split: scale_factor must be positive, got {scale_factor}")
-    sel = torch.where(_check_mask(mask, num_gaussians(params), "split"))[0]
+    sel, rest = _masked_rows(_check_mask(mask, num_gaussians(params), "split"), count)
     if len(sel) == 0:
         return 0
-    rest = torch.where(~mask)[0]
     means, log_scales = params["means"], params["scales"]
     scales = torch.exp(log_scales[sel].detach())
     rot = quats_to_rotmats(params["quats"][sel].detach())  # [S, 3, 3]

@@ -55,8 +55,8 @@ def split_drawn(params: Params, optimizers: Optimizers, stats: dict[str, Tensor]
     children from the parent's Gaussian, scales / ``scale_factor``). Returns the number split."""
     idx = draw_rows(weights, n, generator)
     mask = torch.zeros(num_gaussians(params), dtype=torch.bool, device=params["means"].device)
-    mask[idx] = True
-    return ops.split(params, optimizers, stats, mask, generator, scale_factor)
+    mask[idx] = True  # distinct rows: len(idx) of them
+    return ops.split(params, optimizers, stats, mask, generator, scale_factor, count=len(idx))
 
 
 @dataclass
