@@ -105,7 +105,8 @@ def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[
     """(command, arguments, its one line): the sweep of issue 48 over every command."""
     R, P, D, M = str(run), str(ply), str(dataset), str(missing)
     is_run = f"{R}: an eg-train run, not a dataset: it trained on builtin:tiny (eg-train --resume {R} continues it)"
-    is_dataset = f"{D} is a dataset, not a run folder (it has no config.yml): eg-train METHOD --data {D} trains a run on it"
+    is_dataset = (f"{D} is a dataset, not a run folder (it has no config.yml): eg-train METHOD --data {D} trains a run "
+                  "on it")
     is_ply = f"{P} is a PLY of Gaussians, not a run folder or a checkpoint (.pt) of one"
     no_run = f"{M} is neither a run folder nor a checkpoint file"
     return [
@@ -132,13 +133,15 @@ def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[
         ("eg-export", [M], no_run),
         ("eg-export", [D], is_dataset),
         ("eg-export", [P], is_ply),
-        ("eg-export", [R, "--cameras-from", D], "unrecognized option --cameras-from (eg-export --help lists its options)"),
+        ("eg-export", [R, "--cameras-from", D],
+         "unrecognized option --cameras-from (eg-export --help lists its options)"),
         ("eg-render", [M], no_run),
         ("eg-render", [D], is_dataset),
         ("eg-render", [P], f"{P}: a PLY holds no cameras; pass --cameras-from RUN_OR_DATASET (a run folder, a dataset "
                            "folder or builtin:NAME)"),
         ("eg-render", [P, "--cameras-from", P], f"{P}: a PLY of trained Gaussians, not a dataset"),
-        ("eg-render", [R, "--cameras-from", D], f"--cameras-from is for PLY input; {R} is a run, which has its own cameras"),
+        ("eg-render", [R, "--cameras-from", D],
+         f"--cameras-from is for PLY input; {R} is a run, which has its own cameras"),
         ("eg-render", [R, "--data", D], "unrecognized option --data (eg-render --help lists its options)"),
         ("eg-view", [M], f"{M}: no such run folder, checkpoint or PLY file"),
         ("eg-view", [D], is_dataset),
@@ -156,7 +159,8 @@ def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[
         ("eg-bench", ["--out", f"{M}-bench", "--scenes", M, "--methods", "default", "--dry-run"],
          f"scene {M}: path does not exist (and is not builtin:NAME)"),
         ("eg-bench", ["--out", f"{M}-bench", "--scenes", R, "--methods", "default"], f"scene {is_run}"),
-        ("eg-bench", ["--out", f"{M}-bench", "--data", D], "unrecognized option --data (eg-bench --help lists its options)"),
+        ("eg-bench", ["--out", f"{M}-bench", "--data", D],
+         "unrecognized option --data (eg-bench --help lists its options)"),
     ]
 
 
