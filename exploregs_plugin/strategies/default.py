@@ -95,7 +95,11 @@ def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: 
     Dividing by s holds the pixel-sized Gaussians' statistic, the one that decides when
     densification stops, to its full-size value: a level densifies down to its own pixel and not
     below (detail it cannot show), and never more than full size would."""
-    scale = torch.tensor([width / 2.0, height / 2.0], dtype=torch.float32, device=pixel_grads.device) * float(n_cameras)
+    # filled on the device, not made there from a list: on a GPU that is a copy from the host,
+    # which torch makes wait for every kernel queued before it
+    scale = torch.empty(2, dtype=torch.float32, device=pixel_grads.device)
+    scale[0], scale[1] = width / 2.0, height / 2.0
+    scale = scale * float(n_cameras)
     if downscale != 1:
         scale = scale / float(downscale)
     return (pixel_grads.detach().to(torch.float32) * scale).norm(dim=-1)
