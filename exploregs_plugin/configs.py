@@ -226,6 +226,9 @@ def tyro_error_text(captured: str) -> str:
     missing = re.match(r"^Required options Missing from [^:]*: (\S+)", text)
     if missing:
         return f"missing {missing.group(1)}"
+    subcommand = re.match(r"^Missing subcommand Expected one of \{(.*)\}\.?$", text)
+    if subcommand:
+        return f"missing a subcommand: one of {subcommand.group(1)}"
     # Python's conversion errors in words: "--seed: expected an integer, got 'abc'"
     text = re.sub(r"^Value error Error parsing (--[\w.-]+): invalid literal for int\(\) with base 10: (.*)$",
                   r"\1: expected an integer, got \2", text)

@@ -123,6 +123,7 @@ def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[
         ("eg-train", ["exploregs-default", "--data", "builtin:tiny", "--run-dir", D],
          f"--run-dir {D} is a dataset: eg-train writes its run there; pass the dataset as --data and a folder of its "
          "own as --run-dir"),
+        ("eg-eval", [], "missing PATH (eg-eval --help lists its options)"),
         ("eg-eval", [M], no_run),
         ("eg-eval", [D], is_dataset),
         ("eg-eval", [P], f"{P}: a PLY holds no cameras or images; pass --data DATASET to score it"),
@@ -146,12 +147,15 @@ def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[
         ("eg-view", [M], f"{M}: no such run folder, checkpoint or PLY file"),
         ("eg-view", [D], is_dataset),
         ("eg-view", [R, "--data", D], "unrecognized option --data (eg-view --help lists its options)"),
+        ("eg-scenes", [], "missing a subcommand: one of make, list, stats (eg-scenes --help lists its options)"),
         ("eg-scenes", ["stats", M], f"{M}: no such folder"),
         ("eg-scenes", ["stats", R], f"{R}: not a scene written by eg-scenes make (it has no scene.json)"),
         ("eg-scenes", ["list", "--data", D], "unrecognized option --data (eg-scenes --help lists its options)"),
         ("eg-analyze", ["blending", "--run", M], no_run),
         ("eg-analyze", ["blending", "--run", D], is_dataset),
         ("eg-analyze", ["blending", "--run", P], is_ply),
+        ("eg-analyze", ["blending", "--run", R, "--data", D],
+         "unrecognized option --data (eg-analyze --help lists its options)"),
         ("eg-analyze", ["grad-branches", "--data", R, "--out", f"{M}-out"], is_run),
         ("eg-analyze", [R], f"unrecognized argument {R} (a subcommand comes first: grad-branches, grad-directions, "
                             "blending, nearside) (eg-analyze --help lists its options)"),
