@@ -343,3 +343,19 @@ def test_photos_are_imported_upright_heic_included(tmp_path):
         with Image.open(out / name) as im:
             assert im.size == (60, 40) and im.getexif().get(ORIENTATION_TAG, 1) == 1
             assert np.abs(np.asarray(im.convert("RGB")).astype(int) - upright_rgb).mean() < 8.0
+
+
+@pytest.mark.slow
+def test_two_videos_get_one_camera_each_and_register_together(capture, tmp_path):
+    import pycolmap
+
+    frames = capture[1]
+    write_mp4(frames[:14], tmp_path / "first.mp4")
+    write_mp4(frames[10:], tmp_path / "second.mp4")  # 4 views shared with the first
+    out = tmp_path / "dataset"
+    report = process_capture([tmp_path / "first.mp4", tmp_path / "second.mp4"], out, CONFIG)
+    assert report["images_in"] == 28 and report["registered"] >= 0.9 * 28
+    assert sorted(p.name for p in (out / "images").iterdir()) == ["first", "second"]
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    cameras = {im.name.split("/")[0]: im.camera_id for im in rec.images.values()}
+    assert len(rec.cameras) == 2 and cameras["first"] != cameras["second"]
