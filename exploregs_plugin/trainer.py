@@ -337,6 +337,9 @@ class Trainer:
         if self.config.collapse_watch:
             views = stats.get("views", ())
             restart = deliberate_setback(stats["counts"], self.pipeline.model.num_gaussians)
+            # a coarse-to-fine level ends: the next step's PSNR is of other (full-size) targets,
+            # which the records of the easier coarse ones must not judge
+            restart = restart or self.schedule.downscale_at(step + 1) != self.schedule.downscale_at(step)
             self._collapse_due.append((step, stats["psnr"], stats["loss"], restart,
                                        views[0] if len(views) == 1 else None))
         if read:
