@@ -85,8 +85,8 @@ def builtin_methods() -> dict[str, MethodSpecification]:
                 s.MCMCStrategy()),
         _method("exploregs-mcmc-ray", "3DGS-MCMC with its position noise projected onto the viewing ray.",
                 s.MCMCStrategy(noise=s.PositionNoise(mode="ray"))),
-        _method("exploregs-mcmc-explore", "3DGS-MCMC where a share of each relocation and growth explores "
-                "(random splits, uniform and guided seeds).", s.MCMCExploreStrategy()),
+        _method("exploregs-mcmc-explore", "3DGS-MCMC whose relocation and growth explore: size-weighted "
+                "random splits (or a share, and uniform or guided seeds).", s.MCMCExploreStrategy()),
         _method("exploregs-guided", "Default + guided seeding: seeds on the rays of the pixels with the highest recent error.",
                 s.GuidedSeedingStrategy(budget=budget)),
         _method("exploregs-occlusion", "Default + occlusion-aware splitting: split what blending hides and still errs.",

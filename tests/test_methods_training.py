@@ -128,7 +128,8 @@ def test_mcmc_explore_with_the_automatic_cap_grows_then_stops(tmp_path, tiny_sce
             self.n[step] = trainer.pipeline.model.num_gaussians
 
     config = get_method("exploregs-mcmc-explore").config
-    strategy = replace(config.pipeline.strategy, cap_max="auto", auto_min_drop=0.03)
+    strategy = replace(config.pipeline.strategy, cap_max="auto", auto_min_drop=0.03, explore_share=0.1,
+                       explore_split=1.0, explore_box=1.0, explore_guided=1.0)
     config = replace(config, data="builtin:tiny", max_steps=400, run_dir=tmp_path, quiet=True, tensorboard=False,
                      eval_count=2, save_eval_images=False, checkpoint_every=1000,
                      schedule=ScheduleConfig(min_refine_every=25), pipeline=replace(config.pipeline, strategy=strategy))

@@ -81,13 +81,14 @@ def test_share_zero_is_mcmc_bit_for_bit():
     for name in p_mcmc:
         assert torch.equal(p_mcmc[name], p_explore[name]), name
         s_mcmc, s_explore = o_mcmc[name].state[p_mcmc[name]], o_explore[name].state[p_explore[name]]
-        assert torch.equal(s_mcmc["exp_avg"], s_explore["exp_avg"]) and torch.equal(s_mcmc["exp_avg_sq"], s_explore["exp_avg_sq"])
+        for moment in ("exp_avg", "exp_avg_sq"):
+            assert torch.equal(s_mcmc[moment], s_explore[moment]), (name, moment)
 
 
 @pytest.mark.parametrize("share, n_dead", [(0.3, 37), (0.5, 5), (1.0, 12)])
 def test_the_share_of_relocated_rows_becomes_seeds_at_the_stated_opacity(share, n_dead):
     strategy = MCMCExploreStrategy(cap_max=1000, growth_rate=0.0, explore_share=share, explore_split=0.0,
-                                   explore_guided=0.0, **WINDOW)
+                                   explore_box=1.0, explore_guided=0.0, **WINDOW)
     params, optimizers = _set(200, n_dead)
     state = strategy.initialize_state()
     counts = _step(strategy, params, optimizers, state, 10, seed=1)
@@ -104,7 +105,8 @@ def test_the_share_of_relocated_rows_becomes_seeds_at_the_stated_opacity(share, 
 
 
 def test_the_share_of_growth_is_explored_by_splits_and_both_kinds_of_seeds():
-    strategy = MCMCExploreStrategy(cap_max=1000, growth_rate=0.2, explore_share=0.5, **WINDOW)
+    strategy = MCMCExploreStrategy(cap_max=1000, growth_rate=0.2, explore_share=0.5, explore_split=1.0,
+                                   explore_box=1.0, explore_guided=1.0, **WINDOW)
     params, optimizers = _set(100, 0)
     state = strategy.initialize_state()
     _step(strategy, params, optimizers, state, 9, seed=0)  # not a refinement: stores the view's error map
@@ -121,7 +123,7 @@ def test_the_share_of_growth_is_explored_by_splits_and_both_kinds_of_seeds():
 
 def test_explorers_that_stay_dead_are_relocated_again():
     strategy = MCMCExploreStrategy(cap_max=1000, growth_rate=0.0, explore_share=1.0, explore_split=0.0,
-                                   explore_guided=0.0, **WINDOW)
+                                   explore_box=1.0, explore_guided=0.0, **WINDOW)
     params, optimizers = _set(100, 10)
     state = strategy.initialize_state()
     _step(strategy, params, optimizers, state, 10, seed=1)
@@ -146,7 +148,7 @@ def test_bad_settings_are_refused():
 
 
 # ------------------------------------------------------------------------------ the automatic cap
-def _decisions(means, min_drop=0.01, patience=2):
+def _decisions(means, min_drop=MCMCStrategy.auto_min_drop, patience=MCMCStrategy.auto_patience):
     """Feed window means to the rule; the grow decision of each refinement until it stops."""
     previous, below, out = None, 0, []
     for mean in means:
@@ -159,11 +161,12 @@ def _decisions(means, min_drop=0.01, patience=2):
 
 
 def test_auto_rule_grows_while_the_loss_falls_and_stops_when_it_is_flat():
-    falling = [0.2 * 0.97 ** j for j in range(30)]  # 3% per refinement
+    assert (MCMCStrategy.auto_min_drop, MCMCStrategy.auto_patience) == (0.05, 2)  # as docs/strategies.md states
+    falling = [0.2 * 0.92 ** j for j in range(30)]  # 8% per refinement
     assert _decisions(falling) == [True] * 30
     flat = [0.1] * 10
     assert _decisions(flat) == [True, True, False]  # the first is judged on nothing; two flat in a row stop
-    slowing = [0.2 * (1 - 0.05 * math.exp(-j / 3)) ** j for j in range(40)]  # the fall fades out
+    slowing = [0.2 * math.exp(-0.3 * (1 - math.exp(-j / 8)) * 8) for j in range(40)]  # the fall fades out
     decisions = _decisions(slowing)
     assert decisions[-1] is False and 3 < len(decisions) < 40
     rising = [0.1, 0.11, 0.12]
@@ -173,14 +176,14 @@ def test_auto_rule_grows_while_the_loss_falls_and_stops_when_it_is_flat():
 def test_auto_rule_on_a_noisy_loss_is_as_documented():
     g = torch.Generator().manual_seed(0)
     noise = (torch.rand(60, generator=g) * 2 - 1).tolist()
-    # a flat loss with +-0.3% noise: every drop is below 1%, so it stops at the second window
-    assert _decisions([0.1 * (1 + 0.003 * e) for e in noise]) == [True, True, False]
-    # a fall of 3% per window with +-0.3% noise: every drop is above 1%, it keeps growing
-    assert _decisions([0.1 * 0.97 ** j * (1 + 0.003 * e) for j, e in enumerate(noise)]) == [True] * 60
+    # a flat loss with +-1% noise: every drop is below 5%, so it stops at the second window
+    assert _decisions([0.1 * (1 + 0.01 * e) for e in noise]) == [True, True, False]
+    # a fall of 8% per window with +-1% noise: every drop is above 5%, it keeps growing
+    assert _decisions([0.1 * 0.92 ** j * (1 + 0.01 * e) for j, e in enumerate(noise)]) == [True] * 60
     # a loss whose drop crosses the threshold every other window never has two below in a row
     alternating = [0.1]
     for j in range(20):
-        alternating.append(alternating[-1] * (0.98 if j % 2 == 0 else 0.999))
+        alternating.append(alternating[-1] * (0.93 if j % 2 == 0 else 0.99))
     assert all(_decisions(alternating))
 
 
@@ -191,7 +194,7 @@ def test_auto_cap_freezes_the_count_when_the_loss_stops_falling():
     sizes, loss = [], 0.2
     for step in range(3, 100):
         if step < 50:
-            loss *= 0.99  # 10% per 10-step window: grow
+            loss *= 0.98  # 18% per 10-step window: grow
         # flat from step 49 on: the window 51-60 still falls from 41-50; 61-70 and 71-80 are
         # flat, two in a row, so the refinement at 80 stops growth at the count of step 70
         _step(strategy, params, optimizers, state, step, seed=step, loss=torch.tensor(loss))

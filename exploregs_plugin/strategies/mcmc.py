@@ -79,9 +79,10 @@ class MCMCStrategy(Strategy):
     noise: PositionNoise = field(default_factory=PositionNoise)
     """The position noise after every step: isotropic (3DGS-MCMC), or along the camera ray
     (``--strategy.noise.mode ray``)."""
-    auto_min_drop: float = 0.01
+    auto_min_drop: float = 0.05
     """cap_max 'auto': the relative fall of the mean training loss between refinements (one
-    refinement interval apart) below which a refinement counts as not worth growing."""
+    refinement interval apart) below which a refinement counts as not worth growing; the growth
+    rate by default: growth goes on while the loss falls at least as fast as the count grows."""
     auto_patience: int = 2
     """cap_max 'auto': growth stops for good after this many refinements in a row below auto_min_drop."""
 

@@ -66,17 +66,19 @@ class MCMCExploreStrategy(MCMCStrategy):
     """3DGS-MCMC where a share of every relocation and growth goes to explored positions
     (size-weighted splits, uniform seeds, guided seeds) instead of onto live Gaussians."""
 
-    explore_share: float = 0.1
+    explore_share: float = 1.0
     """Share of the dead rows relocated and of the Gaussians grown at each refinement that go
-    to explored positions (0: MCMC)."""
+    to explored positions (0: MCMC; 1, from a short-run sweep on the built-in scenes,
+    docs/strategies.md: all of them)."""
     explore_opacity: float = 0.05
     """Opacity of a new explored seed: low enough to change the image little, above min_opacity
     so it lives until training has judged it."""
     explore_split: float = 1.0
     """Weight of size-weighted random splits among the explorers."""
-    explore_box: float = 1.0
-    """Weight of seeds uniform in the seed box (``seeding.box_mode``) among the explorers."""
-    explore_guided: float = 1.0
+    explore_box: float = 0.0
+    """Weight of seeds uniform in the seed box (``seeding.box_mode``) among the explorers (0 by
+    default: in the sweep, seeds gained less than splits, guided seeds lost)."""
+    explore_guided: float = 0.0
     """Weight of guided seeds (on the rays of high-error pixels) among the explorers."""
     seeding: GuidedSeeding = field(default_factory=lambda: GuidedSeeding(box_mode="cameras"))
     """Where seeds go: box_mode, box_quantile and min_scale for the box seeds and the guided
@@ -154,7 +156,8 @@ class MCMCExploreStrategy(MCMCStrategy):
         for n, place in ((n_box, self.seeding.box_seed_rows), (n_guided, self.seeding.new_seed_rows)):
             rows = place(params, state, n, generator) if n > 0 and num_gaussians(params) > 0 else None
             if rows is not None:
-                rows["opacities"] = torch.full_like(rows["opacities"], math.log(self.explore_opacity / (1.0 - self.explore_opacity)))
+                logit = math.log(self.explore_opacity / (1.0 - self.explore_opacity))
+                rows["opacities"] = torch.full_like(rows["opacities"], logit)
                 placed += add_seeds(params, optimizers, state["stats"], rows)
         return placed
 
