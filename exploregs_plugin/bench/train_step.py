@@ -47,8 +47,10 @@ def _timed(fn, device: torch.device) -> float:
 
 
 def measure(data: str, method: str, device: str, backend: str, warmup: int, steps: int, data_factor: int | None,
-            max_steps: int) -> dict:
-    """Median seconds of a training step and of the bare renderer step, and what they ran on."""
+            max_steps: int, profile: int = 0) -> dict:
+    """Median seconds of a training step and of the bare renderer step, and what they ran on;
+    with ``profile`` > 0, also torch.profiler's table of that many more training steps (the
+    operators by self CPU time, under "profile")."""
     base = get_method(method).config
     config = replace(base, data=data, data_factor=data_factor, max_steps=max_steps, device=device)
     config.pipeline.model.raster = replace(config.pipeline.model.raster, backend=backend)
@@ -57,6 +59,14 @@ def measure(data: str, method: str, device: str, backend: str, warmup: int, step
     for step in range(warmup):
         pipeline.train_step(step)
     train = [_timed(lambda s=step: pipeline.train_step(s), where) for step in range(warmup, warmup + steps)]
+    table = None
+    if profile > 0:
+        from torch.profiler import ProfilerActivity, profile as profiler
+
+        with profiler(activities=[ProfilerActivity.CPU]) as prof:
+            for step in range(warmup + steps, warmup + steps + profile):
+                pipeline.train_step(step)
+        table = prof.key_averages().table(sort_by="self_cpu_time_total", row_limit=25)
 
     params = torch.nn.ParameterDict({k: torch.nn.Parameter(v.detach().clone()) for k, v in pipeline.params.items()})
     optimizers = config.pipeline.optim.setup(params, pipeline.scene_extent)
@@ -95,7 +105,8 @@ def measure(data: str, method: str, device: str, backend: str, warmup: int, step
     peak = torch.cuda.max_memory_allocated(where) / 2**30 if where.type == "cuda" else None
     return {"device": str(where) if where.type == "cpu" else torch.cuda.get_device_name(where), "backend": backend,
             "method": method, "gaussians": pipeline.model.num_gaussians, "train_s": t_train, "bare_s": t_bare,
-            "ratio": t_train / t_bare, "native_s": t_native, "peak_gib": peak, "size": f"{camera.width}x{camera.height}"}
+            "ratio": t_train / t_bare, "native_s": t_native, "peak_gib": peak, "size": f"{camera.width}x{camera.height}",
+            "profile": table}
 
 
 def main(argv: list[str] | None = None) -> None:
@@ -108,6 +119,7 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--warmup", type=int, default=300, help="steps trained before timing (the set grows)")
     ap.add_argument("--steps", type=int, default=20, help="timed steps of each kind (median)")
     ap.add_argument("--max-steps", type=int, default=1500, help="run length the schedule is resolved for")
+    ap.add_argument("--profile", type=int, default=0, help="also profile this many training steps (torch.profiler)")
     a = ap.parse_args(argv)
     print(f"# torch {torch.__version__}; {a.data} (data factor {a.data_factor or 'default'}); "
           f"{a.warmup} warm-up steps, median of {a.steps}")
@@ -117,7 +129,7 @@ def main(argv: list[str] | None = None) -> None:
     for method in a.methods:
         first = None
         for backend in a.backends:
-            r = measure(a.data, method, a.device, backend, a.warmup, a.steps, a.data_factor, a.max_steps)
+            r = measure(a.data, method, a.device, backend, a.warmup, a.steps, a.data_factor, a.max_steps, a.profile)
             first = first or r
             peak = f"{r['peak_gib']:.2f}" if r["peak_gib"] is not None else ""
             native = ("| |" if r["native_s"] is None else
@@ -125,6 +137,8 @@ def main(argv: list[str] | None = None) -> None:
             print(f"| {r['method']} | {r['backend']} | {r['device']} | {r['size']} | {r['gaussians']:,} | "
                   f"{r['train_s']:.4f} | {r['bare_s']:.4f} | {r['ratio']:.2f} | {native} "
                   f"{first['train_s'] / r['train_s']:.2f}x | {peak} |", flush=True)
+            if r["profile"] is not None:
+                print(f"\nprofile of {a.profile} training steps, {r['method']}, {r['backend']}:\n{r['profile']}", flush=True)
 
 
 if __name__ == "__main__":
