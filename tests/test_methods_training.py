@@ -114,8 +114,10 @@ def test_occlusion_aware_splitting_spends_the_split_budget(tmp_path, tiny_scene_
 def test_mcmc_explore_with_the_automatic_cap_grows_then_stops(tmp_path, tiny_scene_dir):
     """400 steps on the tiny scene, refinement every 25 steps until step 333: the count grows 5%
     per refinement while the loss falls by 3% per window, then stays at the cap the rule chose;
-    explored seeds are in the set and the fit is sound."""
+    explored seeds are in the set and the fit is sound. Resumed from the middle of a loss window
+    (step 160), the run ends with the same bits and the same cap."""
     import math
+    import shutil
     from dataclasses import replace
 
     from exploregs_plugin.callbacks import TrainingCallback
@@ -130,8 +132,8 @@ def test_mcmc_explore_with_the_automatic_cap_grows_then_stops(tmp_path, tiny_sce
     config = get_method("exploregs-mcmc-explore").config
     strategy = replace(config.pipeline.strategy, cap_max="auto", auto_min_drop=0.03, explore_share=0.1,
                        explore_split=1.0, explore_box=1.0, explore_guided=1.0)
-    config = replace(config, data="builtin:tiny", max_steps=400, run_dir=tmp_path, quiet=True, tensorboard=False,
-                     eval_count=2, save_eval_images=False, checkpoint_every=1000,
+    config = replace(config, data="builtin:tiny", max_steps=400, run_dir=tmp_path / "run", quiet=True,
+                     tensorboard=False, eval_count=2, save_eval_images=False, checkpoint_every=160,
                      schedule=ScheduleConfig(min_refine_every=25), pipeline=replace(config.pipeline, strategy=strategy))
     counts = Counts()
     trainer = config.setup(callbacks=[counts])
@@ -144,3 +146,14 @@ def test_mcmc_explore_with_the_automatic_cap_grows_then_stops(tmp_path, tiny_sce
     assert stopped < 300 and all(counts.n[s] == cap for s in range(stopped, 401))  # then it never grows again
     assert m["strategy_counts"]["explored"] > 0 and m["exploration"]["seeds_alive"] > 0
     assert math.isfinite(m["psnr"]) and m["psnr"] > 16.0
+    resumed_dir = tmp_path / "resumed"
+    shutil.copytree(tmp_path / "run", resumed_dir)
+    for late in sorted((resumed_dir / "checkpoints").glob("*.pt"))[1:]:
+        late.unlink()  # keep step-0000160.pt
+    assert sorted(p.name for p in (resumed_dir / "checkpoints").glob("*.pt")) == ["step-0000160.pt"]
+    resumed = Trainer.from_run(resumed_dir, max_steps=None, quiet=True)
+    assert stopped > 160 and resumed.pipeline.strategy_state["auto_steps"] > 0  # inside a window, before the stop
+    resumed.train()
+    assert resumed.pipeline.strategy_state["auto_cap"] == cap
+    for name, p in trainer.pipeline.params.items():
+        assert torch.equal(p, resumed.pipeline.params[name]), name
