@@ -12,6 +12,7 @@ from exploregs_plugin.strategies import MCMCExploreStrategy, MCMCStrategy, Strat
 from exploregs_plugin.strategies.mcmc import keeps_growing
 from exploregs_plugin.strategies.mcmc_explore import apportion, explored_count
 from exploregs_plugin.strategies.observation import ViewError
+from exploregs_plugin.strategies.requirements import VIEW_ERRORS
 from exploregs_plugin.strategies.seeding import SEED_FLAG
 from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers, synthetic_views
 
@@ -119,6 +120,20 @@ def test_the_share_of_growth_is_explored_by_splits_and_both_kinds_of_seeds():
     assert params["means"].shape[0] == 100 + n_grow
     assert int((state["stats"][SEED_FLAG] > 0).sum()) == n_box + n_guided  # split children are not seeds
     assert torch.isfinite(params["means"]).all() and torch.isfinite(params["scales"]).all()
+
+
+def test_the_error_maps_are_asked_for_only_with_guided_seeds():
+    assert MCMCExploreStrategy().requirements() == frozenset()  # splits only
+    assert MCMCExploreStrategy(explore_box=1.0).requirements() == frozenset()
+    assert MCMCExploreStrategy(explore_guided=0.5).requirements() == frozenset({VIEW_ERRORS})
+    strategy = MCMCExploreStrategy(cap_max=1000, growth_rate=0.0, explore_split=0.0, explore_box=1.0, **WINDOW)
+    params, optimizers = _set(50, 5)
+    state = strategy.initialize_state()
+    views = _views(50)
+    views[0].error = None  # what the pipeline gives a strategy that does not ask for it
+    strategy.step_post_backward(params, optimizers, state, 10, views, lr=1.6e-4,
+                                generator=torch.Generator().manual_seed(0))
+    assert "views" not in state and strategy.exploration_summary(state)["seeds_alive"] == 5
 
 
 def test_explorers_that_stay_dead_are_relocated_again():

@@ -91,8 +91,6 @@ class MCMCExploreStrategy(MCMCStrategy):
     (MCMC's refinement schedules the explorers, explore_opacity sets their opacity, relocation
     removes the dead)."""
 
-    requires = frozenset({VIEW_ERRORS})
-
     def __post_init__(self) -> None:
         super().__post_init__()
         if not 0.0 <= self.explore_share <= 1.0:
@@ -108,10 +106,18 @@ class MCMCExploreStrategy(MCMCStrategy):
     def explore_weights(self) -> tuple[float, float, float]:
         return (self.explore_split, self.explore_box, self.explore_guided)
 
+    def requirements(self) -> frozenset[str]:
+        """The views' error maps only when guided seeds are drawn (``explore_guided`` > 0)."""
+        needs = super().requirements()
+        return needs | {VIEW_ERRORS} if self.explore_guided > 0 else needs
+
     def post_backward(self, ctx: StepContext) -> dict[str, int]:
-        if ctx.step < self.refine_stop_iter:  # the error maps of the guided seeds, and seeds' views
+        if ctx.step < self.refine_stop_iter and self.explore_guided + self.explore_box > 0:
+            # the seeds' views (seeds_unseen) and, for guided seeds, each view's error map;
+            # without guided seeds the views carry no error map: Random Seeding's observation only
+            observe = self.seeding.observe if self.explore_guided > 0 else super(GuidedSeeding, self.seeding).observe
             for view in ctx.views:
-                self.seeding.observe(self, ctx.params, ctx.state, view)
+                observe(self, ctx.params, ctx.state, view)
         counts = super().post_backward(ctx)
         counts.setdefault("explored", 0)
         return counts
