@@ -162,18 +162,14 @@ def test_data_given_photos_poses_them_into_the_cache_once(capture, tmp_path, cap
     assert (path / "sparse" / "0" / "images.bin").stat().st_mtime_ns == stamp  # reused, not posed again
 
 
-def write_mp4(frames: list[np.ndarray], path: Path, fps: int = 30) -> None:
-    import av
+def write_mp4(frames: list[np.ndarray], path: Path, fps: float = 30.0) -> None:
+    """H.264 at 30 fps, through the MP4 writer of eg-render's videos."""
+    from exploregs_plugin.io.frames import _VideoSink
 
-    with av.open(str(path), "w") as container:
-        stream = container.add_stream("libx264", rate=fps)
-        stream.width, stream.height, stream.pix_fmt = frames[0].shape[1], frames[0].shape[0], "yuv420p"
-        stream.options = {"crf": "18"}
-        for rgb in frames:
-            for packet in stream.encode(av.VideoFrame.from_ndarray(rgb, format="rgb24")):
-                container.mux(packet)
-        for packet in stream.encode():
-            container.mux(packet)
+    sink = _VideoSink(path, fps)
+    for rgb in frames:
+        sink.append(rgb)
+    sink.close()
 
 
 def test_a_video_of_the_same_views_registers_at_least_90_percent(capture, tmp_path):
