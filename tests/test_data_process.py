@@ -160,6 +160,10 @@ def test_data_given_photos_poses_them_into_the_cache_once(capture, tmp_path, cap
     assert resolve_data(str(photos), tmp_path / "cache") == ("colmap", path)
     assert f"note: {photos} has no camera poses: using those posed earlier in {path}" in capsys.readouterr().err
     assert (path / "sparse" / "0" / "images.bin").stat().st_mtime_ns == stamp  # reused, not posed again
+    shutil.copy(capture[0] / "0001.png", photos / "0001.png")  # the capture changed: posed again
+    assert resolve_data(str(photos), tmp_path / "cache") == ("colmap", path)
+    assert "posing it (as eg-process does)" in capsys.readouterr().err
+    assert "0001.png" in recovered_cameras(path)
 
 
 def write_mp4(frames: list[np.ndarray], path: Path, fps: float = 30.0) -> None:

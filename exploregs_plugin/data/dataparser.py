@@ -23,8 +23,7 @@ from .colmap import read_colmap
 from .errors import DataError
 from .images import conversion_note, derived_cache_dir
 from .neu3d import is_neu3d, read_neu3d
-from .process import is_capture, process_capture
-from .process.report import REPORT_NAME
+from .process import is_capture, is_posed, process_capture
 from .parsed import ParsedScene, ParseOptions, normalize_scene
 from .transforms_json import BLENDER_LAYOUT, read_transforms
 
@@ -85,12 +84,13 @@ def posed_capture(path: Path, cache_dir: Path) -> Path:
     """The COLMAP dataset posed from the capture ``path`` in the cache (``derived/``, beside the
     derived images; never in the user's folder): made on first use, reused after."""
     out = derived_cache_dir(path, "posed", cache_dir)
-    if (out / REPORT_NAME).is_file():
+    reused = is_posed([path], out)
+    if reused:
         print(f"note: {path} has no camera poses: using those posed earlier in {out}", file=sys.stderr, flush=True)
     else:
         print(f"note: {path} has no camera poses: posing it (as eg-process does) into {out}; the next run "
               "reuses it", file=sys.stderr, flush=True)
-    process_capture([path], out, replace_other=True)  # a changed capture is posed again
+    process_capture([path], out, replace_other=True, summary=not reused)  # a changed capture is posed again
     return out
 
 

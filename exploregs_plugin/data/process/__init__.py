@@ -4,6 +4,6 @@
 stages), ``report`` (report, summary, top-view plot), ``run`` (the resumable stages)."""
 
 from .inputs import find_capture, is_capture
-from .run import ProcessConfig, process_capture
+from .run import ProcessConfig, is_posed, process_capture
 
-__all__ = ["ProcessConfig", "find_capture", "is_capture", "process_capture"]
+__all__ = ["ProcessConfig", "find_capture", "is_capture", "is_posed", "process_capture"]

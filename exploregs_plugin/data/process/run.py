@@ -27,7 +27,7 @@ from ..errors import DataError
 from . import sfm
 from .inputs import Capture, find_capture, input_key
 from .photos import import_photo, output_name
-from .report import PLOT_NAME, model_report, plot_top_view, summary_lines, write_report
+from .report import PLOT_NAME, REPORT_NAME, model_report, plot_top_view, summary_lines, write_report
 from .video import extract_frames, frame_count
 
 STATE_NAME = "process_state.json"
@@ -84,6 +84,13 @@ def _read_state(out: Path) -> dict:
 
 def _write_state(out: Path, state: dict) -> None:
     atomic_write_text(out / STATE_NAME, json.dumps(state, indent=1) + "\n")
+
+
+def is_posed(inputs: list[Path], out: Path) -> bool:
+    """True when ``out`` holds a finished processing of ``inputs`` as they are now."""
+    state = _read_state(out)
+    return ((out / REPORT_NAME).is_file() and set(state.get("stages", {})) == set(STAGES)
+            and state.get("input") == input_key(find_capture(inputs)))
 
 
 def _inside(path: Path, folder: Path) -> bool:
@@ -216,10 +223,11 @@ def _keep_largest(models: dict, mapped: Path, out: Path) -> tuple[object, list[i
 
 
 def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None = None,
-                    console: Console | None = None, replace_other: bool = False) -> dict:
+                    console: Console | None = None, replace_other: bool = False, summary: bool = True) -> dict:
     """Pose ``inputs`` into the COLMAP dataset ``out``; returns the report (also written to
     ``out/process_report.json``). Bad input is one DataError. ``replace_other``: an ``out`` that
-    holds the processing of another input (a changed capture, in the cache) is redone."""
+    holds the processing of another input (a changed capture, in the cache) is redone. ``summary``:
+    print the summary (also when every stage was done before)."""
     import pycolmap
 
     config = config or ProcessConfig()
@@ -251,8 +259,8 @@ def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None 
                             threads, advance)
             stages.finish("features", time.perf_counter() - start)
         matching, why = choose_matching(config, capture, len(layout.names))
-        console.print(f"matching: {matching} ({why})")
         if not stages.done("matching"):
+            console.print(f"matching: {matching} ({why})")
             start = time.perf_counter()
             if matching == "spatial":
                 if sfm.pose_prior_count(database) == 0:
@@ -290,7 +298,7 @@ def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None 
                           stages.seconds(), settings)
     write_report(report, out)
     plot_top_view(rec, out / PLOT_NAME)
-    for line in summary_lines(report):
+    for line in summary_lines(report) if summary else ():
         print(line, flush=True)
     if report["registered"] < MIN_REGISTERED_SHARE * report["images_in"]:
         raise DataError(out, f"only {report['registered']} of {report['images_in']} images registered "
