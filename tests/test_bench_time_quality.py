@@ -71,7 +71,7 @@ def test_a_scene_without_a_finished_baseline_says_so():
 
 def test_the_preset_times_the_options_against_todays_default():
     spec = preset("time-to-quality")
-    assert [e.name for e in spec.entries] == ["default", "c2f", "short", "c2f-short"]
+    assert [e.name for e in spec.entries] == ["default", "c2f", "short", "c2f-short", "seedsplit", "seedsplit-c2f"]
     assert spec.baseline == "default" and spec.entry("default").overrides == ()
     assert spec.entry("c2f").overrides == ("--schedule.coarse-levels", "2")
     assert spec.eval_count >= 20

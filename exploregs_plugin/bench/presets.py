@@ -281,12 +281,15 @@ TTQ_ENTRIES = (
                "the short schedule (3DGS's 7k-step result scaled to the run)"),
     BenchEntry("c2f-short", "exploregs-default", ("--schedule.coarse-levels", "2", "--schedule.name", "short"),
                "both"),
+    BenchEntry("seedsplit", "exploregs-seedsplit", (), "Random Seeding + Splitting, the README's main method"),
+    BenchEntry("seedsplit-c2f", "exploregs-seedsplit", ("--schedule.coarse-levels", "2"),
+               "Random Seeding + Splitting, coarse-to-fine"),
 )
 
 
 def time_to_quality(root: Path | None = None) -> BenchSpec:
     """Training seconds to given test PSNRs (``bench/time_quality.py``): Default, coarse-to-fine,
-    the short schedule and both, on beer and fox at --data-factor 4 and on builtin:default, with
+    the short schedule and both, and Seed+Split without and with coarse-to-fine, on beer and fox at --data-factor 4 and on builtin:default, with
     frequent evaluations (their time is not in the training clock)."""
     scenes, notes = _captured_scenes("time-to-quality", TTQ_SCENES, root)
     scenes = scenes + (BenchScene("default", "builtin:default", ("--max-steps", str(TTQ_BUILTIN_STEPS))),)

@@ -46,7 +46,7 @@ class BenchCommand:
     methods on the built-in dynamic scene, docs/dynamic.md), dnerf (the 4D and two static methods on
     the D-NeRF lego in ../shared/scenes), branch-ablation, depth-supervision, split-ablation (the
     paper's ablations, docs/analysis.md), time-to-quality (training seconds to test PSNRs of
-    coarse-to-fine and the short schedule against the default, beer and fox at --data-factor 4 and
+    coarse-to-fine, the short schedule and Seed+Split against the default, beer and fox at --data-factor 4 and
     builtin:default). Options below change it."""
     out: Path = Path("bench-results")
     """Results folder: tables and plots here, each run in OUT/runs/<scene>/<entry>/seed<k>/."""
