@@ -253,11 +253,11 @@ def test_changed_mapper_redoes_only_mapping(processed, tmp_path, monkeypatch):
 
 
 def _error_line(capsys, argv: list[str]) -> str:
-    from exploregs_plugin.scripts.process import main
     from exploregs_plugin.scripts import run_cli
+    from exploregs_plugin.scripts.process import main, parse_args
 
     with pytest.raises(SystemExit) as exit_:
-        run_cli("eg-process", main, argv)
+        run_cli("eg-process", main, parse_args(argv))
     assert exit_.value.code == 2
     return capsys.readouterr().err.strip().splitlines()[-1]  # after the progress bars of the stages it ran
 

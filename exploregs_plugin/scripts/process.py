@@ -20,7 +20,7 @@ from typing import Annotated
 import tyro
 
 from exploregs_plugin.data.process import ProcessConfig, process_capture
-from exploregs_plugin.scripts import run_cli
+from exploregs_plugin.scripts import parse_cli, run_cli
 
 
 @dataclass
@@ -36,16 +36,20 @@ class ProcessArgs:
     options: Annotated[ProcessConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=ProcessConfig)
 
 
-def main(argv: list[str]) -> int:
-    # parsed inside run_cli, so a bad option value (checked by ProcessConfig) is one line too
-    args = tyro.cli(ProcessArgs, args=argv, prog="eg-process")
+def main(args: ProcessArgs) -> int:
     process_capture(args.inputs, args.out, args.options)
     print(f"dataset: {args.out} (train with: eg-train exploregs-seedsplit --data {args.out})", flush=True)
     return 0
 
 
+def parse_args(argv: list[str] | None = None) -> ProcessArgs:
+    """The command line as ProcessArgs; a wrong one (an unknown flag, a bad value) is one line."""
+    return parse_cli("eg-process", ProcessArgs, "Pose photos or videos into a COLMAP dataset (images/ + sparse/0) "
+                     "with pycolmap.", argv)
+
+
 def entrypoint() -> None:
-    raise SystemExit(run_cli("eg-process", main, sys.argv[1:]))
+    raise SystemExit(run_cli("eg-process", main, parse_args(sys.argv[1:])))
 
 
 if __name__ == "__main__":
