@@ -359,3 +359,14 @@ def test_two_videos_get_one_camera_each_and_register_together(capture, tmp_path)
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     cameras = {im.name.split("/")[0]: im.camera_id for im in rec.images.values()}
     assert len(rec.cameras) == 2 and cameras["first"] != cameras["second"]
+
+
+def test_pycolmap_logs_are_quiet_unless_verbose(capture, tmp_path, capfd):
+    import re
+
+    photos = _subset(capture, tmp_path / "photos", step=4)
+    glog_line = re.compile(r"^[IWE]\d{8} ", re.M)  # glog's prefix: level, date
+    process_capture([photos], tmp_path / "quiet", CONFIG)
+    assert not glog_line.search(capfd.readouterr().err)
+    process_capture([photos], tmp_path / "verbose", replace(CONFIG, verbose=True))
+    assert glog_line.search(capfd.readouterr().err)
