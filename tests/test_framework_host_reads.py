@@ -2,8 +2,8 @@
 
 On a GPU every read of a device value (``.item()``, ``float``, ``bool``, ``.cpu()``, a nonzero,
 ...) makes the host wait for the kernels queued before it. On the CPU such a read costs nothing,
-so these tests count them instead: each way of reading is patched for the run, and every read is
-charged to the step during which it happened."""
+so these tests count them instead: a torch function mode sees each way of reading during the run,
+and every read is charged to the step during which it happened."""
 
 from __future__ import annotations
 
@@ -12,10 +12,11 @@ import sys
 from collections import Counter
 from dataclasses import replace
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any
 
 import pytest
 import torch
+from torch.overrides import TorchFunctionMode
 
 from exploregs_plugin.callbacks import TrainingCallback
 from exploregs_plugin.collapse import CollapseError, CollapseWatch
@@ -25,33 +26,36 @@ from exploregs_plugin.schedule import ScheduleConfig
 
 STEPS = 40
 LOG_EVERY = 10
-_READS = ("item", "__float__", "__int__", "__index__", "__bool__", "tolist", "numpy", "cpu")
+_READS = ("item", "__float__", "__int__", "__index__", "__bool__", "__format__", "__array__", "tolist", "numpy", "cpu")
 
 
-class HostReads:
+class HostReads(TorchFunctionMode):
     """Counts the reads of tensor values by the host while active, by step (``step``, set by the
     caller) and by place (the nearest line of exploregs_plugin).
 
-    Counted: ``item``, ``float``, ``int``, ``index``, ``bool`` (hence ``format`` and numpy's
-    ``__array__``, which call them), ``tolist``, ``numpy``, ``cpu``, ``to("cpu")`` (a device
-    named by the string: the step's own ``to(device)`` calls name the run's device), and the ops
-    whose output size is read from the device: ``nonzero``, one-argument ``torch.where`` and
-    indexing with a bool tensor. Not counted: torch's optimizers reading Adam's step count (a CPU
-    tensor also on CUDA), the datamanager (``exploregs_plugin/data``: the images and the camera
-    order live on the host) and the renderer (``exploregs_plugin/rasterizer``: the CPU and torch
-    renderers size their work from the device, a nonzero of the visible Gaussians per view; on a
-    GPU the gsplat backend is the one to train with, and its kernels size their own)."""
+    A torch function mode sees every torch function and Tensor method, dunders included, without
+    touching the Tensor class (a patched and restored ``Tensor.__getitem__`` leaves a Python-level
+    sequence slot on it, and later ``torch.tensor([[t, 0], ...])`` calls fail). Counted: ``item``,
+    ``float``, ``int``, ``index``, ``bool``, ``format``, numpy's ``__array__``, ``tolist``,
+    ``numpy``, ``cpu``, ``to("cpu")`` (a device named by the string: the step's own ``to(device)``
+    calls name the run's device), and the ops whose output size is read from the device:
+    ``nonzero``, one-argument ``torch.where`` and indexing with a bool tensor. Not counted: torch's
+    optimizers reading Adam's step count (a CPU tensor also on CUDA), the datamanager
+    (``exploregs_plugin/data``: the images and the camera order live on the host) and the renderer
+    (``exploregs_plugin/rasterizer``: the CPU and torch renderers size their work from the device,
+    a nonzero of the visible Gaussians per view; on a GPU the gsplat backend is the one to train
+    with, and its kernels size their own)."""
 
     def __init__(self) -> None:
+        super().__init__()
         self.step: int | None = None
         self.by_step: Counter[int] = Counter()
         self.places: Counter[tuple[int, str, str]] = Counter()
-        self._patches: list[tuple[Any, str, Any]] = []
 
     def _count(self, kind: str) -> None:
         if self.step is None:
             return
-        frame = sys._getframe(2)
+        frame = sys._getframe(2)  # the caller of the torch function (above __torch_function__)
         if frame.f_code.co_filename.replace("\\", "/").endswith("torch/optim/optimizer.py"):
             return  # _get_value: Adam's step count, on the host
         while frame is not None and "exploregs_plugin" not in frame.f_code.co_filename:
@@ -64,55 +68,22 @@ class HostReads:
         self.by_step[self.step] += 1
         self.places[(self.step, kind, f"{path.rsplit('/exploregs_plugin/', 1)[-1]}:{frame.f_lineno}")] += 1
 
-    def _patch(self, owner: Any, name: str, make: Callable[[Any], Any]) -> None:
-        original = getattr(owner, name)
-        self._patches.append((owner, name, original))
-        setattr(owner, name, make(original))
-
-    def __enter__(self) -> "HostReads":
-        def counting(kind: str) -> Callable[[Any], Any]:
-            def make(original: Any) -> Any:
-                def read(*args: Any, **kwargs: Any) -> Any:
-                    self._count(kind)
-                    return original(*args, **kwargs)
-                return read
-            return make
-
-        def to(original: Any) -> Any:
-            def moved(tensor: torch.Tensor, *args: Any, **kwargs: Any) -> Any:
-                target = kwargs.get("device", args[0] if args else None)
-                if isinstance(target, str) and target.startswith("cpu"):
-                    self._count("to('cpu')")
-                return original(tensor, *args, **kwargs)
-            return moved
-
-        def where(original: Any) -> Any:
-            def chosen(*args: Any, **kwargs: Any) -> Any:
-                if len(args) + len(kwargs) == 1:
-                    self._count("where(cond)")
-                return original(*args, **kwargs)
-            return chosen
-
-        def getitem(original: Any) -> Any:
-            def index(tensor: torch.Tensor, key: Any) -> Any:
-                keys = key if isinstance(key, tuple) else (key,)
-                if any(isinstance(k, torch.Tensor) and k.dtype == torch.bool for k in keys):
-                    self._count("[bool mask]")
-                return original(tensor, key)
-            return index
-
-        for name in _READS:
-            self._patch(torch.Tensor, name, counting(name))
-        self._patch(torch.Tensor, "nonzero", counting("nonzero"))
-        self._patch(torch, "nonzero", counting("nonzero"))
-        self._patch(torch.Tensor, "to", to)
-        self._patch(torch, "where", where)
-        self._patch(torch.Tensor, "__getitem__", getitem)
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        for owner, name, original in reversed(self._patches):
-            setattr(owner, name, original)
+    def __torch_function__(self, func: Any, types: Any, args: tuple = (), kwargs: dict | None = None) -> Any:
+        kwargs = kwargs or {}
+        name = getattr(func, "__name__", "")
+        if name in _READS or name == "nonzero":
+            self._count(name)
+        elif name == "to":
+            target = kwargs.get("device", args[1] if len(args) > 1 else None)
+            if isinstance(target, str) and target.startswith("cpu"):
+                self._count("to('cpu')")
+        elif name == "where" and len(args) + len(kwargs) == 1:
+            self._count("where(cond)")
+        elif name == "__getitem__" and len(args) == 2:
+            keys = args[1] if isinstance(args[1], tuple) else (args[1],)
+            if any(isinstance(k, torch.Tensor) and k.dtype == torch.bool for k in keys):
+                self._count("[bool mask]")
+        return func(*args, **kwargs)
 
 
 class _ChargeToStep(TrainingCallback):
