@@ -202,7 +202,10 @@ def tyro_error_text(captured: str) -> str:
     """tyro's boxed error message as one line: the frame, the usage hint and tyro's internal
     wrapper name (``__tyro-dummy-inner__``) dropped."""
     lines = []
-    for line in (ln.strip("│╭╰╮╯─- \t") for ln in captured.splitlines()):
+    # the frame's characters and rules go; a dash that starts a wrapped line stays ("got -1")
+    for line in (ln.strip("│╭╰╮╯─ \t") for ln in captured.splitlines()):
+        if set(line) <= {"-"}:
+            continue
         if line.startswith(("For full helptext", "Argument helptext")):  # the hint (which may wrap) ends the message
             break
         if line and not line.startswith("usage:"):

@@ -232,3 +232,17 @@ def test_a_config_saved_with_the_core_depth_degradation_loads_or_names_its_metho
                                       "exploregs_plugin.data.depth_supervision:DepthSupervisionConfig")
     saved.write_text(moved)
     assert load_config(saved) == mono
+
+
+def test_a_wrapped_error_line_that_starts_with_a_dash_keeps_it():
+    from exploregs_plugin.configs import tyro_error_text
+
+    # tyro's box, narrow enough that the bad value "-1" starts a wrapped line
+    captured = ("╭─ Value error ──────────────────────────╮\n"
+                "│ Error parsing --schedule: coarse_levels │\n"
+                "│ must be >= 0, got                       │\n"
+                "│ -1                                      │\n"
+                "│ ─────────────────────────────────────── │\n"
+                "│ For full helptext, see - --help         │\n"
+                "╰─────────────────────────────────────────╯\n")
+    assert tyro_error_text(captured).endswith("Error parsing --schedule: coarse_levels must be >= 0, got -1")
