@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from exploregs_plugin.bench.presets import preset
+from exploregs_plugin.bench.presets import time_to_quality as time_to_quality_preset
 from exploregs_plugin.bench.runner import RunRecord
 from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec
 from exploregs_plugin.bench.time_quality import markdown_lines, seconds_to_reach, time_to_quality
@@ -69,8 +69,12 @@ def test_a_scene_without_a_finished_baseline_says_so():
     assert markdown_lines(_spec(), rows) == ["`s`: no finished `default` run, so no levels.", ""]
 
 
-def test_the_preset_times_the_options_against_todays_default():
-    spec = preset("time-to-quality")
+def test_the_preset_times_the_options_against_todays_default(tmp_path):
+    for name in ("beer", "fox"):  # the captured scenes' folders, wherever ../shared/scenes is
+        (tmp_path / name).mkdir()
+    spec = time_to_quality_preset(tmp_path)
+    assert [(s.name, s.options) for s in spec.scenes] == [("beer", ("--data-factor", "4")), (
+        "fox", ("--data-factor", "4")), ("default", ("--max-steps", "1500"))]
     assert [e.name for e in spec.entries] == ["default", "c2f", "short", "c2f-short", "seedsplit", "seedsplit-c2f"]
     assert spec.baseline == "default" and spec.entry("default").overrides == ()
     assert spec.entry("c2f").overrides == ("--schedule.coarse-levels", "2")
