@@ -69,3 +69,11 @@ def test_eg_bench_help_says_what_unset_means(capsys, monkeypatch):
     text = _help(capsys, monkeypatch, lambda: main(["--help"]))
     assert "(default: None)" not in text and "(repeatable). (repeatable)" not in text
     assert "(default: the preset's or spec file's, else 1000)" in text
+
+
+def test_eg_process_help_says_its_input_is_required(capsys, monkeypatch):
+    from exploregs_plugin.scripts.process import parse_args
+
+    text = _help(capsys, monkeypatch, lambda: parse_args(["--help"]))
+    assert "(default: )" not in text
+    assert "Never written to. (required)" in " ".join(text.replace("│", " ").split())

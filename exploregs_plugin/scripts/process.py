@@ -28,7 +28,8 @@ class ProcessArgs:
     """Pose a capture (a folder of photos, a video, several videos or a folder of videos) into a
     COLMAP dataset that every other command reads."""
 
-    inputs: Annotated[list[Path], tyro.conf.Positional, tyro.conf.arg(metavar="INPUT")]
+    inputs: Annotated[list[Path], tyro.conf.Positional,
+                      tyro.conf.arg(metavar="INPUT", help_behavior_hint="(required)")]
     """A folder of photos (or a dataset folder whose images/ has no sparse/), a video file, several
     video files or a folder of videos. Never written to."""
     out: Path
