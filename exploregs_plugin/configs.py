@@ -237,8 +237,16 @@ def tyro_error_text(captured: str) -> str:
                   r"\1: expected an integer, got \2", text)
     text = re.sub(r"^Value error Error parsing (--[\w.-]+): could not convert string to float: (.*)$",
                   r"\1: expected a number, got \2", text)
-    # "Value error Error parsing pipeline.strategy: X" -> "--strategy: X" (the flag group's name)
-    return re.sub(r"^Value error Error parsing (?:pipeline\.)?([\w.]+): ", lambda m: f"--{m.group(1).replace('_', '-')}: ", text)
+    # "Value error Error parsing pipeline.strategy: X" -> "--strategy: X" (the flag group's name);
+    # no group name where there is no such flag (the command's own config class, TrainerConfig) or
+    # the message names its flag itself ("--options: --num-frames: ..." -> "--num-frames: ...")
+    parsing = re.match(r"^Value error Error parsing (?:pipeline\.)?([\w.]+): (.*)$", text)
+    if parsing:
+        group, message = parsing.groups()
+        if group[:1].isupper() or message.startswith("--"):
+            return message
+        return f"--{group.replace('_', '-')}: {message}"
+    return text
 
 
 def save_config(config: Any, path: Path) -> None:

@@ -109,6 +109,8 @@ class TrainerConfig:
     """Live viewer settings: port, render resolutions, CPU share, output (--viewer-config.*)."""
 
     def __post_init__(self) -> None:
+        if self.checkpoint_every < 1:  # the periodic checkpoint is due when step % checkpoint_every == 0
+            raise ValueError(f"--checkpoint-every must be >= 1, got {self.checkpoint_every}")
         # The top-level --data / --data-factor shortcuts are moved into the datamanager config
         # here, when the config is built (by tyro, a constructor or dataclasses.replace), so that
         # every consumer of the config sees one source of truth.

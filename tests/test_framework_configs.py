@@ -246,3 +246,23 @@ def test_a_wrapped_error_line_that_starts_with_a_dash_keeps_it():
                 "│ For full helptext, see - --help         │\n"
                 "╰─────────────────────────────────────────╯\n")
     assert tyro_error_text(captured).endswith("Error parsing --schedule: coarse_levels must be >= 0, got -1")
+
+
+def test_a_config_error_is_named_by_its_flag_not_by_a_class_or_a_group_without_flags(capsys):
+    from exploregs_plugin.configs import tyro_error_text
+    from exploregs_plugin.scripts.train import parse_config
+
+    def boxed(message: str) -> str:
+        return f"╭─ Value error ─╮\n│ Error parsing {message} │\n│ For full helptext, see - --help │\n╰───╯\n"
+
+    # the command's own config class has no flag; a group whose message names its flag adds nothing
+    assert tyro_error_text(boxed("TrainerConfig: --checkpoint-every must be >= 1, got 0")) == \
+        "--checkpoint-every must be >= 1, got 0"
+    assert tyro_error_text(boxed("options: --num-frames: must be >= 3, got -4")) == "--num-frames: must be >= 3, got -4"
+    assert tyro_error_text(boxed("pipeline.strategy: cap_max must be >= 0")) == "--strategy: cap_max must be >= 0"
+    # a periodic checkpoint every 0 steps was a ZeroDivisionError in the first step
+    with pytest.raises(SystemExit) as exit_:
+        parse_config(["exploregs-default", "--data", "builtin:tiny", "--checkpoint-every", "0"])
+    assert exit_.value.code == 2
+    assert capsys.readouterr().err.strip().splitlines() == [
+        "eg-train: error: --checkpoint-every must be >= 1, got 0"]
