@@ -17,7 +17,6 @@ import pytest
 from PIL import Image
 
 from exploregs_plugin.data.process import ProcessConfig, process_capture
-from exploregs_plugin.data.process import run as process_run
 from exploregs_plugin.data.process import sfm
 from exploregs_plugin.data.process.inputs import IMAGE_SUFFIXES
 from exploregs_plugin.data.process.report import PLOT_NAME, REPORT_NAME
