@@ -131,6 +131,8 @@ def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[
         ("eg-eval", [R, "--data", D], f"--data is for PLY input; {R} is a run, scored on the test views of its own "
                                       "dataset at the factor it trained at"),
         ("eg-eval", [R, "--max-steps", "3"], "unrecognized option --max-steps (eg-eval --help lists its options)"),
+        ("eg-eval", [R, "--out", D], f"--out {D} is a dataset; outputs never go into a dataset: pass a folder of its "
+                                     "own as --out"),
         ("eg-export", [M], no_run),
         ("eg-export", [D], is_dataset),
         ("eg-export", [P], is_ply),
@@ -144,9 +146,13 @@ def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[
         ("eg-render", [R, "--cameras-from", D],
          f"--cameras-from is for PLY input; {R} is a run, which has its own cameras"),
         ("eg-render", [R, "--data", D], "unrecognized option --data (eg-render --help lists its options)"),
+        ("eg-render", [R, "--out", f"{D}/images/frames"], f"--out {D}/images/frames is inside the dataset {D}; outputs "
+                                                          "never go into a dataset: pass a folder of its own as --out"),
         ("eg-view", [M], f"{M}: no such run folder, checkpoint or PLY file"),
         ("eg-view", [D], is_dataset),
         ("eg-view", [R, "--data", D], "unrecognized option --data (eg-view --help lists its options)"),
+        ("eg-view", [R, "--data-factor", "2"], f"--data-factor is for a PLY with --cameras-from; {R} is a run, shown "
+                                               "at the factor it trained at"),
         ("eg-scenes", [], "missing a subcommand: one of make, list, stats (eg-scenes --help lists its options)"),
         ("eg-scenes", ["stats", M], f"{M}: no such folder"),
         ("eg-scenes", ["stats", R], f"{R}: not a scene written by eg-scenes make (it has no scene.json)"),

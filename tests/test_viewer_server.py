@@ -145,6 +145,23 @@ def test_eg_view_serves_a_ply(tmp_path: Path) -> None:
         main(ViewArgs(path=tmp_path / "missing.ply", viewer_config=ViewerConfig(port=0)))
 
 
+def test_eg_view_shows_a_plys_cameras_at_the_data_factor(tmp_path: Path, tiny_scene_dir: Path) -> None:
+    from exploregs_plugin.io.ply import export_ply
+    from exploregs_plugin.scripts.view import ViewArgs, load_viewer_scene
+
+    path = tmp_path / "one.ply"
+    export_ply(path, one_gaussian())
+    full = load_viewer_scene(ViewArgs(path=path, cameras_from=str(tiny_scene_dir)))
+    half = load_viewer_scene(ViewArgs(path=path, cameras_from=str(tiny_scene_dir), data_factor=2))
+    assert len(full.cameras) == len(half.cameras) > 0
+    for a, b in zip(full.cameras, half.cameras):
+        assert (b.width, b.height) == (a.width // 2, a.height // 2)
+    with pytest.raises(ValueError, match="--data-factor is for a PLY with --cameras-from"):
+        load_viewer_scene(ViewArgs(path=path, data_factor=2))
+    with pytest.raises(ValueError, match="integer >= 1"):
+        load_viewer_scene(ViewArgs(path=path, cameras_from=str(tiny_scene_dir), data_factor=0))
+
+
 def test_viewer_on_a_training_pipeline(tiny_scene_dir: Path) -> None:
     """The trainer's hooks on a real pipeline: snapshots follow the steps, the Gaussian count
     follows densification, cameras, thumbnails and initial points come from the datamanager."""

@@ -139,6 +139,28 @@ def is_dataset_folder(path: Path) -> bool:
     return not (path / RUN_CONFIG).is_file() and any((path / mark).exists() for mark in DATASET_MARKS)
 
 
+def dataset_around(path: Path) -> Path | None:
+    """The dataset a folder we would write to belongs to: ``path`` itself when it is a dataset
+    folder, or the dataset whose images/ or sparse/ (any mark folder) holds it; None otherwise.
+    (Only the mark folders count: a folder beside a dataset's images is not inside it.)"""
+    path = Path(path).expanduser().resolve()
+    if path.is_dir() and is_dataset_folder(path):
+        return path
+    for inner, parent in zip([path, *path.parents], path.parents):
+        if inner.name in DATASET_MARKS and is_dataset_folder(parent):
+            return parent
+    return None
+
+
+def check_output_folder(flag: str, path: Path) -> None:
+    """Refuse to write outputs into a dataset (:func:`dataset_around`): one line naming both."""
+    dataset = dataset_around(path)
+    if dataset is not None:
+        where = "is a dataset" if dataset == Path(path).expanduser().resolve() else f"is inside the dataset {dataset}"
+        raise CheckpointError(f"{flag} {path} {where}; outputs never go into a dataset: pass a folder of its own "
+                              f"as {flag}")
+
+
 def check_run_folder(path: Path) -> None:
     """Raise :class:`CheckpointError` when the folder ``path`` is not a run folder (no config.yml),
     naming the newest run inside it when there is one (``outputs/SCENE`` instead of a run)."""

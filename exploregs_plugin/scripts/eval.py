@@ -20,6 +20,7 @@ import tyro
 from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.evaluation import evaluate, write_metrics_json
+from exploregs_plugin.io.checkpoint import check_output_folder
 from exploregs_plugin.io.ply import read_ply
 from exploregs_plugin.rasterizer import backend_line
 from exploregs_plugin.runs.scene import dataset_normalization, is_ply, model_from_params
@@ -48,6 +49,8 @@ class EvalArgs:
 
 
 def main(args: EvalArgs) -> dict:
+    if args.out is not None:
+        check_output_folder("--out", args.out)
     if is_ply(args.path):
         if args.data is None:
             raise ValueError(f"{args.path}: a PLY holds no cameras or images; pass --data DATASET to score it")

@@ -17,6 +17,7 @@ from exploregs_plugin.cameras import Camera
 from exploregs_plugin.data.errors import DataError
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.io.camera_path import CameraOrder, Trajectory, trajectory_cameras
+from exploregs_plugin.io.checkpoint import check_output_folder
 from exploregs_plugin.io.frames import RenderedSequence, RenderMode, render_sequence
 from exploregs_plugin.io.ply import normalization_terms
 from exploregs_plugin.model.gaussians import render_camera
@@ -108,6 +109,8 @@ def _progress(i: int, n: int) -> None:
 def main(args: RenderArgs) -> RenderedSequence:
     if args.data_factor is not None and args.data_factor < 1:
         raise DataError("--data-factor", f"must be an integer >= 1, got {args.data_factor}")
+    if args.out is not None:
+        check_output_folder("--out", args.out)
     if args.background is not None and not all(0.0 <= c <= 1.0 for c in args.background):
         raise ValueError(f"--background must be three values in [0, 1], got {args.background}")
     scene = load_scene(args.path, args.cameras_from, args.ply_frame, args.device, args.data_factor)

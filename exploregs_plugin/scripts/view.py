@@ -34,6 +34,9 @@ class ViewArgs:
     ply_frame: PlyFrame = "original"
     """PLY with --cameras-from: the file holds the dataset's original coordinates (what eg-export
     writes) or already the normalised training frame."""
+    data_factor: int | None = None
+    """PLY with --cameras-from DATASET: its images at 1/N size, as eg-train's --data-factor (the
+    cameras' thumbnails; unset: 1). A run shows the images at the factor it trained at."""
     device: str = "auto"
     """Where to compute: auto (CUDA when available, else CPU), cpu, cuda or cuda:N."""
     viewer_config: ViewerConfig = field(default_factory=ViewerConfig)
@@ -46,6 +49,12 @@ def load_viewer_scene(args: ViewArgs) -> ViewerScene:
     path = Path(args.path)
     if not path.exists():
         raise FileNotFoundError(f"{path}: no such run folder, checkpoint or PLY file")
+    if args.data_factor is not None and args.data_factor < 1:
+        raise ValueError(f"--data-factor must be an integer >= 1, got {args.data_factor}")
+    if args.data_factor is not None and (not is_ply(path) or args.cameras_from is None):
+        raise ValueError(f"--data-factor is for a PLY with --cameras-from; {path} "
+                         + ("has no cameras without it" if is_ply(path) else
+                            "is a run, shown at the factor it trained at"))
     if is_ply(path):
         if args.cameras_from is None:
             from exploregs_plugin.io.ply import read_ply
@@ -55,7 +64,7 @@ def load_viewer_scene(args: ViewArgs) -> ViewerScene:
                 print(f"{path}: left out {ply.dropped} Gaussians with non-finite values", file=sys.stderr)
             where = resolve_device(args.device)
             return ViewerScene.from_params({k: v.to(where) for k, v in ply.params.items()}, name=path.stem)
-        loaded = load_scene(path, args.cameras_from, args.ply_frame, args.device)
+        loaded = load_scene(path, args.cameras_from, args.ply_frame, args.device, args.data_factor)
         scene = ViewerScene.from_params(loaded.params, loaded.cameras.train_cameras, loaded.cameras.background,
                                         name=f"{path.stem} ({loaded.cameras.name})")
         scene.raster_settings = loaded.cameras.settings
