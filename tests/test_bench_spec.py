@@ -263,3 +263,22 @@ def test_the_dynamic_preset_has_a_measured_estimate():
     # the control runs 4d-default's method, so it costs 4d-default's rate
     per_seed = sum(rates[e.method] for e in spec.entries) * spec.steps + len(spec.entries) * RUN_OVERHEAD_SECONDS
     assert seconds == pytest.approx(per_seed * len(spec.seeds)) and "assumed" not in how
+
+
+def test_cap_sweep_scales_defaults_count_and_reuses_full_explores_runs(tmp_path):
+    from exploregs_plugin.bench.presets import cap_sweep, full_explore
+
+    for name in ("beer", "fox"):
+        (tmp_path / name).mkdir()
+    spec, explore = cap_sweep(tmp_path), full_explore(tmp_path)
+    assert spec.seeds == (0,) and spec.steps == explore.steps and spec.scenes == explore.scenes
+    for name in ("default", "mcmc-explore", "mcmc-explore-auto"):  # full-explore's runs, reused
+        assert spec.entry(name) == explore.entry(name)
+    caps = {}
+    for entry in spec.entries:
+        if entry.depends_on():
+            resolved = entry.resolved(lambda ref, field: 22381)  # Default's final count
+            caps[entry.name] = build_config(spec, spec.scenes[0], resolved, 0, Path("/tmp/unused")).pipeline.strategy.cap_max
+    # 22381 x 0.25 = 5595.25, x 0.5 = 11190.5 (rounded half to even), x 1, x 2
+    assert caps == {"mcmc-explore-x0.25": 5595, "mcmc-explore-x0.5": 11190, "mcmc-explore": 22381,
+                    "mcmc-explore-x2": 44762}

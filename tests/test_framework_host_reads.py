@@ -125,9 +125,13 @@ def refinement_steps(strategy: Any) -> set[int]:
 
 # Reads of a step outside the log lines and refinements, at most: none, or for Seed+Split one in
 # the window of its random splitting (every step there: how many rows may be drawn).
-@pytest.mark.parametrize("method, most", [("exploregs-default", 0), ("exploregs-mcmc", 0), ("exploregs-seedsplit", 1)])
-def test_a_step_reads_the_device_only_at_the_log_line_and_refinements(tmp_path, tiny_scene_dir, method, most):
-    reads, trainer = counted_run(method, tmp_path / "run")
+# MCMC's automatic cap sums the loss as a tensor and reads it once per refinement.
+@pytest.mark.parametrize("method, most, strategy", [
+    ("exploregs-default", 0, {}), ("exploregs-mcmc", 0, {}), ("exploregs-seedsplit", 1, {}),
+    ("exploregs-mcmc-explore", 0, {}), ("exploregs-mcmc-explore", 0, {"cap_max": "auto"})])
+def test_a_step_reads_the_device_only_at_the_log_line_and_refinements(tmp_path, tiny_scene_dir, method, most, strategy):
+    changed = replace(get_method(method).config.pipeline.strategy, **strategy)
+    reads, trainer = counted_run(method, tmp_path / "run", strategy=changed)
     logged, refined = read_points(trainer), refinement_steps(trainer.pipeline.strategy)
     assert refined and not refined & logged  # both kinds of step are seen, apart
     quiet = [s for s in range(STEPS) if s not in logged | refined]

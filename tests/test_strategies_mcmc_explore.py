@@ -163,12 +163,11 @@ def test_bad_settings_are_refused():
 
 
 # ------------------------------------------------------------------------------ the automatic cap
-def _decisions(means, min_drop=MCMCStrategy.auto_min_drop, patience=MCMCStrategy.auto_patience):
+def _decisions(means, min_drop=MCMCStrategy.auto_min_drop, span=1, patience=MCMCStrategy.auto_patience):
     """Feed window means to the rule; the grow decision of each refinement until it stops."""
-    previous, below, out = None, 0, []
-    for mean in means:
-        grow, below = keeps_growing(previous, mean, below, min_drop, patience)
-        previous = mean
+    below, out = 0, []
+    for j in range(len(means)):
+        grow, below = keeps_growing(list(means[:j + 1]), below, min_drop, span, patience)
         out.append(grow)
         if not grow:
             break
@@ -200,6 +199,30 @@ def test_auto_rule_on_a_noisy_loss_is_as_documented():
     for j in range(20):
         alternating.append(alternating[-1] * (0.93 if j % 2 == 0 else 0.99))
     assert all(_decisions(alternating))
+
+
+def test_auto_rule_compares_slow_averages_over_span_windows():
+    span = 4
+    # nothing is judged before 2 x span windows; then a flat loss stops after patience windows
+    assert _decisions([0.1] * 20, min_drop=0.02, span=span, patience=2) == [True] * (2 * span) + [False]
+    # the drop is between the means of two neighbouring spans: a fall of 1% per window is about
+    # 4% per span of 4, so it keeps growing at a 2% threshold, and stops at 5%
+    falling = [0.1 * 0.99 ** j for j in range(40)]
+    assert all(_decisions(falling, min_drop=0.02, span=span, patience=2))
+    assert _decisions(falling, min_drop=0.05, span=span, patience=2) == [True] * (2 * span) + [False]
+    # span 1 is the window-to-window rule: its threshold is per window, so the same fall stops it
+    assert _decisions(falling, min_drop=0.02, span=1, patience=2) == [True, True, False]
+
+
+def test_auto_rule_span_damps_the_noise_of_a_window():
+    """A loss that falls 1.5% per window under +-5% window noise (the views a window drew): the
+    window-to-window rule sees drops below 3% two windows in a row early and stops, while the
+    slow average over 8 windows sees 11-12% per span and keeps growing for the whole run."""
+    g = torch.Generator().manual_seed(1)
+    noise = (torch.rand(80, generator=g) * 2 - 1).tolist()
+    means = [0.1 * 0.985 ** j * (1 + 0.05 * e) for j, e in enumerate(noise)]
+    assert len(_decisions(means, min_drop=0.03, span=1, patience=2)) < 10
+    assert all(_decisions(means, min_drop=0.08, span=8, patience=2))  # 1% per window, as a span of 8
 
 
 def test_auto_cap_freezes_the_count_when_the_loss_stops_falling():

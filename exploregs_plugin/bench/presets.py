@@ -323,6 +323,28 @@ def full_explore(root: Path | None = None) -> BenchSpec:
     return replace(spec, entries=entries, name="full-explore")
 
 
+CAP_SWEEP_FACTORS = (0.25, 0.5, 2.0)
+"""Fixed caps of the cap sweep, as multiples of Default's final count (1 is full-explore's own
+``mcmc-explore`` entry)."""
+
+
+def cap_sweep(root: Path | None = None) -> BenchSpec:
+    """Issue 49's check of ``cap_max auto``: MCMC-explore at fixed caps of 1/4, 1/2, 1 and 2 times
+    Default's final count, and with the automatic cap, on beer and fox with ``full``'s recipe, seed
+    0. The automatic count should land within 25% of the smallest fixed cap whose PSNR is within
+    0.1 dB of the sweep's best. Default, ``mcmc-explore`` and ``mcmc-explore-auto`` are
+    full-explore's entries: in its output folder their runs are reused."""
+    spec = full_explore(root)
+    shared = {e.name: e for e in spec.entries}
+    swept = {f: BenchEntry(f"mcmc-explore-x{f:g}", "exploregs-mcmc-explore",
+                           ("--strategy.cap-max", f"{{default:num_gaussians*{f:g}}}"),
+                           f"MCMC-explore capped at {f:g} x Default's final count")
+             for f in CAP_SWEEP_FACTORS}
+    entries = (shared["default"], swept[0.25], swept[0.5], shared["mcmc-explore"], swept[2.0],
+               shared["mcmc-explore-auto"])
+    return replace(spec, entries=entries, seeds=(0,), name="cap-sweep")
+
+
 DYNAMIC_SEEDS = (0, 1, 2)
 
 
@@ -370,6 +392,7 @@ PRESETS = {
     "real": real,
     "full": full,
     "full-explore": full_explore,
+    "cap-sweep": cap_sweep,
     "real-gpu": real_gpu,
     "dynamic": dynamic,
     "dnerf": dnerf,

@@ -45,8 +45,15 @@ def check_name(kind: str, name: str) -> str:
     return name
 
 
-RESULT_REF = re.compile(r"\{([A-Za-z0-9][A-Za-z0-9_.+-]*):(num_gaussians)\}")
-"""``{ENTRY:num_gaussians}`` in an override: the final count of ENTRY's run (same scene and seed)."""
+RESULT_REF = re.compile(r"\{([A-Za-z0-9][A-Za-z0-9_.+-]*):(num_gaussians)(?:\*([0-9]+(?:\.[0-9]+)?))?\}")
+"""``{ENTRY:num_gaussians}`` in an override: the final count of ENTRY's run (same scene and seed);
+``{ENTRY:num_gaussians*0.5}``: that count times a factor, rounded to a whole count (a sweep of
+caps around a reference count)."""
+
+
+def _scaled(value: Any, factor: str | None) -> str:
+    """A referenced result as override text, times ``factor`` (rounded to an int) when given."""
+    return str(value) if factor is None else str(int(round(float(value) * float(factor))))
 
 
 @dataclass(frozen=True)
@@ -72,8 +79,10 @@ class BenchEntry:
         return {m.group(1) for arg in self.overrides for m in RESULT_REF.finditer(arg)}
 
     def resolved(self, value_of: Callable[[str, str], Any]) -> "BenchEntry":
-        """The entry with every ``{ENTRY:FIELD}`` replaced by ``value_of(ENTRY, FIELD)``."""
-        args = tuple(RESULT_REF.sub(lambda m: str(value_of(m.group(1), m.group(2))), a) for a in self.overrides)
+        """The entry with every ``{ENTRY:FIELD}`` (or ``{ENTRY:FIELD*F}``) replaced by
+        ``value_of(ENTRY, FIELD)`` (times F)."""
+        args = tuple(RESULT_REF.sub(lambda m: _scaled(value_of(m.group(1), m.group(2)), m.group(3)), a)
+                     for a in self.overrides)
         return replace(self, overrides=args)
 
 

@@ -42,7 +42,9 @@ class BenchCommand:
     preset: Annotated[tyro.conf.Positional[Optional[PresetName]], unset("none, the options alone")] = None
     """Start from a preset: quick (minutes), standard (built-in Blur-Trap scenes, ~2 h), real
     (../shared/scenes), full (the paper's 30k-step schedule on them, on a CPU: ~13 h with --jobs
-    2, resumable), real-gpu (the same recipe at full resolution, for a GPU), dynamic (the 4D
+    2, resumable), full-explore (MCMC with exploration against MCMC at that schedule), cap-sweep
+    (fixed caps against the automatic cap at that schedule), real-gpu (the same recipe at full
+    resolution, for a GPU), dynamic (the 4D
     methods on the built-in dynamic scene, docs/dynamic.md), dnerf (the 4D and two static methods on
     the D-NeRF lego in ../shared/scenes), branch-ablation, depth-supervision, split-ablation (the
     paper's ablations, docs/analysis.md), time-to-quality (training seconds to test PSNRs of

@@ -5,9 +5,9 @@ Every ``refine_every`` steps inside the refinement window: dead Gaussians (opaci
 opacity/scale update (:mod:`.relocation`); then the set grows by ``growth_rate`` (5%) of its size,
 by sampling new copies the same way, up to ``cap_max``. With ``cap_max = 'auto'`` the training
 loss decides instead (:func:`keeps_growing`): the set grows while the mean training loss over the
-steps between two refinements still falls by at least ``auto_min_drop`` of itself per refinement,
-and stops for good, at its count then, after ``auto_patience`` refinements in a row where it does
-not. After every step the positions get the
+last ``auto_span`` refinement intervals still falls by at least ``auto_min_drop`` of the mean over
+the ``auto_span`` intervals before them, and stops for good, at its count then, after
+``auto_patience`` refinements in a row where it does not. After every step the positions get the
 opacity-gated, covariance-shaped noise (isotropic, or along the camera ray in 'ray' mode). The
 paper's L1 regularisers on opacity and scale come back from :meth:`MCMCStrategy.regularization_loss`
 for the trainer to add to its loss.
@@ -34,30 +34,63 @@ MCMC_STOP_FRACTION = 25_000 / 30_000
 
 AUTO = "auto"
 """``cap_max = 'auto'``: the count is decided by the training loss (:func:`keeps_growing`)."""
-AUTO_LOSS, AUTO_STEPS, AUTO_PREVIOUS, AUTO_BELOW, AUTO_CAP = (
-    "auto_loss", "auto_steps", "auto_previous", "auto_below", "auto_cap")
+AUTO_LOSS, AUTO_STEPS, AUTO_MEANS, AUTO_BELOW, AUTO_CAP = (
+    "auto_loss", "auto_steps", "auto_means", "auto_below", "auto_cap")
 """State of the automatic cap: the loss summed over the current window (a 0-d tensor on the
-loss's device, or None), its steps, the previous window's mean, the refinements in a row below
-the drop, and the cap once growth has stopped (None while it grows)."""
+loss's device, or None), its steps, the means of the last 2 x span closed windows (floats), the
+refinements in a row below the drop, and the cap once growth has stopped (None while it grows)."""
 NO_CAP = 1 << 62
 
 
-def keeps_growing(previous: float | None, mean: float, below: int, min_drop: float, patience: int
+def keeps_growing(means: list[float], below: int, min_drop: float, span: int, patience: int
                   ) -> tuple[bool, int]:
     """One refinement of the automatic cap: (grow now?, refinements in a row below the drop).
 
-    ``mean`` is the mean training loss over the steps since the previous refinement, ``previous``
-    the one before it (None at the first refinement: grow). The relative drop is
-    (previous - mean) / previous; a window whose drop is below ``min_drop`` (a flat or rising
-    loss, or one that is not finite) adds one to ``below``, any other resets it to 0, and growth
-    stops when ``below`` reaches ``patience``.
+    ``means`` are the mean training losses of the refinement windows closed so far, the newest
+    last. Until there are 2 x ``span`` of them the set grows. Then, with P the mean of the
+    ``span`` windows before the newest ``span`` and R the mean of the newest ``span``, the relative
+    drop is d = (P - R) / P: the fall of the slow average of the loss over ``span`` refinements,
+    the time the count takes to grow by (1 + growth_rate)^span. Averaging ``span`` windows damps
+    the noise of a window (the views it happened to draw) by about sqrt(span), which a
+    threshold of a percent or two needs. A d below ``min_drop`` (a flat or rising loss, or one
+    that is not finite) adds one to ``below``, any other resets it to 0, and growth stops when
+    ``below`` reaches ``patience``.
     """
-    if previous is None:
+    if len(means) < 2 * span:
         return True, 0
-    usable = math.isfinite(previous) and math.isfinite(mean) and previous > 0.0
-    drop = (previous - mean) / previous if usable else 0.0
+    previous = sum(means[-2 * span:-span]) / span
+    recent = sum(means[-span:]) / span
+    usable = math.isfinite(previous) and math.isfinite(recent) and previous > 0.0
+    drop = (previous - recent) / previous if usable else 0.0
     below = below + 1 if drop < min_drop else 0
     return below < patience, below
+
+
+def auto_state() -> dict[str, Any]:
+    """The automatic cap's state at the start of a run (kept in the strategy state: checkpointed)."""
+    return {AUTO_LOSS: None, AUTO_STEPS: 0, AUTO_MEANS: [], AUTO_BELOW: 0, AUTO_CAP: None}
+
+
+def auto_add_loss(state: dict[str, Any], loss: Tensor | float) -> None:
+    """Add one step's training loss to the current window (a tensor stays where it lies: no wait
+    for the device until the window closes)."""
+    value = loss.detach().reshape(()).to(torch.float64) if isinstance(loss, Tensor) else float(loss)
+    state[AUTO_LOSS] = value if state[AUTO_LOSS] is None else state[AUTO_LOSS] + value
+    state[AUTO_STEPS] += 1
+
+
+def auto_close_window(state: dict[str, Any], n: int, min_drop: float, span: int, patience: int) -> int:
+    """At a refinement: close the window, apply :func:`keeps_growing`, and return the cap of this
+    refinement's growth (``n`` from the refinement that stops growth on, no cap before)."""
+    if state[AUTO_CAP] is None and state[AUTO_STEPS] > 0:
+        mean = float(state[AUTO_LOSS]) / state[AUTO_STEPS]  # the one read of the loss per refinement
+        state[AUTO_LOSS], state[AUTO_STEPS] = None, 0
+        means = (state[AUTO_MEANS] + [mean])[-2 * span:]
+        state[AUTO_MEANS] = means
+        grow, state[AUTO_BELOW] = keeps_growing(means, state[AUTO_BELOW], min_drop, span, patience)
+        if not grow:
+            state[AUTO_CAP] = n
+    return NO_CAP if state[AUTO_CAP] is None else state[AUTO_CAP]
 
 
 @dataclass
@@ -66,8 +99,8 @@ class MCMCStrategy(Strategy):
 
     cap_max: int | Literal["auto"] | None = 30_000
     """Largest number of Gaussians (required for MCMC; the paper uses 1-3M on GPU), or 'auto':
-    grow while the mean training loss between refinements still falls by auto_min_drop per
-    refinement, stop for good after auto_patience refinements in a row where it does not."""
+    grow while the slow average of the training loss (over auto_span refinements) still falls by
+    auto_min_drop, stop for good after auto_patience refinements in a row where it does not."""
     min_opacity: float = 0.005
     """Gaussians at or below this opacity are dead and get relocated."""
     growth_rate: float = 0.05
@@ -80,9 +113,11 @@ class MCMCStrategy(Strategy):
     """The position noise after every step: isotropic (3DGS-MCMC), or along the camera ray
     (``--strategy.noise.mode ray``)."""
     auto_min_drop: float = 0.05
-    """cap_max 'auto': the relative fall of the mean training loss between refinements (one
-    refinement interval apart) below which a refinement counts as not worth growing; the growth
-    rate by default: growth goes on while the loss falls at least as fast as the count grows."""
+    """cap_max 'auto': the relative fall of the slow average of the training loss (the mean over
+    auto_span refinement windows against the auto_span windows before) below which a refinement
+    counts as not worth growing."""
+    auto_span: int = 1
+    """cap_max 'auto': refinement windows per slow average (:func:`keeps_growing`)."""
     auto_patience: int = 2
     """cap_max 'auto': growth stops for good after this many refinements in a row below auto_min_drop."""
 
@@ -92,9 +127,10 @@ class MCMCStrategy(Strategy):
             raise StrategyError("MCMCStrategy needs cap_max: its 5% growth per refinement is bounded only by it")
         if isinstance(self.cap_max, str) and self.cap_max != AUTO:
             raise StrategyError(f"cap_max must be a count >= 0 or '{AUTO}', got {self.cap_max!r}")
-        if not (math.isfinite(self.auto_min_drop) and self.auto_min_drop >= 0.0) or self.auto_patience < 1:
-            raise StrategyError(f"auto_min_drop must be >= 0 and auto_patience >= 1, got "
-                                f"{self.auto_min_drop}, {self.auto_patience}")
+        if (not (math.isfinite(self.auto_min_drop) and self.auto_min_drop >= 0.0) or self.auto_patience < 1
+                or self.auto_span < 1):
+            raise StrategyError(f"auto_min_drop must be >= 0, auto_span and auto_patience >= 1, got "
+                                f"{self.auto_min_drop}, {self.auto_span}, {self.auto_patience}")
         if not 0.0 <= self.growth_rate:
             raise StrategyError(f"growth_rate must be >= 0, got {self.growth_rate}")
         if not 0.0 < self.min_opacity < 1.0:
@@ -111,7 +147,7 @@ class MCMCStrategy(Strategy):
         state = super().initialize_state(scene_scale, scene_center)
         state["binoms"] = binomial_table(N_MAX)
         if self.cap_max == AUTO:
-            state.update({AUTO_LOSS: None, AUTO_STEPS: 0, AUTO_PREVIOUS: None, AUTO_BELOW: 0, AUTO_CAP: None})
+            state.update(auto_state())
         return state
 
     def regularization_loss(self, params: Params) -> Tensor:
@@ -142,30 +178,19 @@ class MCMCStrategy(Strategy):
                 "added": self.grow(params, optimizers, state, generator)}
 
     def track_loss(self, state: dict[str, Any], loss: Tensor | None) -> None:
-        """Add the step's loss to the current window of the automatic cap, as a tensor where it
-        lies (no wait for the device: it is read once per refinement, :meth:`growth_cap`)."""
+        """Add the step's loss to the automatic cap's current window (:func:`auto_add_loss`)."""
         if loss is None:
             raise StrategyError(f"{type(self).__name__} with cap_max '{AUTO}' reads the training loss: pass "
                                 f"loss=<the step's loss, a 0-d tensor> to step_post_backward")
-        value = loss.detach().reshape(()).to(torch.float64)
-        state[AUTO_LOSS] = value if state[AUTO_LOSS] is None else state[AUTO_LOSS] + value
-        state[AUTO_STEPS] += 1
+        auto_add_loss(state, loss)
 
     def growth_cap(self, state: dict[str, Any], n: int) -> int:
         """The cap of this refinement's growth: ``cap_max``, or for 'auto' the count at which the
-        loss stopped falling (no cap while it still falls). Called once per refinement: for
-        'auto' it closes the loss window and applies :func:`keeps_growing`."""
+        loss stopped falling (no cap while it still falls; :func:`auto_close_window`, called once
+        per refinement)."""
         if self.cap_max != AUTO:
             return self.cap_max
-        if state[AUTO_CAP] is None and state[AUTO_STEPS] > 0:
-            mean = float(state[AUTO_LOSS]) / state[AUTO_STEPS]  # the one read of the loss per refinement
-            state[AUTO_LOSS], state[AUTO_STEPS] = None, 0
-            grow, state[AUTO_BELOW] = keeps_growing(state[AUTO_PREVIOUS], mean, state[AUTO_BELOW],
-                                                    self.auto_min_drop, self.auto_patience)
-            state[AUTO_PREVIOUS] = mean
-            if not grow:
-                state[AUTO_CAP] = n
-        return NO_CAP if state[AUTO_CAP] is None else state[AUTO_CAP]
+        return auto_close_window(state, n, self.auto_min_drop, self.auto_span, self.auto_patience)
 
     def growth_count(self, state: dict[str, Any], n: int) -> int:
         """How many to add at this refinement: growth_rate x N, never beyond the cap."""
