@@ -53,11 +53,14 @@ class _Recorder(TrainingCallback):
 
 
 def trace(out: Path, stop_step: int, train_args: list[str]) -> dict[str, Any]:
-    """Train ``train_args`` (an eg-train command line) to ``stop_step`` and write the trace."""
-    from exploregs_plugin.scripts.train import parse_config
+    """Train ``train_args`` (an eg-train command line: METHOD then its flags) to ``stop_step`` and
+    write the trace."""
+    from exploregs_plugin.bench.spec import parse_overrides
+    from exploregs_plugin.method_configs import get_method
     from exploregs_plugin.trainer import Trainer
 
-    config = parse_config(train_args)
+    method, *args = train_args
+    config = parse_overrides(get_method(method).config, args, "the traced command")
     strategy = config.pipeline.strategy
     run_dir = out.with_suffix("")
     config = replace(config, run_dir=run_dir, quiet=True, tensorboard=False, save_eval_images=False,
