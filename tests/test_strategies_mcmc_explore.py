@@ -243,6 +243,18 @@ def test_auto_cap_freezes_the_count_when_the_loss_stops_falling():
     assert strategy.exploration_summary(state) == {"auto_cap": count[70]}
 
 
+def test_auto_state_of_a_checkpoint_from_before_auto_span_resumes_as_span_1():
+    from exploregs_plugin.strategies.mcmc import auto_close_window, auto_state
+
+    old = {"auto_loss": torch.tensor(0.5 * 10, dtype=torch.float64), "auto_steps": 10, "auto_previous": 0.5,
+           "auto_below": 1, "auto_cap": None}  # a flat window after one below: the second stops growth
+    assert auto_close_window(old, 1234, 0.05, 1, 2) == 1234 and old["auto_means"] == [0.5, 0.5]
+    assert "auto_previous" not in old
+    new = dict(auto_state(), auto_loss=torch.tensor(5.0, dtype=torch.float64), auto_steps=10, auto_means=[0.5],
+               auto_below=1)
+    assert auto_close_window(new, 1234, 0.05, 1, 2) == 1234
+
+
 def test_auto_cap_needs_the_loss():
     strategy = MCMCStrategy(cap_max="auto", **WINDOW)
     params, optimizers = _set(20, 0)

@@ -51,7 +51,7 @@ def keeps_growing(means: list[float], below: int, min_drop: float, span: int, pa
     ``span`` windows before the newest ``span`` and R the mean of the newest ``span``, the relative
     drop is d = (P - R) / P: the fall of the slow average of the loss over ``span`` refinements,
     the time the count takes to grow by (1 + growth_rate)^span. Averaging ``span`` windows damps
-    the noise of a window (the views it happened to draw) by about sqrt(span), which a
+    the noise of a window (the views it drew, the relocations in it) by about sqrt(span), which a
     threshold of a percent or two needs. A d below ``min_drop`` (a flat or rising loss, or one
     that is not finite) adds one to ``below``, any other resets it to 0, and growth stops when
     ``below`` reaches ``patience``.
@@ -82,6 +82,9 @@ def auto_add_loss(state: dict[str, Any], loss: Tensor | float) -> None:
 def auto_close_window(state: dict[str, Any], n: int, min_drop: float, span: int, patience: int) -> int:
     """At a refinement: close the window, apply :func:`keeps_growing`, and return the cap of this
     refinement's growth (``n`` from the refinement that stops growth on, no cap before)."""
+    if AUTO_MEANS not in state:  # a checkpoint from before auto_span kept the previous window's mean
+        previous = state.pop("auto_previous", None)
+        state[AUTO_MEANS] = [] if previous is None else [previous]
     if state[AUTO_CAP] is None and state[AUTO_STEPS] > 0:
         mean = float(state[AUTO_LOSS]) / state[AUTO_STEPS]  # the one read of the loss per refinement
         state[AUTO_LOSS], state[AUTO_STEPS] = None, 0
