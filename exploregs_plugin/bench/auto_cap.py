@@ -6,7 +6,7 @@
 
 ``trace`` trains a run with a fixed (large) cap and records, for every step, its training view,
 its data loss (the loss the automatic cap reads) and the Gaussian count, until ``--stop-step``.
-``replay`` feeds that trace to the automatic cap's rule (:class:`~exploregs_plugin.strategies.
+``replay`` feeds that trace to the automatic cap's rule (:func:`~exploregs_plugin.strategies.
 mcmc.auto_close_window`, the code a run uses) for each pair of constants and prints the step and count at
 which it would stop growth. Until that refinement an automatic run and the traced run are the
 same run (same seed, same draws, same bits), so the stop it prints is the one an automatic run
@@ -61,7 +61,6 @@ def trace(out: Path, stop_step: int, train_args: list[str]) -> dict[str, Any]:
 
     method, *args = train_args
     config = parse_overrides(get_method(method).config, args, "the traced command")
-    strategy = config.pipeline.strategy
     run_dir = out.with_suffix("")
     config = replace(config, run_dir=run_dir, quiet=True, tensorboard=False, save_eval_images=False,
                      eval_count=0, checkpoint_every=10**9)
@@ -71,8 +70,8 @@ def trace(out: Path, stop_step: int, train_args: list[str]) -> dict[str, Any]:
         trainer.train()
     except _TraceDone:
         pass
-    filled = trainer.pipeline.strategy
-    result = {"command": train_args, "stop_step": stop_step, "cap_max": strategy.cap_max,
+    filled = trainer.pipeline.strategy  # the schedule's refinement steps filled in
+    result = {"command": train_args, "stop_step": stop_step, "cap_max": filled.cap_max,
               "refine_start_iter": filled.refine_start_iter, "refine_stop_iter": filled.refine_stop_iter,
               "refine_every": filled.refine_every, "num_train_views": len(trainer.pipeline.datamanager.train_cameras),
               "rows": recorder.rows, "refinements": recorder.refinements}
@@ -89,21 +88,16 @@ def replay(trace_data: dict[str, Any], min_drop: float, span: int, patience: int
 
     state = auto_state()
     start, stop, every = trace_data["refine_start_iter"], trace_data["refine_stop_iter"], trace_data["refine_every"]
-    for step, _view, loss, _count in trace_data["rows"]:
+    before = trace_data["rows"][0][3]  # the count after the previous step: the rows are every step in order
+    for step, _view, loss, count in trace_data["rows"]:
         if step >= stop:
             break
         auto_add_loss(state, loss)
         if start < step and step % every == 0:
-            before = _count_before(trace_data["rows"], step)
             if auto_close_window(state, before, min_drop, span, patience) != NO_CAP:
                 return step, before  # the traced run grew at this step; an automatic one stops here
+        before = count
     return None, None
-
-
-def _count_before(rows: list[tuple[int, int, float, int]], step: int) -> int:
-    """The count after step - 1 (before the refinement at ``step`` grew the set)."""
-    previous = [count for s, _v, _l, count in rows if s == step - 1]
-    return previous[0] if previous else rows[0][3]
 
 
 def main(argv: list[str] | None = None) -> None:
