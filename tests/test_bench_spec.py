@@ -3,6 +3,7 @@ CLI composition, config matching and the paired statistics of the tables."""
 
 from __future__ import annotations
 
+from dataclasses import replace
 import json
 import math
 from pathlib import Path
@@ -49,11 +50,12 @@ def test_full_explore_preset_adds_mcmc_explore_to_fulls_recipe_and_reuses_its_en
     spec = full_explore(tmp_path)
     assert (spec.steps, spec.seeds, spec.eval_count, spec.scenes) == (base.steps, base.seeds, base.eval_count, base.scenes)
     runs = [(entry.name, seed) for _, entry, seed in spec.runs()]
-    assert {e for e, s in runs if s > 0} == {"default", "mcmc", "mcmc-explore", "seedsplit"}
-    assert len(runs) == 2 * (4 * 3 + 3)
+    assert {e for e, s in runs if s > 0} == {"default", "mcmc", "mcmc-explore"}
+    assert len(runs) == 2 * (3 * 3 + 4)
     shared = {e.name: e for e in base.entries}
-    for name in ("default", "seedsplit", "default-relaxed-prune"):  # the same runs as full's: reused
+    for name in ("default", "default-relaxed-prune"):  # the same runs as full's: reused
         assert spec.entry(name) == shared[name]
+    assert spec.entry("seedsplit") == replace(shared["seedsplit"], seeds=(0,))  # its seed 0 is full's
     assert spec.entry("mcmc").overrides == shared["mcmc"].overrides
     capped = spec.entry("mcmc-explore").resolved(lambda entry, field: 1234)  # Default's count, once known
     explore = build_config(spec, spec.scenes[0], capped, 0, Path("/tmp/unused-run")).pipeline.strategy

@@ -300,10 +300,11 @@ def time_to_quality(root: Path | None = None) -> BenchSpec:
 def full_explore(root: Path | None = None) -> BenchSpec:
     """Issue 49's matrix: exploration inside MCMC's budget at the full schedule, with ``full``'s
     recipe (scenes, steps, seeds, evaluations). MCMC and MCMC-explore capped at Default's final
-    count, three seeds each; MCMC-explore with the automatic cap, guided + occlusion-aware
-    exploration and, for reference, Seed+Split (three seeds) and the relaxed-prune control. The
-    entries it shares with ``full`` are ``full``'s own, so in ``full``'s output folder their
-    finished runs are reused."""
+    count, three seeds each (Default too: it sets their count per seed); MCMC-explore with the
+    automatic cap, guided + occlusion-aware exploration and, for reference, Seed+Split and the
+    relaxed-prune control, one seed each (``full`` measured Seed+Split's seed spread). The entries
+    it shares with ``full`` have ``full``'s settings, so in ``full``'s output folder their finished
+    runs are reused."""
     spec = full(root)
     named, once = named_entries(), (0,)
     reused = {e.name: e for e in spec.entries}
@@ -317,7 +318,7 @@ def full_explore(root: Path | None = None) -> BenchSpec:
         replace(named["mcmc-explore-auto"], seeds=once),
         BenchEntry("guided-occlusion", "exploregs-guided-occlusion", ("--strategy.budget", FULL_BUDGET) + grad,
                    "guided seeding + occlusion-aware splitting", seeds=once),
-        reused["seedsplit"],
+        replace(reused["seedsplit"], seeds=once),
         reused["default-relaxed-prune"],
     )
     return replace(spec, entries=entries, name="full-explore")
