@@ -121,8 +121,10 @@ def _mistakes(run: Path, ply: Path, dataset: Path, missing: Path) -> list[tuple[
         ("eg-train", [R], f"{R} is an eg-train run, not a method: eg-train --resume {R} continues it"),
         ("eg-train", ["exploregs-default", "--data", D, "--cameras-from", R], "unrecognized option --cameras-from"),
         ("eg-train", ["exploregs-default", "--data", "builtin:tiny", "--run-dir", D],
-         f"--run-dir {D} is a dataset: eg-train writes its run there; pass the dataset as --data and a folder of its "
-         "own as --run-dir"),
+         f"--run-dir {D} is a dataset; outputs never go into a dataset: pass a folder of its own as --run-dir"),
+        ("eg-train", ["exploregs-default", "--data", "builtin:tiny", "--output-dir", f"{D}/images/runs"],
+         f"--output-dir {D}/images/runs is inside the dataset {Path(D).resolve()}; outputs never go into a dataset: "
+         "pass a folder of its own as --output-dir"),
         ("eg-eval", [], "missing PATH (eg-eval --help lists its options)"),
         ("eg-eval", [M], no_run),
         ("eg-eval", [D], is_dataset),

@@ -22,7 +22,7 @@ from exploregs_plugin.collapse import CollapseError
 from exploregs_plugin.configs import compact_help, load_config, tyro_error_text
 from exploregs_plugin.distributed import (LAUNCHER_GONE, DistributedError, MachineConfig, PeerLostError,
                                           launched_by_eg_train, launched_by_torchrun, leave_world)
-from exploregs_plugin.io.checkpoint import is_dataset_folder, resolve_run
+from exploregs_plugin.io.checkpoint import check_output_folder, resolve_run
 from exploregs_plugin.scripts import run_cli
 from exploregs_plugin.method_configs import MethodRegistryError, all_methods, strategy_choice, with_strategy
 from exploregs_plugin.pipeline import NonFiniteError, resolve_batch_size
@@ -136,9 +136,8 @@ def _machine(argv: list[str], resume: tuple[Path, str | None, int | None] | None
     config = parse_config(argv)
     resolve_batch_size(config.pipeline.batch_size, config.machine.world_size)
     for flag, folder in (("--run-dir", config.run_dir), ("--output-dir", config.output_dir)):
-        if folder is not None and is_dataset_folder(Path(folder)):  # the run would be written into it
-            raise _fail(f"{flag} {folder} is a dataset: eg-train writes its run there; pass the dataset as --data "
-                        f"and a folder of its own as {flag}", 2)
+        if folder is not None:  # the run would be written into it
+            check_output_folder(flag, Path(folder))
     return config.machine, config
 
 
