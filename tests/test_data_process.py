@@ -148,7 +148,7 @@ def test_a_processed_folder_reads_and_trains(processed, tmp_path):
 def test_data_given_photos_poses_them_into_the_cache_once(capture, tmp_path, capsys):
     from exploregs_plugin.data.dataparser import resolve_data
 
-    photos = _subset(capture, tmp_path / "my photos")
+    photos = _subset(capture, tmp_path / "my photos", step=2)  # 12 views, 10 degrees apart
     before = sorted(p.name for p in photos.iterdir())
     kind, path = resolve_data(str(photos), tmp_path / "cache")
     assert kind == "colmap" and path.parent.parent == tmp_path / "cache" / "derived"
@@ -358,6 +358,65 @@ def test_two_videos_get_one_camera_each_and_register_together(capture, tmp_path)
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
     cameras = {im.name.split("/")[0]: im.camera_id for im in rec.images.values()}
     assert len(rec.cameras) == 2 and cameras["first"] != cameras["second"]
+
+
+def test_the_same_photos_give_the_same_model_bit_for_bit_on_one_or_two_threads(capture, tmp_path):
+    photos = _subset(capture, tmp_path / "photos", step=2)  # 12 views, 10 degrees apart
+    models = []
+    for threads in (1, 2, 2):
+        out = tmp_path / f"dataset-{len(models)}"
+        process_capture([photos], out, replace(CONFIG, num_threads=threads))
+        models.append({p.name: p.read_bytes() for p in sorted((out / "sparse" / "0").iterdir())})
+    assert set(models[0]) >= {"cameras.bin", "images.bin", "points3D.bin"}
+    assert models[0] == models[1] == models[2]
+
+
+def _with_gps(capture, folder: Path, step: int = 2) -> Path:
+    """JPEG copies of every ``step``-th view whose EXIF GPS position is the view's true centre, at
+    10 m per scene unit around 47 N, 8 E, 400 m (a degree of latitude is 111.32 km, one of
+    longitude 111.32 km x cos(latitude))."""
+    from PIL import ExifTags
+
+    def dms(degrees: float) -> tuple[float, float, float]:
+        whole, minutes = int(degrees), int((degrees % 1) * 60)
+        return float(whole), float(minutes), round((degrees - whole - minutes / 60) * 3600, 4)
+
+    folder.mkdir(parents=True)
+    images, c2ws = capture[1][::step], capture[2][::step]
+    metres_per_degree = 111_320.0
+    for i, (rgb, c2w) in enumerate(zip(images, c2ws)):
+        x, y, z = 10.0 * c2w[:3, 3]
+        exif = Image.Exif()
+        exif[ExifTags.IFD.GPSInfo] = {1: "N", 2: dms(47.0 + y / metres_per_degree), 3: "E",
+                                      4: dms(8.0 + x / (metres_per_degree * np.cos(np.radians(47.0)))),
+                                      5: b"\x00", 6: 400.0 + z}
+        Image.fromarray(rgb).save(folder / f"{i:04d}.jpg", quality=95, exif=exif)
+    return folder
+
+
+def test_spatial_matching_pairs_photos_by_their_gps_and_poses_them(capture, tmp_path):
+    import pycolmap
+
+    photos = _with_gps(capture, tmp_path / "photos")  # 12 views, 10 degrees apart
+    out = tmp_path / "dataset"
+    report = process_capture([photos], out, replace(CONFIG, matching="spatial"))
+    with pycolmap.Database.open(out / "database.db") as db:
+        assert db.num_pose_priors() == 12  # every photo's GPS position was read
+        assert db.num_matched_image_pairs() == 66  # all within the matcher's 100 m of each other
+    assert report["settings"]["matching"] == "spatial" and report["registered"] == report["images_in"] == 12
+    cams = recovered_cameras(out)
+    est = np.stack([cams[f"{i:04d}.jpg"] for i in range(12)])[:, :3, 3]
+    true = capture[2][::2, :3, 3]
+    s, R, t = umeyama(est, true)
+    extent = max(np.linalg.norm(a - b) for a in true for b in true)
+    assert np.linalg.norm(s * est @ R.T + t - true, axis=1).max() < 0.01 * extent
+
+
+def test_spatial_matching_without_gps_is_one_line(capture, tmp_path, capsys):
+    photos = _subset(capture, tmp_path / "photos", step=8)
+    line = _error_line(capsys, [str(photos), "--out", str(tmp_path / "out"), "--matching", "spatial"])
+    assert line == (f"eg-process: error: {photos}: --matching spatial needs GPS positions in the photos' EXIF and "
+                    "these have none; use --matching exhaustive or sequential")
 
 
 def test_pycolmap_logs_are_quiet_unless_verbose(capture, tmp_path, capfd):
