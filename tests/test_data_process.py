@@ -360,12 +360,13 @@ def test_two_videos_get_one_camera_each_and_register_together(capture, tmp_path)
     assert len(rec.cameras) == 2 and cameras["first"] != cameras["second"]
 
 
-def test_the_same_photos_give_the_same_model_bit_for_bit_on_one_or_two_threads(capture, tmp_path):
+@pytest.mark.parametrize("mapper", ["incremental", "global"])
+def test_the_same_photos_give_the_same_model_bit_for_bit_on_one_or_two_threads(capture, tmp_path, mapper):
     photos = _subset(capture, tmp_path / "photos", step=2)  # 12 views, 10 degrees apart
     models = []
     for threads in (1, 2, 2):
         out = tmp_path / f"dataset-{len(models)}"
-        process_capture([photos], out, replace(CONFIG, num_threads=threads))
+        process_capture([photos], out, replace(CONFIG, num_threads=threads, mapper=mapper))
         models.append({p.name: p.read_bytes() for p in sorted((out / "sparse" / "0").iterdir())})
     assert set(models[0]) >= {"cameras.bin", "images.bin", "points3D.bin"}
     assert models[0] == models[1] == models[2]

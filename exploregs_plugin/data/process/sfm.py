@@ -148,15 +148,17 @@ def map_scene(database: Path, image_dir: Path, out_dir: Path, mapper: Mapper, th
     the images the incremental mapper registers (the global one reports nothing until done)."""
     out_dir.mkdir(parents=True, exist_ok=True)
     pycolmap.set_random_seed(0)  # the same capture gives the same model
+    # The pipelines' own threads run bundle adjustment, whose sums on several threads come in a
+    # varying order: on two threads 12 photos gave 444, 505 or 710 points from run to run
+    # (incremental), or the same points at other bits (global). With the pipeline on one thread the
+    # model is the same bits for any --num-threads; the mapper inside keeps ``threads``.
     if mapper == "global":
         options = with_threads(pycolmap.GlobalPipelineOptions(), threads)
         options.random_seed = 0
+        options.num_threads = 1
         return pycolmap.global_mapping(database, image_dir, out_dir, options=options)
     options = with_threads(pycolmap.IncrementalPipelineOptions(), threads)
     options.random_seed = 0
-    # The pipeline's own threads run bundle adjustment, whose sums on several threads come in a
-    # varying order: on two threads 12 photos gave 444, 505 or 710 points from run to run. On one
-    # the model is the same bits for any --num-threads (registration and triangulation keep theirs).
     options.num_threads = 1
     return pycolmap.incremental_mapping(database, image_dir, out_dir, options=options,
                                         initial_image_pair_callback=lambda: on_registered(2),
