@@ -152,14 +152,12 @@ def map_scene(database: Path, image_dir: Path, out_dir: Path, mapper: Mapper, th
     # varying order: on two threads 12 photos gave 444, 505 or 710 points from run to run
     # (incremental), or the same points at other bits (global). With the pipeline on one thread the
     # model is the same bits for any --num-threads; the mapper inside keeps ``threads``.
-    if mapper == "global":
-        options = with_threads(pycolmap.GlobalPipelineOptions(), threads)
-        options.random_seed = 0
-        options.num_threads = 1
-        return pycolmap.global_mapping(database, image_dir, out_dir, options=options)
-    options = with_threads(pycolmap.IncrementalPipelineOptions(), threads)
+    pipeline = pycolmap.GlobalPipelineOptions() if mapper == "global" else pycolmap.IncrementalPipelineOptions()
+    options = with_threads(pipeline, threads)
     options.random_seed = 0
     options.num_threads = 1
+    if mapper == "global":
+        return pycolmap.global_mapping(database, image_dir, out_dir, options=options)
     return pycolmap.incremental_mapping(database, image_dir, out_dir, options=options,
                                         initial_image_pair_callback=lambda: on_registered(2),
                                         next_image_callback=lambda: on_registered(1))
