@@ -281,6 +281,6 @@ def test_cap_sweep_scales_defaults_count_and_reuses_full_explores_runs(tmp_path)
         if entry.depends_on():
             resolved = entry.resolved(lambda ref, field: 22381)  # Default's final count
             caps[entry.name] = build_config(spec, spec.scenes[0], resolved, 0, Path("/tmp/unused")).pipeline.strategy.cap_max
-    # 22381 x 0.25 = 5595.25, x 0.5 = 11190.5 (rounded half to even), x 1, x 2
-    assert caps == {"mcmc-explore-x0.25": 5595, "mcmc-explore-x0.5": 11190, "mcmc-explore": 22381,
+    # 22381 x 0.125 = 2797.6, x 0.25 = 5595.25, x 0.5 = 11190.5 (rounded half to even), x 1, x 2
+    assert caps == {"mcmc-explore-x0.125": 2798, "mcmc-explore-x0.25": 5595, "mcmc-explore-x0.5": 11190, "mcmc-explore": 22381,
                     "mcmc-explore-x2": 44762}
