@@ -86,6 +86,26 @@ def test_share_zero_is_mcmc_bit_for_bit():
             assert torch.equal(s_mcmc[moment], s_explore[moment]), (name, moment)
 
 
+def test_caps_below_the_starting_count_never_grow_and_give_the_same_run():
+    """A cap does not remove Gaussians: every cap at or below the starting count is the same run,
+    at the starting count (the cap sweep trains one of them, docs/bench.md)."""
+    runs = []
+    for cap in (0, 150, 300):
+        strategy = MCMCExploreStrategy(cap_max=cap, **WINDOW)
+        params, optimizers = _set(300, 40)
+        state = strategy.initialize_state()
+        for step in (9, 10, 11, 20, 30):
+            _step(strategy, params, optimizers, state, step, seed=step)
+            with torch.no_grad():
+                params["opacities"][step: step + 5] = -8.0
+        runs.append(params)
+    assert all(p["means"].shape[0] == 300 for p in runs)
+    assert not torch.equal(runs[0]["means"], _set(300, 40)[0]["means"])  # relocation and noise moved them
+    for other in runs[1:]:
+        for name in runs[0]:
+            assert torch.equal(runs[0][name], other[name]), name
+
+
 @pytest.mark.parametrize("share, n_dead", [(0.3, 37), (0.5, 5), (1.0, 12)])
 def test_the_share_of_relocated_rows_becomes_seeds_at_the_stated_opacity(share, n_dead):
     strategy = MCMCExploreStrategy(cap_max=1000, growth_rate=0.0, explore_share=share, explore_split=0.0,
