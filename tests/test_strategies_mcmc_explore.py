@@ -64,20 +64,23 @@ def test_explored_count_rounds_half_up_and_apportion_is_exact():
         assert sum(apportion(k, (0.2, 0.5, 0.3))) == k
 
 
+def _refinements(strategy):
+    """300 synthetic Gaussians (40 dead) through five steps of ``strategy``, refinements among them,
+    with a few more killed after each so that every relocation has work."""
+    params, optimizers = _set(300, 40)
+    state = strategy.initialize_state()
+    for step in (9, 10, 11, 20, 30):
+        _step(strategy, params, optimizers, state, step, seed=step)
+        with torch.no_grad():
+            params["opacities"][step: step + 5] = -8.0
+    return params, optimizers
+
+
 def test_share_zero_is_mcmc_bit_for_bit():
     """Relocation, growth and noise over several refinements: the same parameters and moments."""
-    runs = []
-    for cls in (MCMCStrategy, MCMCExploreStrategy):
-        extra = {"explore_share": 0.0} if cls is MCMCExploreStrategy else {}
-        strategy = cls(cap_max=400, **WINDOW, **extra)
-        params, optimizers = _set(300, 40)
-        state = strategy.initialize_state()
-        for step in (9, 10, 11, 20, 30):
-            _step(strategy, params, optimizers, state, step, seed=step)
-            with torch.no_grad():  # kill a few more so every relocation has work
-                params["opacities"][step: step + 5] = -8.0
-        runs.append((params, optimizers))
-    (p_mcmc, o_mcmc), (p_explore, o_explore) = runs
+    (p_mcmc, o_mcmc), (p_explore, o_explore) = (
+        _refinements(MCMCStrategy(cap_max=400, **WINDOW)),
+        _refinements(MCMCExploreStrategy(cap_max=400, explore_share=0.0, **WINDOW)))
     assert p_mcmc["means"].shape[0] > 300
     for name in p_mcmc:
         assert torch.equal(p_mcmc[name], p_explore[name]), name
@@ -89,16 +92,7 @@ def test_share_zero_is_mcmc_bit_for_bit():
 def test_caps_below_the_starting_count_never_grow_and_give_the_same_run():
     """A cap does not remove Gaussians: every cap at or below the starting count is the same run,
     at the starting count (the cap sweep trains one of them, docs/bench.md)."""
-    runs = []
-    for cap in (0, 150, 300):
-        strategy = MCMCExploreStrategy(cap_max=cap, **WINDOW)
-        params, optimizers = _set(300, 40)
-        state = strategy.initialize_state()
-        for step in (9, 10, 11, 20, 30):
-            _step(strategy, params, optimizers, state, step, seed=step)
-            with torch.no_grad():
-                params["opacities"][step: step + 5] = -8.0
-        runs.append(params)
+    runs = [_refinements(MCMCExploreStrategy(cap_max=cap, **WINDOW))[0] for cap in (0, 150, 300)]
     assert all(p["means"].shape[0] == 300 for p in runs)
     assert not torch.equal(runs[0]["means"], _set(300, 40)[0]["means"])  # relocation and noise moved them
     for other in runs[1:]:
