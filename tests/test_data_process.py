@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from exploregs_plugin.bench.pose_agreement import agreement, colmap_cameras, llff_cameras, umeyama
 from exploregs_plugin.data.process import ProcessConfig, process_capture
 from exploregs_plugin.data.process import sfm
 from exploregs_plugin.data.process.inputs import IMAGE_SUFFIXES
@@ -48,18 +49,6 @@ def render_capture(folder: Path, n_views: int = N_VIEWS, arc_deg: float = 120.0)
         images.append(rgb)
         c2ws.append(c2w)
     return images, np.stack(c2ws)
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) minimising sum |s R src_i + t - dst_i|^2 (Umeyama 1991)."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(xd.T @ xs / len(src))
-    D = np.eye(3)
-    D[2, 2] = np.sign(np.linalg.det(U @ Vt))
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / max((xs ** 2).sum(1).mean(), 1e-12))
-    return s, R, mu_d - s * R @ mu_s
 
 
 def recovered_cameras(dataset: Path) -> dict[str, np.ndarray]:
@@ -366,7 +355,7 @@ def test_the_same_photos_give_the_same_model_bit_for_bit_on_one_or_two_threads(c
     models = []
     for threads in (1, 2, 2):
         out = tmp_path / f"dataset-{len(models)}"
-        process_capture([photos], out, replace(CONFIG, num_threads=threads, mapper=mapper))
+        process_capture([photos], out, replace(CONFIG, num_threads=threads, mapper=mapper, deterministic=True))
         models.append({p.name: p.read_bytes() for p in sorted((out / "sparse" / "0").iterdir())})
     assert set(models[0]) >= {"cameras.bin", "images.bin", "points3D.bin"}
     assert models[0] == models[1] == models[2]
@@ -417,7 +406,7 @@ def test_spatial_matching_without_gps_is_one_line(capture, tmp_path, capsys):
     photos = _subset(capture, tmp_path / "photos", step=8)
     line = _error_line(capsys, [str(photos), "--out", str(tmp_path / "out"), "--matching", "spatial"])
     assert line == (f"eg-process: error: {photos}: --matching spatial needs GPS positions in the photos' EXIF and "
-                    "these have none; use --matching exhaustive or sequential")
+                    "these have none; use --matching exhaustive, retrieval or sequential")
 
 
 def test_pycolmap_logs_are_quiet_unless_verbose(capture, tmp_path, capfd):
@@ -429,3 +418,210 @@ def test_pycolmap_logs_are_quiet_unless_verbose(capture, tmp_path, capfd):
     assert not glog_line.search(capfd.readouterr().err)
     process_capture([photos], tmp_path / "verbose", replace(CONFIG, verbose=True))
     assert glog_line.search(capfd.readouterr().err)
+
+
+# ---------------------------------------------------------------------------------------------
+# a model is checked before it is trusted (exploregs_plugin/data/process/checks.py)
+
+from exploregs_plugin.data.process import checks
+
+
+def _ring(n: int = 40, radius: float = 3.0, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Camera centres [n, 3] on a noisy ring at height 1 and their axes [n, 3] towards the origin."""
+    rng = np.random.default_rng(seed)
+    az = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    centres = np.stack([radius * np.cos(az), radius * np.sin(az), np.ones(n)], axis=1) + 0.05 * rng.normal(size=(n, 3))
+    axes = -centres + 0.05 * rng.normal(size=(n, 3))
+    return centres, axes / np.linalg.norm(axes, axis=1, keepdims=True)
+
+
+def test_the_common_centre_of_an_orbit_ignores_a_quarter_that_looks_away():
+    centres, axes = _ring()
+    assert np.linalg.norm(checks.axes_centre(centres, axes)) < 0.1
+    turned = axes.copy()
+    quarter = slice(0, 10)
+    # a quarter turned away, 70 to 110 degrees off the centre: their axes miss the object
+    rot = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    turned[quarter] = axes[quarter] @ rot.T
+    centre = checks.axes_centre(centres, turned)
+    assert np.linalg.norm(centre) < 0.3, centre
+    cos = checks.look_cosines(centres, turned, centre)
+    assert (cos[quarter] < checks.LOOK_AWAY_COS).all() and (cos[10:] > 0.95).all()
+    # parallel axes (a forward-facing capture) have no common centre
+    assert checks.axes_centre(centres, np.tile([0.0, 1.0, 0.0], (len(centres), 1))) is None
+
+
+def test_jumps_are_found_along_the_order_and_bursts_are_not_jumps():
+    n = 60
+    az = np.radians(np.linspace(0.0, 300.0, n))
+    positions = np.stack([3 * np.cos(az), 3 * np.sin(az), np.zeros(n)], axis=1)
+
+    def yaw(a):
+        return np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]])
+
+    rotations = np.stack([yaw(a) for a in az])
+    assert checks.find_jumps(positions, rotations) == []
+    # a run of 15 frames folded onto the other side: turned by 170 degrees about the vertical
+    folded_rot, folded_pos = rotations.copy(), positions.copy()
+    folded_rot[20:35] = np.einsum("ij,njk->nik", yaw(np.radians(170.0)), rotations[20:35])
+    folded_pos[20:35] = positions[20:35] @ yaw(np.radians(170.0)).T
+    assert checks.find_jumps(folded_pos, folded_rot) == [19, 34]
+    assert checks.beyond_jumps(n, [19, 34]) == list(range(20, 35))
+    assert checks.beyond_jumps(n, [44]) == list(range(45, 60)) and checks.beyond_jumps(n, [9]) == list(range(10))
+    # rotation alone (positions kept) is a jump too
+    assert checks.find_jumps(positions, folded_rot) == [19, 34]
+    # bursts: five photos from each spot make the median step zero, and nothing jumps
+    burst = np.repeat(positions[::5], 5, axis=0)
+    assert checks.find_jumps(burst, np.repeat(rotations[::5], 5, axis=0)) == []
+
+
+def test_sampson_distance_is_zero_for_the_true_pose_and_large_for_a_wrong_one():
+    rng = np.random.default_rng(1)
+    points = rng.uniform([-1, -1, 4], [1, 1, 6], size=(50, 3))
+    R1, t1 = np.eye(3), np.zeros(3)
+    a = np.radians(10.0)
+    R2 = np.array([[np.cos(a), 0.0, np.sin(a)], [0.0, 1.0, 0.0], [-np.sin(a), 0.0, np.cos(a)]])
+    t2 = np.array([-0.8, 0.1, 0.05])
+    x1 = points[:, :2] / points[:, 2:]
+    cam2 = points @ R2.T + t2
+    x2 = cam2[:, :2] / cam2[:, 2:]
+    E, baseline = checks.essential(R1, t1, R2, t2)
+    assert baseline > 0.5 and checks.sampson_distance(E, x1, x2).max() < 1e-9
+    wrong, _ = checks.essential(R1, t1, R2.T, -t2)
+    assert np.median(checks.sampson_distance(wrong, x1, x2)) > 1e-2  # 1e-2 = 5 px at a 500 px focal length
+
+
+def _break(dataset: Path, target: Path, how: str) -> Path:
+    """A copy of the processed model with a quarter of its cameras posed wrong on purpose."""
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(str(dataset / "sparse" / "0"))
+    images = sorted((im for im in rec.images.values()), key=lambda im: im.name)
+    centre = np.mean([p.xyz for p in rec.points3D.values()], axis=0)
+    for im in images[N_VIEWS // 2: N_VIEWS // 2 + N_VIEWS // 4]:
+        pose = im.cam_from_world()
+        R, t = pose.rotation.matrix(), pose.translation
+        c = -R.T @ t
+        if how == "mirrored":  # turned 180 degrees about the camera's own down axis: it looks away
+            R = np.diag([-1.0, 1.0, -1.0]) @ R
+        else:  # misplaced: moved by twice the distance to the scene
+            c = c + 2.0 * (c - centre)
+        new = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ c)
+        rec.frame(im.frame_id).rig_from_world = new
+    target.mkdir(parents=True)
+    rec.write(str(target))
+    return target
+
+
+def test_the_checks_pass_a_right_model_and_flag_one_broken_on_purpose(processed, tmp_path):
+    import pycolmap
+
+    out, report = processed
+    names = [f"{i:04d}.png" for i in range(N_VIEWS)]
+    assert report["checks"]["passed"] and report["checks"]["orbit"] and report["checks"]["ordered"]
+    assert report["checks"]["suspect"] == [] and report["left_out"] == []
+    quarter = names[N_VIEWS // 2: N_VIEWS // 2 + N_VIEWS // 4]
+    for how in ("mirrored", "misplaced"):
+        broken = pycolmap.Reconstruction(str(_break(out, tmp_path / how, how)))
+        found = checks.check_model(broken, names, out / "database.db")
+        assert not found.passed, how
+        assert set(quarter) <= set(found.suspect) and len(found.suspect) <= len(quarter) + 1, (how, found.suspect)
+        assert len(found.jumps) == 2, (how, found.jumps)
+        if how == "mirrored":
+            assert found.looks_away == quarter
+        # the broken cameras contradict their matches with the rest
+        assert set(found.disagrees) & set(quarter), how
+    assert checks.check_model(pycolmap.Reconstruction(str(out / "sparse" / "0")), names, out / "database.db").passed
+
+
+def _remap_with(processed, tmp_path, monkeypatch, broken_calls: int, capsys):
+    """The processed dataset mapped again (only mapping reruns) where the mapper's first
+    ``broken_calls`` models have a quarter of the cameras mirrored; returns (report, printed)."""
+    import pycolmap
+
+    out, _ = processed
+    broken = pycolmap.Reconstruction(str(_break(out, tmp_path / "broken", "mirrored")))
+    copy = tmp_path / "dataset"
+    shutil.copytree(out, copy)
+    real_map, calls = sfm.map_scene, []
+
+    def mapper(*args, **kwargs):
+        calls.append(Path(args[0]).name)
+        models = real_map(*args, **kwargs)
+        return {0: broken} if len(calls) <= broken_calls else models
+
+    monkeypatch.setattr(sfm, "map_scene", mapper)
+    capsys.readouterr()
+    report = process_capture([Path(json.loads((out / "process_state.json").read_text())["input"][0][0]).parent],
+                             copy, replace(CONFIG, deterministic=True))
+    return report, capsys.readouterr(), calls, copy
+
+
+def test_a_folded_model_is_remedied_from_the_neighbours_matches(processed, tmp_path, monkeypatch, capsys):
+    report, printed, calls, copy = _remap_with(processed, tmp_path, monkeypatch, 1, capsys)
+    # first mapping folded; the second maps from the neighbours' matches only, and passes
+    assert calls == ["database.db", "database-window.db"]
+    state = json.loads((copy / "process_state.json").read_text())["stages"]["mapping"]
+    assert state["pairs_kept"].startswith("neighbour pairs") and [a["suspect"] for a in state["attempts"]] == [6, 0]
+    assert report["checks"]["passed"] and report["left_out"] == [] and report["registered"] == N_VIEWS
+    assert "fails its checks (6 suspect images" in printed.err and "warning:" not in printed.out
+    assert not (copy / "database-window.db").exists()
+
+
+def test_a_model_no_remedy_mends_is_trained_without_its_suspect_images(processed, tmp_path, monkeypatch, capsys):
+    import pycolmap
+
+    report, printed, calls, copy = _remap_with(processed, tmp_path, monkeypatch, 3, capsys)
+    assert calls == ["database.db", "database-window.db", "database.db"]  # then the other mapper
+    quarter = [f"{i:04d}.png" for i in range(N_VIEWS // 2, N_VIEWS // 2 + N_VIEWS // 4)]
+    assert report["left_out"] == quarter and report["registered"] == N_VIEWS - len(quarter)
+    kept = pycolmap.Reconstruction(str(copy / "sparse" / "0"))
+    assert sorted(im.name for im in kept.images.values() if im.has_pose) == sorted(
+        set(f"{i:04d}.png" for i in range(N_VIEWS)) - set(quarter))
+    warning = [line for line in printed.out.splitlines() if line.startswith("warning:")]
+    assert len(warning) == 1 and f"{len(quarter)} of {N_VIEWS} images" in warning[0] and quarter[0] in warning[0]
+    with Image.open(copy / PLOT_NAME) as plot:  # the top view is drawn from the kept model
+        assert plot.size[0] > 300
+
+
+def test_agreement_with_a_reference_counts_a_broken_quarter_out_and_reads_llff_poses(capture, processed, tmp_path):
+    _, _, true_c2ws = capture
+    out, _ = processed
+    names = [f"{i:04d}.png" for i in range(N_VIEWS)]
+    reference = dict(zip(names, true_c2ws))
+    right = agreement(colmap_cameras(out), reference)
+    assert right["compared"] == right["within"] == N_VIEWS and right["max_angle_deg"] < 1.0
+    broken = agreement(colmap_cameras(_break(out, tmp_path / "broken", "misplaced")), reference)
+    # the robust alignment keeps the three quarters that are right, and only those agree
+    assert broken["within"] == N_VIEWS - N_VIEWS // 4, broken
+    # an LLFF poses_bounds.npy of the true cameras: columns [down, right, backwards] and [H, W, f]
+    rows = np.zeros((N_VIEWS, 17))
+    for i, c2w in enumerate(true_c2ws):
+        m = np.stack([c2w[:3, 1], c2w[:3, 0], -c2w[:3, 2], c2w[:3, 3], [HEIGHT, WIDTH, 300.0]], axis=1)
+        rows[i, :15] = m.reshape(-1)
+    np.save(tmp_path / "poses_bounds.npy", rows)
+    assert all(np.allclose(llff_cameras(tmp_path / "poses_bounds.npy", names)[n], reference[n]) for n in names)
+
+
+def test_retrieval_matching_poses_the_capture_from_fewer_pairs(capture, processed, tmp_path):
+    out = tmp_path / "dataset"
+    report = process_capture([capture[0]], out, replace(CONFIG, matching="retrieval"))
+    state = json.loads((out / "process_state.json").read_text())["stages"]["matching"]
+    assert report["settings"]["matching"] == "retrieval" and state["ordered"] is True
+    assert state["pairs"] < N_VIEWS * (N_VIEWS - 1) // 2
+    assert report["registered"] == N_VIEWS and report["checks"]["passed"]
+    cams, reference = colmap_cameras(out), dict(zip([f"{i:04d}.png" for i in range(N_VIEWS)], capture[2]))
+    assert agreement(cams, reference)["within"] == N_VIEWS
+    log = (out / "process.log").read_text()
+    assert "matching: started" in log and "mapping (incremental): 24 of 24 registered" in log
+
+
+def test_auto_matching_retrieves_pairs_from_the_crossover_on():
+    from exploregs_plugin.data.process.inputs import Capture
+    from exploregs_plugin.data.process.run import RETRIEVAL_FROM, choose_matching
+
+    photos, video = Capture("images", (), Path("p")), Capture("videos", (), Path("v.mp4"))
+    assert choose_matching(ProcessConfig(), photos, RETRIEVAL_FROM - 1)[0] == "exhaustive"
+    assert choose_matching(ProcessConfig(), photos, RETRIEVAL_FROM)[0] == "retrieval"
+    assert choose_matching(ProcessConfig(), video, 1000)[0] == "sequential"
+    assert choose_matching(ProcessConfig(matching="exhaustive"), photos, 1000)[0] == "exhaustive"

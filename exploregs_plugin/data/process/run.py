@@ -12,27 +12,37 @@ from __future__ import annotations
 import json
 import shutil
 import time
-from contextlib import contextmanager
 from dataclasses import asdict, dataclass
 from pathlib import Path
-from typing import Callable, Iterator, Literal
+from typing import Literal
 
 from rich.console import Console
-from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn, TimeRemainingColumn
 
 from ...io.atomic import atomic_write_text
 from ...threads import default_threads
 from ..errors import DataError
-from . import sfm
+from . import checks, retrieval, sfm
 from .inputs import Capture, find_capture, input_key
 from .photos import import_photo, output_name
-from .report import PLOT_NAME, REPORT_NAME, model_report, plot_top_view, summary_lines, write_report
+from .progress import StageLog, stage_progress
+from .report import (
+    PLOT_NAME,
+    REPORT_NAME,
+    model_report,
+    plot_top_view,
+    summary_lines,
+    write_report,
+)
 from .video import extract_frames, frame_count
 
 STATE_NAME = "process_state.json"
 DATABASE_NAME = "database.db"
 STAGES = ("import", "features", "matching", "mapping")
 MIN_REGISTERED_SHARE = 0.5
+RETRIEVAL_FROM = 100
+"""From this many photos on, --matching auto retrieves pairs instead of matching all of them."""
+SECOND_ROUND_TOP_K = 2 * retrieval.TOP_K
+"""Retrieval's second round matches a weak photo with this many of its most similar photos."""
 
 
 @dataclass
@@ -44,11 +54,20 @@ class ProcessConfig:
     consecutive frames the sharpest. A video with fewer frames keeps them all."""
     max_image_size: int = 1024
     """SIFT runs on images downscaled to at most this many pixels on the long side."""
-    matching: Literal["auto", "exhaustive", "sequential", "spatial"] = "auto"
-    """Which image pairs are matched. auto: sequential for video frames, exhaustive for up to 300
-    photos, sequential above (photos in capture order); spatial needs GPS positions in the EXIF."""
+    matching: Literal["auto", "exhaustive", "sequential", "spatial", "retrieval"] = "auto"
+    """Which image pairs are matched. auto: sequential for video frames, exhaustive for up to
+    RETRIEVAL_FROM photos, retrieval above; retrieval: each photo with its most similar photos by a
+    vocabulary of the capture's own SIFT features (and its neighbours in name order when that is
+    the capture order); spatial needs GPS positions in the EXIF."""
     mapper: sfm.Mapper = "incremental"
-    """incremental (COLMAP's) or global (GLOMAP's rotation and position averaging)."""
+    """incremental (COLMAP's) or global (GLOMAP's rotation and position averaging). A model that
+    fails its checks is mapped again with the other one (--no-remedy: not)."""
+    remedy: bool = True
+    """When the model fails its checks: map again with the other mapper, keep the model with fewer
+    suspect images, and leave the images still suspect out of the dataset (said in one line)."""
+    deterministic: bool = False
+    """The same photos give the same model bit for bit on any thread count (bundle adjustment on
+    one thread: slower on a large capture)."""
     camera_model: str = "SIMPLE_RADIAL"
     """COLMAP camera model estimated per camera; its distortion is removed when the dataset is read."""
     num_threads: int | None = None
@@ -146,17 +165,7 @@ class _Stages:
         return {s: self.state["stages"][s]["seconds"] for s in STAGES if s in self.state["stages"]}
 
 
-@contextmanager
-def _bar(console: Console, description: str, total: int | None) -> Iterator[Callable[..., None]]:
-    """One rich progress bar (counts, elapsed, ETA); yields ``update(advance=1, completed=None)``."""
-    columns = (TextColumn("{task.description:<10}"), BarColumn(), MofNCompleteColumn(),
-               TimeElapsedColumn(), TextColumn("ETA"), TimeRemainingColumn())
-    with Progress(*columns, console=console, transient=False) as progress:
-        task = progress.add_task(description, total=total)
-        yield lambda advance=1, completed=None: progress.update(task, advance=advance, completed=completed)
-
-
-def _import(capture: Capture, images: Path, config: ProcessConfig, console: Console) -> _Layout:
+def _import(capture: Capture, images: Path, config: ProcessConfig, console: Console, log: StageLog) -> _Layout:
     """Photos upright, or each video's sharpest frames, into ``images`` (a fresh folder)."""
     if images.exists():
         shutil.rmtree(images)
@@ -164,7 +173,7 @@ def _import(capture: Capture, images: Path, config: ProcessConfig, console: Cons
     if capture.kind == "images":
         taken = {p.name for p in capture.files}
         names, sizes = [], []
-        with _bar(console, "import", len(capture.files)) as advance:
+        with stage_progress(console, log, "import", len(capture.files), "photos") as advance:
             for path in capture.files:
                 name = output_name(path, taken)
                 sizes.append(import_photo(path, images, name))
@@ -175,7 +184,7 @@ def _import(capture: Capture, images: Path, config: ProcessConfig, console: Cons
     total = sum(counts)
     several = len(capture.files) > 1
     videos: list[list[str]] = []
-    with _bar(console, "frames", total or None) as advance:
+    with stage_progress(console, log, "frames", total or None, "frames read") as advance:
         for video, count in zip(capture.files, counts):
             # each video's share of --num-frames follows its length (equal shares when unknown)
             wanted = round(config.num_frames * count / total) if total else config.num_frames // len(counts)
@@ -196,9 +205,9 @@ def choose_matching(config: ProcessConfig, capture: Capture, n_images: int) -> t
         return config.matching, "--matching"
     if capture.kind == "videos":
         return "sequential", "video frames; --matching to choose"
-    if n_images <= sfm.EXHAUSTIVE_MAX_IMAGES:
-        return "exhaustive", f"{n_images} photos, up to {sfm.EXHAUSTIVE_MAX_IMAGES}; --matching to choose"
-    return "sequential", f"{n_images} photos, over {sfm.EXHAUSTIVE_MAX_IMAGES}, in name order; --matching to choose"
+    if n_images < RETRIEVAL_FROM:
+        return "exhaustive", f"{n_images} photos, under {RETRIEVAL_FROM}; --matching to choose"
+    return "retrieval", f"{n_images} photos, {RETRIEVAL_FROM} or more; --matching to choose"
 
 
 def _keep_largest(models: dict, mapped: Path, out: Path) -> tuple[object, list[int]]:
@@ -221,6 +230,141 @@ def _keep_largest(models: dict, mapped: Path, out: Path) -> tuple[object, list[i
     return pycolmap.Reconstruction(str(kept)), [models[k].num_reg_images() for k in order[1:]]
 
 
+def _match(matching: str, layout: _Layout, database: Path, out: Path, capture: Capture, threads: int,
+           console: Console, log: StageLog) -> dict:
+    """Match the pairs ``matching`` chooses; returns what the stage records (pairs, order)."""
+    if matching == "spatial":
+        if sfm.pose_prior_count(database) == 0:
+            raise DataError(capture.where, "--matching spatial needs GPS positions in the photos' EXIF "
+                            "and these have none; use --matching exhaustive, retrieval or sequential")
+        with stage_progress(console, log, "matching", 1, "calls") as advance:
+            sfm.match_spatial(database, threads)
+            advance(1)
+        return {}
+    extra: dict = {}
+    if matching == "exhaustive":
+        pairs = sfm.exhaustive_pairs(layout.names)
+    elif matching == "retrieval":
+        log.line("retrieval: a vocabulary from the capture's own features")
+        pairs, _, ordered = retrieval.plan_pairs(database, layout.names, sequential_overlap=sfm.SEQUENTIAL_OVERLAP)
+        extra["ordered"] = bool(ordered)
+        log.line(f"retrieval: {len(pairs)} pairs of {len(layout.names) * (len(layout.names) - 1) // 2}"
+                 f" (names {'are' if ordered else 'are not'} the capture order)")
+    else:
+        pairs = sfm.video_pairs(layout.videos) if layout.videos else sfm.sequential_pairs(layout.names)
+    with stage_progress(console, log, "matching", len(pairs), "pairs") as advance:
+        sfm.match_pairs(database, pairs, out / "pairs.txt", threads, advance)
+    (out / "pairs.txt").unlink(missing_ok=True)
+    return {"pairs": len(pairs), **extra}
+
+
+def _second_round(layout: _Layout, database: Path, out: Path, rec, threads: int, console: Console,
+                  log: StageLog) -> int:
+    """Retrieval's second round: the photos left unregistered, or registered on few points, are
+    matched with more of their most similar photos. Returns the pairs it matched (0: none)."""
+    registered = {im.name: im.num_points3D for im in rec.images.values() if im.has_pose}
+    median = sorted(registered.values())[len(registered) // 2] if registered else 0
+    weak = [n for n in layout.names if registered.get(n, 0) < max(checks.WEAK_POINTS, 0.1 * median)]
+    if not weak:
+        return 0
+    _, sim, _ = retrieval.plan_pairs(database, layout.names)  # the same plan again: it is deterministic
+    pairs = retrieval.more_pairs(layout.names, sim, weak, SECOND_ROUND_TOP_K, sfm.matched_pairs(database))
+    if pairs:
+        log.line(f"retrieval, second round: {len(weak)} photos unregistered or weak, {len(pairs)} more pairs")
+        with stage_progress(console, log, "matching+", len(pairs), "pairs") as advance:
+            sfm.match_pairs(database, pairs, out / "pairs.txt", threads, advance)
+        (out / "pairs.txt").unlink(missing_ok=True)
+    return len(pairs)
+
+
+def _map(layout: _Layout, database: Path, images: Path, out: Path, mapper: str, config: ProcessConfig,
+         threads: int, console: Console, log: StageLog, folder: str) -> dict:
+    """Map ``database`` with ``mapper`` into ``out/folder``; the models found (empty: none)."""
+    mapped = out / folder
+    shutil.rmtree(mapped, ignore_errors=True)
+    with stage_progress(console, log, f"mapping ({mapper})", len(layout.names), "registered") as advance:
+        models = sfm.map_scene(database, images, mapped, mapper, threads, config.deterministic, advance)
+        # the callbacks also count images of models that are dropped: show the kept one's
+        advance(0, completed=max((m.num_reg_images() for m in models.values()), default=0))
+    shutil.rmtree(mapped, ignore_errors=True)  # the models are in memory; _keep_largest writes one
+    return models
+
+
+def _best(models: dict):
+    """The model with the most registered images (None: no model)."""
+    return max(models.values(), key=lambda m: m.num_reg_images()) if models else None
+
+
+class _Attempt:
+    """One mapping of the capture: how it was made, its models and what the checks found."""
+
+    def __init__(self, how: str, mapper: str, models: dict, found: checks.ModelChecks | None) -> None:
+        self.how, self.mapper, self.models, self.found = how, mapper, models, found
+
+    def score(self) -> tuple[int, int]:
+        """Fewer suspect images first, then more images registered that are not suspect."""
+        if not self.models or self.found is None:
+            return (10 ** 9, 0)
+        return (len(self.found.suspect), -(_best(self.models).num_reg_images() - len(self.found.suspect)))
+
+
+def _mapping(layout: _Layout, database: Path, images: Path, out: Path, matching: str, ordered: bool | None,
+             config: ProcessConfig, threads: int, console: Console, log: StageLog) -> dict:
+    """Map, check the model, remedy a failed one; writes ``sparse/0`` (and ``other_models/``) and
+    returns what the stage records: the mapper and pairs kept, every attempt's checks, the images
+    left out.
+
+    The remedies, in order, until a model passes: (1) for a capture with an order, map again from
+    the matches between neighbours only (``sfm.window_database``); (2) the other mapper on all the
+    matches. The attempt with the fewest suspect images is kept, and with ``remedy`` its suspect
+    images are left out of the dataset."""
+    def attempt(how: str, mapper: str, db: Path) -> _Attempt:
+        models = _map(layout, db, images, out, mapper, config, threads, console, log, ".mapping")
+        # every attempt is checked against all the matches, whichever it was mapped from
+        found = checks.check_model(_best(models), layout.names, database, ordered) if models else None
+        for line in checks.check_lines(found, _best(models).num_reg_images()) if found else ["no model"]:
+            log.line(f"{how}, {mapper}: {line}")
+        return _Attempt(how, mapper, models, found)
+
+    first = attempt(f"{matching} pairs", config.mapper, database)
+    if matching == "retrieval" and first.models and _second_round(layout, database, out, _best(first.models),
+                                                                  threads, console, log):
+        first = attempt(f"{matching} pairs, second round", config.mapper, database)
+    attempts = [first]
+    if config.remedy and first.found is not None and not first.found.passed:
+        console.print(f"note: the model fails its checks ({len(first.found.suspect)} suspect images: "
+                      f"{_first_names(first.found.suspect)}); trying to remedy it")
+        window_db = out / "database-window.db"
+        if first.found.ordered and sfm.window_database(database, window_db, layout.names):
+            attempts.append(attempt(f"neighbour pairs (window {sfm.SEQUENTIAL_OVERLAP})", config.mapper, window_db))
+        window_db.unlink(missing_ok=True)
+        if attempts[-1].found is None or not attempts[-1].found.passed:
+            other = "global" if config.mapper == "incremental" else "incremental"
+            attempts.append(attempt(f"{matching} pairs", other, database))
+    kept = min(attempts, key=_Attempt.score)  # the first of equals: the plain attempt
+    if not kept.models:
+        raise DataError(out, f"no model could be built from the {len(layout.names)} images: too few "
+                        "matches; try photos with more overlap, --matching exhaustive or --mapper global")
+    rec, others = _keep_largest(kept.models, out / ".mapping", out)
+    left_out: list[str] = []
+    if config.remedy and not kept.found.passed:
+        left_out = kept.found.suspect
+        checks.leave_out(rec, left_out)
+        rec.write(str(out / "sparse" / "0"))
+    if len(attempts) > 1:
+        console.print(f"note: kept the model from {kept.how} with the {kept.mapper} mapper "
+                      f"({len(kept.found.suspect)} suspect images)")
+    return {"mapper": kept.mapper, "pairs_kept": kept.how, "checks": kept.found.to_dict(), "left_out": left_out,
+            "attempts": [{"how": a.how, "mapper": a.mapper,
+                          "registered": _best(a.models).num_reg_images() if a.models else 0,
+                          "suspect": len(a.found.suspect) if a.found else None} for a in attempts],
+            "other_models": others}
+
+
+def _first_names(names: list[str], most: int = 4) -> str:
+    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
+
+
 def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None = None,
                     console: Console | None = None, replace_other: bool = False, summary: bool = True) -> dict:
     """Pose ``inputs`` into the COLMAP dataset ``out``; returns the report (also written to
@@ -234,69 +378,56 @@ def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None 
     capture = find_capture([Path(p).expanduser() for p in inputs])
     out = Path(out).expanduser()
     state = claim_output(out, capture, input_key(capture), replace_other)
+    log = StageLog(out, console)
     threads = config.num_threads or default_threads()
-    matching_key = {"matching": config.matching}
     stages = _Stages(out, state, {
         "import": {"num_frames": config.num_frames if capture.kind == "videos" else None},
         "features": {"max_image_size": config.max_image_size, "camera_model": config.camera_model},
-        "matching": matching_key,
-        "mapping": {"mapper": config.mapper},
+        "matching": {"matching": config.matching},
+        "mapping": {"mapper": config.mapper, "remedy": config.remedy, "deterministic": config.deterministic},
     })
     images, database = out / "images", out / DATABASE_NAME
     if not stages.done("import"):
         start = time.perf_counter()
-        layout = _import(capture, images, config, console)
+        layout = _import(capture, images, config, console, log)
         stages.finish("import", time.perf_counter() - start, layout=asdict(layout))
     layout = _Layout(**state["stages"]["import"]["layout"])
+    matching, why = choose_matching(config, capture, len(layout.names))
     with sfm.colmap_logs(config.verbose):
         if not stages.done("features"):
             database.unlink(missing_ok=True)
+            state.pop("matches_in_database", None)
             start = time.perf_counter()
             mode = sfm.camera_mode(bool(layout.videos) and len(layout.videos) > 1, [tuple(s) for s in layout.sizes])
-            with _bar(console, "features", len(layout.names)) as advance:
+            with stage_progress(console, log, "features", len(layout.names), "images") as advance:
                 sfm.extract(database, images, layout.names, mode, config.camera_model, config.max_image_size,
                             threads, advance)
             stages.finish("features", time.perf_counter() - start)
-        matching, why = choose_matching(config, capture, len(layout.names))
         if not stages.done("matching"):
             console.print(f"matching: {matching} ({why})")
+            log.line(f"matching: {matching} ({why})")
             start = time.perf_counter()
-            if matching == "spatial":
-                if sfm.pose_prior_count(database) == 0:
-                    raise DataError(capture.where, "--matching spatial needs GPS positions in the photos' EXIF "
-                                    "and these have none; use --matching exhaustive or sequential")
-                with _bar(console, "matching", 1) as advance:
-                    sfm.match_spatial(database, threads)
-                    advance(1)
-            else:
-                if matching == "exhaustive":
-                    pairs = sfm.exhaustive_pairs(layout.names)
-                else:
-                    pairs = sfm.video_pairs(layout.videos) if layout.videos else sfm.sequential_pairs(layout.names)
-                with _bar(console, "matching", len(pairs)) as advance:
-                    sfm.match_pairs(database, pairs, out / "pairs.txt", threads, advance)
-                (out / "pairs.txt").unlink(missing_ok=True)
-            stages.finish("matching", time.perf_counter() - start)
+            if state.get("matches_in_database") != matching:  # another --matching's pairs would stay
+                sfm.clear_matches(database)
+                state["matches_in_database"] = matching
+                _write_state(out, state)
+            recorded = _match(matching, layout, database, out, capture, threads, console, log)
+            stages.finish("matching", time.perf_counter() - start, **recorded)
         if not stages.done("mapping"):
             start = time.perf_counter()
-            mapped = out / ".mapping"
-            shutil.rmtree(mapped, ignore_errors=True)
-            with _bar(console, "mapping", len(layout.names)) as advance:
-                models = sfm.map_scene(database, images, mapped, config.mapper, threads, advance)
-                # the callbacks also count images of models that are dropped: show the kept one's
-                advance(0, completed=max((m.num_reg_images() for m in models.values()), default=0))
-            if not models:
-                raise DataError(out, f"no model could be built from the {len(layout.names)} images: too few "
-                                "matches; try photos with more overlap, --matching exhaustive or --mapper global")
-            _, others = _keep_largest(models, mapped, out)
-            stages.finish("mapping", time.perf_counter() - start, other_models=others)
+            # video frames are in capture order; photos: retrieval said, or the checks decide
+            ordered = True if layout.videos else state["stages"]["matching"].get("ordered")
+            recorded = _mapping(layout, database, images, out, matching, ordered, config, threads, console, log)
+            stages.finish("mapping", time.perf_counter() - start, **recorded)
+    mapped = state["stages"]["mapping"]
     rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
-    settings = {**asdict(config), "matching": matching, "threads": threads}
+    settings = {**asdict(config), "matching": matching, "mapper": mapped.get("mapper", config.mapper),
+                "threads": threads}
     settings.pop("verbose")
-    report = model_report(rec, layout.names, state["stages"]["mapping"].get("other_models", []),
-                          stages.seconds(), settings)
+    report = model_report(rec, layout.names, mapped.get("other_models", []), stages.seconds(), settings,
+                          mapped.get("checks"), mapped.get("left_out", []))
     write_report(report, out)
-    plot_top_view(rec, out / PLOT_NAME)
+    plot_top_view(rec, out / PLOT_NAME, suspect=mapped.get("checks", {}).get("suspect", []))
     for line in summary_lines(report) if summary else ():
         print(line, flush=True)
     if report["registered"] < MIN_REGISTERED_SHARE * report["images_in"]:

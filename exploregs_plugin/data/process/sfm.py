@@ -11,12 +11,13 @@ from __future__ import annotations
 import contextlib
 import itertools
 import math
+import shutil
 from pathlib import Path
 from typing import Callable, Iterator, Literal, Sequence
 
 import pycolmap
 
-Matching = Literal["exhaustive", "sequential", "spatial"]
+Matching = Literal["exhaustive", "sequential", "spatial", "retrieval"]
 Mapper = Literal["incremental", "global"]
 EXHAUSTIVE_MAX_IMAGES = 300
 """Above this many photos, exhaustive matching (n^2 / 2 pairs) gives way to sequential."""
@@ -142,22 +143,62 @@ def match_spatial(database: Path, threads: int) -> None:
                            verification_options=verification_options(), device=pycolmap.Device.cpu)
 
 
-def map_scene(database: Path, image_dir: Path, out_dir: Path, mapper: Mapper, threads: int,
+def map_scene(database: Path, image_dir: Path, out_dir: Path, mapper: Mapper, threads: int, deterministic: bool,
               on_registered: Callable[[int], None]) -> dict[int, pycolmap.Reconstruction]:
     """Every model the mapper finds, written to ``out_dir/<index>``; ``on_registered(n)`` reports
-    the images the incremental mapper registers (the global one reports nothing until done)."""
+    the images the incremental mapper registers (the global one reports nothing until done).
+
+    ``deterministic``: the pipeline, which runs bundle adjustment, on one thread. Bundle
+    adjustment's sums on several threads come in a varying order: on two threads 12 photos gave
+    444, 505 or 710 points from run to run (incremental), or the same points at other bits
+    (global). On one thread the model is the same bits for any ``threads``; the mapper inside
+    keeps ``threads``. Off by default: it is speed the user pays for and does not see."""
     out_dir.mkdir(parents=True, exist_ok=True)
-    pycolmap.set_random_seed(0)  # the same capture gives the same model
-    # The pipelines' own threads run bundle adjustment, whose sums on several threads come in a
-    # varying order: on two threads 12 photos gave 444, 505 or 710 points from run to run
-    # (incremental), or the same points at other bits (global). With the pipeline on one thread the
-    # model is the same bits for any --num-threads; the mapper inside keeps ``threads``.
+    pycolmap.set_random_seed(0)  # the same capture gives the same model (up to thread order)
     pipeline = pycolmap.GlobalPipelineOptions() if mapper == "global" else pycolmap.IncrementalPipelineOptions()
     options = with_threads(pipeline, threads)
     options.random_seed = 0
-    options.num_threads = 1
+    options.num_threads = 1 if deterministic else threads
     if mapper == "global":
         return pycolmap.global_mapping(database, image_dir, out_dir, options=options)
     return pycolmap.incremental_mapping(database, image_dir, out_dir, options=options,
                                         initial_image_pair_callback=lambda: on_registered(2),
                                         next_image_callback=lambda: on_registered(1))
+
+
+def clear_matches(database: Path) -> None:
+    """Remove every match and two-view geometry (the features stay)."""
+    with pycolmap.Database.open(database) as db:
+        db.clear_matches()
+        db.clear_two_view_geometries()
+
+
+def matched_pairs(database: Path) -> set[frozenset]:
+    """The unordered name pairs the database has matched (verified or not)."""
+    with pycolmap.Database.open(database) as db:
+        names = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, _ = db.read_two_view_geometries()
+    return {frozenset(names[i] for i in pycolmap.pair_id_to_image_pair(p)) for p in pair_ids}
+
+
+def window_database(database: Path, target: Path, names: Sequence[str], window: int = SEQUENTIAL_OVERLAP) -> int:
+    """A copy of ``database`` at ``target`` that keeps only the matches between images at most
+    ``window`` apart in ``names`` (capture order); returns how many pairs it dropped.
+
+    The remedy for a capture with an order whose model failed its checks: a long-range pair
+    between two views of repeated or symmetric structure (the two sides of a can on a tiled
+    floor) can verify as well as a true one and fold a run of cameras onto the wrong side; the
+    neighbours of a walk or a video overlap for real."""
+    shutil.copyfile(database, target)
+    rank = {n: i for i, n in enumerate(names)}
+    dropped = 0
+    with pycolmap.Database.open(target) as db:
+        ids = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, _ = db.read_two_view_geometries()
+        for pair_id in pair_ids:
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            if abs(rank.get(ids[a], -10 ** 9) - rank.get(ids[b], 10 ** 9)) > window:
+                db.delete_two_view_geometry(a, b)
+                db.delete_matches(a, b)
+                dropped += 1
+    return dropped
