@@ -37,7 +37,7 @@ DESCRIPTORS_PER_WORD = 100
 """A word is the mean of about this many sample descriptors: far fewer and a word is one feature
 (the vocabulary is as big as the sample and words stop being shared between images)."""
 MAX_WORDS = 1024
-"""Vocabulary size for a full sample (100,000 / 100). On a 71-frame video capture (beer, 1500
+"""Most words (a full sample of 100,000 gives 1000). On a 71-frame video capture (beer, 1500
 descriptors a frame) 1024 words found 98% of the pairs that verified with >= 100 inliers at
 top_k 20, 512 and 2048 words 96%; and k-means costs words x sample x iterations."""
 TOP_K = 20
