@@ -31,7 +31,7 @@ N_VIEWS = 24
 WIDTH, HEIGHT = 320, 240
 PALETTE = np.array([[0.9, 0.1, 0.1], [0.1, 0.6, 0.9], [0.95, 0.85, 0.1], [0.1, 0.7, 0.3],
                     [0.6, 0.2, 0.7], [0.95, 0.95, 0.95], [0.1, 0.1, 0.1]])
-CONFIG = ProcessConfig(num_threads=2)
+CONFIG = ProcessConfig(num_threads=2, deterministic=True)  # the same model on every run
 
 
 def render_capture(folder: Path, n_views: int = N_VIEWS, arc_deg: float = 120.0) -> tuple[list[np.ndarray], np.ndarray]:
@@ -521,6 +521,8 @@ def test_the_checks_pass_a_right_model_and_flag_one_broken_on_purpose(processed,
     assert report["checks"]["passed"] and report["checks"]["orbit"] and report["checks"]["ordered"]
     assert report["checks"]["suspect"] == [] and report["left_out"] == []
     quarter = names[N_VIEWS // 2: N_VIEWS // 2 + N_VIEWS // 4]
+    right = checks.check_model(pycolmap.Reconstruction(str(out / "sparse" / "0")), names, out / "database.db")
+    assert right.passed and right.pairs_checked > 50
     for how in ("mirrored", "misplaced"):
         broken = pycolmap.Reconstruction(str(_break(out, tmp_path / how, how)))
         found = checks.check_model(broken, names, out / "database.db")
@@ -530,8 +532,7 @@ def test_the_checks_pass_a_right_model_and_flag_one_broken_on_purpose(processed,
         if how == "mirrored":
             assert found.looks_away == quarter
         # the broken cameras contradict their matches with the rest
-        assert set(found.disagrees) & set(quarter), how
-    assert checks.check_model(pycolmap.Reconstruction(str(out / "sparse" / "0")), names, out / "database.db").passed
+        assert found.pairs_contradicted >= right.pairs_contradicted + 5, (how, found.pairs_contradicted)
 
 
 def _remap_with(processed, tmp_path, monkeypatch, broken_calls: int, capsys):
@@ -553,7 +554,7 @@ def _remap_with(processed, tmp_path, monkeypatch, broken_calls: int, capsys):
     monkeypatch.setattr(sfm, "map_scene", mapper)
     capsys.readouterr()
     report = process_capture([Path(json.loads((out / "process_state.json").read_text())["input"][0][0]).parent],
-                             copy, replace(CONFIG, deterministic=True))
+                             copy, replace(CONFIG, mapper="incremental"))
     return report, capsys.readouterr(), calls, copy
 
 
@@ -613,7 +614,7 @@ def test_retrieval_matching_poses_the_capture_from_fewer_pairs(capture, processe
     cams, reference = colmap_cameras(out), dict(zip([f"{i:04d}.png" for i in range(N_VIEWS)], capture[2]))
     assert agreement(cams, reference)["within"] == N_VIEWS
     log = (out / "process.log").read_text()
-    assert "matching: started" in log and "mapping (incremental): 24 of 24 registered" in log
+    assert "matching: started" in log and "mapping (global): 24 registered" in log and "(done)" in log
 
 
 def test_auto_matching_retrieves_pairs_from_the_crossover_on():
@@ -625,3 +626,94 @@ def test_auto_matching_retrieves_pairs_from_the_crossover_on():
     assert choose_matching(ProcessConfig(), photos, RETRIEVAL_FROM)[0] == "retrieval"
     assert choose_matching(ProcessConfig(), video, 1000)[0] == "sequential"
     assert choose_matching(ProcessConfig(matching="exhaustive"), photos, 1000)[0] == "exhaustive"
+
+
+def test_progress_goes_to_the_log_and_to_a_console_that_is_not_a_terminal(tmp_path, monkeypatch):
+    import io
+    import time as time_
+
+    from rich.console import Console
+
+    from exploregs_plugin.data.process import progress
+
+    monkeypatch.setattr(progress, "LINE_SECONDS", 0.05)
+    printed = io.StringIO()
+    console = Console(file=printed, force_terminal=False)
+    log = progress.StageLog(tmp_path, console)
+    with progress.stage_progress(console, log, "mapping (global)", 10, "registered") as update:
+        time_.sleep(0.3)  # a mapper that reports nothing for a while: the lines still come
+        update(0, completed=7)
+    lines = (tmp_path / progress.LOG_NAME).read_text().splitlines()
+    assert lines[0].endswith("mapping (global): started, 10 registered")
+    assert sum("mapping (global): 0 of 10 registered" in line for line in lines) >= 2
+    assert lines[-1].endswith("mapping (global): 7 of 10 registered, 0 s (done)")
+    assert "mapping (global): 7 of 10 registered, 0 s (done)" in printed.getvalue()
+    assert "━" not in printed.getvalue()  # no bar off a terminal
+    assert progress.elapsed_text(190.4) == "3 min 10 s" and progress.elapsed_text(42) == "42 s"
+
+
+def test_the_top_view_frames_the_cameras_and_the_points_near_them():
+    from exploregs_plugin.data.process.report import frame_of
+
+    az = np.linspace(0.0, 2.0 * np.pi, 30, endpoint=False)
+    cams = 3.0 * np.stack([np.cos(az), np.sin(az)], axis=1)
+    rng = np.random.default_rng(0)
+    near = rng.normal(scale=0.5, size=(500, 2))
+    far = rng.uniform(-50.0, 50.0, size=(300, 2))  # a room's walls, 50 units out
+    low, high = frame_of(cams, np.concatenate([near, far]))
+    assert (low <= cams.min(0)).all() and (high >= cams.max(0)).all()
+    assert (high - low).max() < 8.0  # a ring of radius 3, not the walls
+
+
+def test_reading_a_folded_colmap_model_for_training_warns(processed, tmp_path):
+    import warnings
+
+    from exploregs_plugin.data.colmap import read_colmap
+    from exploregs_plugin.data.parsed import ParseOptions
+
+    out, _ = processed
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # the right model reads without a word
+        read_colmap(out, ParseOptions())
+    folded = tmp_path / "folded"
+    shutil.copytree(out / "images", folded / "images")
+    _break(out, folded / "sparse" / "0", "mirrored")
+    with pytest.warns(UserWarning, match=r"poses look folded \(2 jumps along the name order .* 6 cameras looking "
+                                         r"away .*6 of 24 cameras suspect\).*eg-process"):
+        read_colmap(folded, ParseOptions())
+
+
+def test_retrievals_second_round_matches_a_photo_left_unregistered(processed, tmp_path, monkeypatch):
+    import pycolmap
+    from rich.console import Console
+
+    from exploregs_plugin.data.process import retrieval, run
+    from exploregs_plugin.data.process.progress import StageLog
+
+    out, _ = processed
+    real_plan = retrieval.plan_pairs
+
+    def plan_without_it(*args, **kwargs):  # as if the first round had retrieved no pair of it
+        plan = real_plan(*args, **kwargs)
+        return plan._replace(pairs=[p for p in plan.pairs if alone not in p])
+
+    monkeypatch.setattr(retrieval, "plan_pairs", plan_without_it)
+    copy = tmp_path / "dataset"
+    shutil.copytree(out, copy)
+    alone = "0012.png"
+    with pycolmap.Database.open(copy / "database.db") as db:  # as if no pair of it had been matched
+        ids = {im.name: im.image_id for im in db.read_all_images()}
+        for name, other in ids.items():
+            if name != alone:
+                db.delete_matches(ids[alone], other)
+                db.delete_two_view_geometry(ids[alone], other)
+    rec = pycolmap.Reconstruction(str(copy / "sparse" / "0"))
+    checks.leave_out(rec, [alone])
+    layout = run._Layout(names=[f"{i:04d}.png" for i in range(N_VIEWS)], videos=[], sizes=[])
+    matched = run._second_round(layout, copy / "database.db", copy, rec, 2, Console(quiet=True),
+                                StageLog(copy, Console(quiet=True)))
+    # the photo with no registration gets its most similar photos (all 23 here), nothing else
+    done = sfm.matched_pairs(copy / "database.db")
+    assert matched == N_VIEWS - 1 and all(frozenset((alone, n)) in done for n in layout.names if n != alone)
+    assert run._second_round(layout, copy / "database.db", copy, rec, 2, Console(quiet=True),
+                             StageLog(copy, Console(quiet=True))) == 0  # its pairs are done now

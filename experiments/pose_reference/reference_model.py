@@ -39,7 +39,7 @@ def main() -> None:
         with Image.open(next(images.iterdir())) as im:
             width, height = im.size
         focal = f * width / w
-        camera = pycolmap.Camera.create(1, pycolmap.CameraModelId.PINHOLE, focal, width, height)
+        camera = pycolmap.Camera.create_from_model_id(1, pycolmap.CameraModelId.PINHOLE, focal, width, height)
         camera.params = [focal, focal * height / h * w / width, width / 2.0, height / 2.0]
     else:
         poses = colmap_cameras(args.reference)
@@ -59,10 +59,13 @@ def main() -> None:
     (args.out / "sparse" / "0").mkdir(parents=True, exist_ok=True)
     if not (args.out / "images").exists():
         shutil.copytree(images, args.out / "images")
-    # the database's cameras are eg-process's estimates; the reference's own camera is kept in rec
     work = args.out / "triangulation"
     work.mkdir(exist_ok=True)
     shutil.copyfile(args.posed / "database.db", work / "database.db")
+    with pycolmap.Database.open(work / "database.db") as db:  # the copy's cameras become the reference's
+        for cam in db.read_all_cameras():
+            camera.camera_id = cam.camera_id
+            db.update_camera(camera)
     result = pycolmap.triangulate_points(rec, work / "database.db", images, work / "model")
     result.write(str(args.out / "sparse" / "0"))
     shutil.rmtree(work)

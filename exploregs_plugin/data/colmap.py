@@ -21,6 +21,7 @@ from .camera_prep import check_camera, check_pose, prepare_image, source_image
 from .errors import DataError, dataset_folder
 from .images import IMAGE_SUFFIXES
 from .parsed import ImageRecord, ParsedScene, ParseOptions
+from .process.checks import folded_warning
 
 MODEL_FILES = ("cameras", "images", "points3D")
 
@@ -301,6 +302,9 @@ def read_colmap(root: Path, options: ParseOptions) -> ParsedScene:
         record = prepare_image(root, im.name, path, camera, viewmat, options, expect_size=expect)
         records.append(attach_extras(root, record))
     _warn_unused_images(root / "images", {im.name for im in images})
+    folded = folded_warning(rec, sparse)
+    if folded:
+        warnings.warn(folded, stacklevel=2)
     points, rgb = _points(rec, sparse)
     if points is None:
         warnings.warn(f"{sparse}: the COLMAP model has no 3D points; using random initialisation",

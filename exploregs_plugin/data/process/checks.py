@@ -265,14 +265,10 @@ def _linked_pairs(database: Path) -> set[frozenset]:
     return out
 
 
-def check_model(rec: pycolmap.Reconstruction, names: list[str], database: Path,
-                ordered: bool | None = None) -> ModelChecks:
-    """Run every check on ``rec`` (images ``names`` in capture order; ``database`` holds the
-    matches it was mapped from). ``ordered``: whether names are a capture order (video frames:
-    True); None decides from the matches."""
+def check_poses(rec: pycolmap.Reconstruction, names: list[str], ordered: bool) -> ModelChecks:
+    """The checks that need only the model: looks away, jumps (when ``ordered``: ``names`` are a
+    capture order) and weak images."""
     images = _registered(rec, names)
-    if ordered is None:
-        ordered = _is_ordered(images, _linked_pairs(database))
     centres = np.array([im.projection_center() for im in images]).reshape(-1, 3)
     axes = np.array([im.viewing_direction() for im in images]).reshape(-1, 3)
     checks = ModelChecks(ordered=ordered, orbit=False)
@@ -283,9 +279,6 @@ def check_model(rec: pycolmap.Reconstruction, names: list[str], database: Path,
             checks.orbit = bool(np.median(cos) >= ORBIT_MEDIAN_COS)
             if checks.orbit:
                 checks.looks_away = sorted(im.name for im, c in zip(images, cos) if c < LOOK_AWAY_COS)
-    pairs = _verified_pairs(database, rec)
-    checks.pairs_checked = len(pairs)
-    checks.disagrees, checks.pairs_contradicted = _disagreeing(rec, pairs)
     if ordered:
         rotations = np.array([_pose(im)[0] for im in images]).reshape(-1, 3, 3)
         jumps = find_jumps(centres, rotations)
@@ -296,6 +289,40 @@ def check_model(rec: pycolmap.Reconstruction, names: list[str], database: Path,
         floor = max(WEAK_POINTS, 0.1 * float(np.median(counts)))
         checks.weak = sorted(im.name for im, c in zip(images, counts) if c < floor)
     return checks
+
+
+def check_model(rec: pycolmap.Reconstruction, names: list[str], database: Path,
+                ordered: bool | None = None) -> ModelChecks:
+    """Run every check on ``rec`` (images ``names`` in capture order; ``database`` holds the
+    matches it was mapped from). ``ordered``: whether names are a capture order (video frames:
+    True); None decides from the matches."""
+    if ordered is None:
+        ordered = _is_ordered(_registered(rec, names), _linked_pairs(database))
+    checks = check_poses(rec, names, ordered)
+    pairs = _verified_pairs(database, rec)
+    checks.pairs_checked = len(pairs)
+    checks.disagrees, checks.pairs_contradicted = _disagreeing(rec, pairs)
+    return checks
+
+
+def folded_warning(rec: pycolmap.Reconstruction, where: object) -> str | None:
+    """A warning for a COLMAP model read for training whose camera path looks folded (cameras
+    that look away from an orbit's centre, or jumps along the name order), else None. Photos in
+    random name order make no jumps (every step is as long as the median), so name order is
+    taken as the capture order."""
+    names = sorted(im.name for im in rec.images.values() if im.has_pose)
+    found = check_poses(rec, names, ordered=True)
+    if found.passed:
+        return None
+    parts = []
+    if found.jumps:
+        shown = ", ".join(f"{a} -> {b}" for a, b in found.jumps[:3]) + (" ..." if len(found.jumps) > 3 else "")
+        parts.append(f"{len(found.jumps)} jumps along the name order ({shown})")
+    if found.looks_away:
+        parts.append(f"{len(found.looks_away)} cameras looking away from the others' common centre")
+    return (f"{where}: the camera poses look folded ({'; '.join(parts)}; {len(found.suspect)} of {len(names)} "
+            "cameras suspect): repeated or symmetric structure can fold a model; the photos can be posed again "
+            "with `eg-process IMAGES --out NEW`, which checks and remedies this")
 
 
 def leave_out(rec: pycolmap.Reconstruction, names: list[str]) -> int:

@@ -42,13 +42,15 @@ class StageLog:
         self.path, self.console = out / LOG_NAME, console
         self._lock = threading.Lock()
 
-    def line(self, text: str) -> None:
+    def line(self, text: str, show: bool = False) -> None:
+        """``text`` into the log; on the console too when it is not a terminal (where the bars
+        say it), or always with ``show`` (a choice or a note the user should read)."""
         stamped = f"{time.strftime('%Y-%m-%d %H:%M:%S')} {text}"
         with self._lock:
             with open(self.path, "a", encoding="utf-8") as f:
                 f.write(stamped + "\n")
-            if not self.console.is_terminal:
-                self.console.print(text, highlight=False, soft_wrap=True)
+            if show or not self.console.is_terminal:
+                self.console.print(text, highlight=False, soft_wrap=True, markup=False)
 
 
 class _Counter:
@@ -60,7 +62,10 @@ class _Counter:
         self.start = time.perf_counter()
 
     def text(self) -> str:
-        counted = f"{self.done} of {self.total} {self.unit}" if self.total else f"{self.done} {self.unit}"
+        if self.total:
+            counted = f"{self.done} of {self.total} {self.unit}"
+        else:  # a stage that reports nothing until it is done (the global mapper)
+            counted = f"{self.done} {self.unit}" if self.done else "running"
         return f"{self.description}: {counted}, {elapsed_text(time.perf_counter() - self.start)}"
 
 

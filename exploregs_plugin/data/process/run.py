@@ -39,8 +39,12 @@ STATE_NAME = "process_state.json"
 DATABASE_NAME = "database.db"
 STAGES = ("import", "features", "matching", "mapping")
 MIN_REGISTERED_SHARE = 0.5
-RETRIEVAL_FROM = 100
-"""From this many photos on, --matching auto retrieves pairs instead of matching all of them."""
+RETRIEVAL_FROM = 60
+"""From this many photos on, --matching auto retrieves pairs instead of matching all of them. Each
+photo gets its 20 most similar and its next 10, about 30 n / 2 pairs against n (n - 1) / 2, so
+below about 40 photos retrieval matches nearly every pair anyway and adds the vocabulary's cost;
+at beer's 71 it matched 1,229 pairs instead of 2,485 in 10.6 s instead of 18.8 s, with the same
+registration (docs/data.md)."""
 SECOND_ROUND_TOP_K = 2 * retrieval.TOP_K
 """Retrieval's second round matches a weak photo with this many of its most similar photos."""
 
@@ -55,11 +59,11 @@ class ProcessConfig:
     max_image_size: int = 1024
     """SIFT runs on images downscaled to at most this many pixels on the long side."""
     matching: Literal["auto", "exhaustive", "sequential", "spatial", "retrieval"] = "auto"
-    """Which image pairs are matched. auto: sequential for video frames, exhaustive for up to
-    RETRIEVAL_FROM photos, retrieval above; retrieval: each photo with its most similar photos by a
-    vocabulary of the capture's own SIFT features (and its neighbours in name order when that is
-    the capture order); spatial needs GPS positions in the EXIF."""
-    mapper: sfm.Mapper = "incremental"
+    """Which image pairs are matched. auto: sequential for video frames, exhaustive for fewer than
+    60 photos, retrieval from 60 on; retrieval: each photo with its 20 most similar photos by a
+    vocabulary of the capture's own SIFT features (and its next 10 in name order when that is the
+    capture order); spatial needs GPS positions in the EXIF."""
+    mapper: sfm.Mapper = "global"
     """incremental (COLMAP's) or global (GLOMAP's rotation and position averaging). A model that
     fails its checks is mapped again with the other one (--no-remedy: not)."""
     remedy: bool = True
@@ -267,8 +271,10 @@ def _second_round(layout: _Layout, database: Path, out: Path, rec, threads: int,
     weak = [n for n in layout.names if registered.get(n, 0) < max(checks.WEAK_POINTS, 0.1 * median)]
     if not weak:
         return 0
-    _, sim, _ = retrieval.plan_pairs(database, layout.names)  # the same plan again: it is deterministic
-    pairs = retrieval.more_pairs(layout.names, sim, weak, SECOND_ROUND_TOP_K, sfm.matched_pairs(database))
+    # the first round's plan again (it is deterministic): its pairs are done, found or not
+    first, sim, _ = retrieval.plan_pairs(database, layout.names, sequential_overlap=sfm.SEQUENTIAL_OVERLAP)
+    done = {frozenset(p) for p in first} | sfm.matched_pairs(database)
+    pairs = retrieval.more_pairs(layout.names, sim, weak, SECOND_ROUND_TOP_K, done)
     if pairs:
         log.line(f"retrieval, second round: {len(weak)} photos unregistered or weak, {len(pairs)} more pairs")
         with stage_progress(console, log, "matching+", len(pairs), "pairs") as advance:
@@ -282,7 +288,9 @@ def _map(layout: _Layout, database: Path, images: Path, out: Path, mapper: str, 
     """Map ``database`` with ``mapper`` into ``out/folder``; the models found (empty: none)."""
     mapped = out / folder
     shutil.rmtree(mapped, ignore_errors=True)
-    with stage_progress(console, log, f"mapping ({mapper})", len(layout.names), "registered") as advance:
+    # the incremental mapper reports each image it registers; the global one nothing until done
+    total = len(layout.names) if mapper == "incremental" else None
+    with stage_progress(console, log, f"mapping ({mapper})", total, "registered") as advance:
         models = sfm.map_scene(database, images, mapped, mapper, threads, config.deterministic, advance)
         # the callbacks also count images of models that are dropped: show the kept one's
         advance(0, completed=max((m.num_reg_images() for m in models.values()), default=0))
@@ -332,8 +340,8 @@ def _mapping(layout: _Layout, database: Path, images: Path, out: Path, matching:
         first = attempt(f"{matching} pairs, second round", config.mapper, database)
     attempts = [first]
     if config.remedy and first.found is not None and not first.found.passed:
-        console.print(f"note: the model fails its checks ({len(first.found.suspect)} suspect images: "
-                      f"{_first_names(first.found.suspect)}); trying to remedy it")
+        log.line(f"note: the model fails its checks ({len(first.found.suspect)} suspect images: "
+                 f"{_first_names(first.found.suspect)}); trying to remedy it", show=True)
         window_db = out / "database-window.db"
         if first.found.ordered and sfm.window_database(database, window_db, layout.names):
             attempts.append(attempt(f"neighbour pairs (window {sfm.SEQUENTIAL_OVERLAP})", config.mapper, window_db))
@@ -352,8 +360,8 @@ def _mapping(layout: _Layout, database: Path, images: Path, out: Path, matching:
         checks.leave_out(rec, left_out)
         rec.write(str(out / "sparse" / "0"))
     if len(attempts) > 1:
-        console.print(f"note: kept the model from {kept.how} with the {kept.mapper} mapper "
-                      f"({len(kept.found.suspect)} suspect images)")
+        log.line(f"note: kept the model from {kept.how} with the {kept.mapper} mapper "
+                 f"({len(kept.found.suspect)} suspect images)", show=True)
     return {"mapper": kept.mapper, "pairs_kept": kept.how, "checks": kept.found.to_dict(), "left_out": left_out,
             "attempts": [{"how": a.how, "mapper": a.mapper,
                           "registered": _best(a.models).num_reg_images() if a.models else 0,
@@ -404,8 +412,7 @@ def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None 
                             threads, advance)
             stages.finish("features", time.perf_counter() - start)
         if not stages.done("matching"):
-            console.print(f"matching: {matching} ({why})")
-            log.line(f"matching: {matching} ({why})")
+            log.line(f"matching: {matching} ({why})", show=True)
             start = time.perf_counter()
             if state.get("matches_in_database") != matching:  # another --matching's pairs would stay
                 sfm.clear_matches(database)

@@ -174,10 +174,11 @@ def clear_matches(database: Path) -> None:
 
 
 def matched_pairs(database: Path) -> set[frozenset]:
-    """The unordered name pairs the database has matched (verified or not)."""
+    """The unordered name pairs the database holds matches or a two-view geometry for (a pair
+    matched with too few matches leaves no row: the caller adds the pairs it asked for)."""
     with pycolmap.Database.open(database) as db:
         names = {im.image_id: im.name for im in db.read_all_images()}
-        pair_ids, _ = db.read_two_view_geometries()
+        pair_ids = set(db.read_all_matches()[0]) | set(db.read_two_view_geometries()[0])
     return {frozenset(names[i] for i in pycolmap.pair_id_to_image_pair(p)) for p in pair_ids}
 
 
