@@ -303,7 +303,7 @@ def test_a_reconstruction_under_half_registered_is_one_line(capture, tmp_path, c
     report = json.loads((out / REPORT_NAME).read_text())  # written before the error, to look at
     assert 3 <= report["registered"] <= 8 and set(report["not_registered"]) >= {f"noise{i}.png" for i in range(9)}
     assert line == (f"eg-process: error: {out}: only {report['registered']} of 17 images registered (under half); "
-                    "try photos with more overlap, --matching exhaustive or --mapper global")
+                    "try photos with more overlap, --matching exhaustive or the other --mapper")
 
 
 def test_photos_are_imported_upright_heic_included(tmp_path):
@@ -717,3 +717,18 @@ def test_retrievals_second_round_matches_a_photo_left_unregistered(processed, tm
     assert matched == N_VIEWS - 1 and all(frozenset((alone, n)) in done for n in layout.names if n != alone)
     assert run._second_round(layout, copy / "database.db", copy, rec, 2, Console(quiet=True),
                              StageLog(copy, Console(quiet=True))) == 0  # its pairs are done now
+
+
+@pytest.mark.parametrize("mapper", ["global", "incremental"])
+def test_bundle_adjustment_gets_the_threads_unless_deterministic(mapper, tmp_path, monkeypatch):
+    import pycolmap
+
+    seen = []
+    for name in ("global_mapping", "incremental_mapping"):
+        monkeypatch.setattr(pycolmap, name, lambda *a, options, **k: seen.append(
+            (options.num_threads, options.random_seed, options.mapper.num_threads)) or {})
+    for deterministic in (False, True):
+        sfm.map_scene(tmp_path / "db", tmp_path, tmp_path / "out", mapper, 2, deterministic, lambda n: None)
+    # the pipeline (bundle adjustment) on every thread given, or on one for the same bits; the
+    # mapper inside always on the threads given; RANSAC seeded either way
+    assert seen == [(2, 0, 2), (1, 0, 2)]

@@ -64,11 +64,12 @@ class ProcessConfig:
     vocabulary of the capture's own SIFT features (and its next 10 in name order when that is the
     capture order); spatial needs GPS positions in the EXIF."""
     mapper: sfm.Mapper = "global"
-    """incremental (COLMAP's) or global (GLOMAP's rotation and position averaging). A model that
-    fails its checks is mapped again with the other one (--no-remedy: not)."""
+    """global (GLOMAP's rotation and position averaging: a few hundred photos in minutes) or
+    incremental (COLMAP's: slower on a large capture)."""
     remedy: bool = True
-    """When the model fails its checks: map again with the other mapper, keep the model with fewer
-    suspect images, and leave the images still suspect out of the dataset (said in one line)."""
+    """When the model fails its checks (cameras that look away, jumps along the capture order): map
+    again from the neighbours' matches only (an ordered capture), then with the other mapper; keep
+    the model with the fewest suspect images and leave those out of the dataset (one warning)."""
     deterministic: bool = False
     """The same photos give the same model bit for bit on any thread count (bundle adjustment on
     one thread: slower on a large capture)."""
@@ -351,8 +352,9 @@ def _mapping(layout: _Layout, database: Path, images: Path, out: Path, matching:
             attempts.append(attempt(f"{matching} pairs", other, database))
     kept = min(attempts, key=_Attempt.score)  # the first of equals: the plain attempt
     if not kept.models:
+        other = "global" if config.mapper == "incremental" else "incremental"
         raise DataError(out, f"no model could be built from the {len(layout.names)} images: too few "
-                        "matches; try photos with more overlap, --matching exhaustive or --mapper global")
+                        f"matches; try photos with more overlap, --matching exhaustive or --mapper {other}")
     rec, others = _keep_largest(kept.models, out / ".mapping", out)
     left_out: list[str] = []
     if config.remedy and not kept.found.passed:
@@ -439,5 +441,5 @@ def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None 
         print(line, flush=True)
     if report["registered"] < MIN_REGISTERED_SHARE * report["images_in"]:
         raise DataError(out, f"only {report['registered']} of {report['images_in']} images registered "
-                        "(under half); try photos with more overlap, --matching exhaustive or --mapper global")
+                        "(under half); try photos with more overlap, --matching exhaustive or the other --mapper")
     return report
