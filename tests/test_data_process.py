@@ -732,3 +732,16 @@ def test_bundle_adjustment_gets_the_threads_unless_deterministic(mapper, tmp_pat
     # the pipeline (bundle adjustment) on every thread given, or on one for the same bits; the
     # mapper inside always on the threads given; RANSAC seeded either way
     assert seen == [(2, 0, 2), (1, 0, 2)]
+
+
+def test_a_capture_that_skips_is_a_gap_not_a_fold(processed):
+    import pycolmap
+
+    out, _ = processed
+    names = [f"{i:04d}.png" for i in range(N_VIEWS)]
+    rec = pycolmap.Reconstruction(str(out / "sparse" / "0"))
+    checks.leave_out(rec, names[7:18])  # 11 views gone: a step of 12 (57 degrees) where the rest are 1
+    found = checks.check_model(rec, names, out / "database.db", ordered=True)
+    # the long step is there, but the two views' matches agree with it (or they have none)
+    assert found.jumps == [] and found.gaps == [("0006.png", "0018.png")] and found.passed
+    assert checks.folded_warning(rec, "model") is None  # one long step alone does not fold a model

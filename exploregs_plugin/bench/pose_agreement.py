@@ -4,10 +4,11 @@ whose reference poses are published).
 
     python -m exploregs_plugin.bench.pose_agreement outputs/process/bonsai252 REF [--reference-kind llff]
 
-REF is a COLMAP model folder (``sparse/0``, or a dataset that holds one) or an LLFF
-``poses_bounds.npy`` (the Mip-NeRF 360 release's; rows in image-name order of ``--names-from``).
+REF is a COLMAP model folder (``sparse/0``, or a dataset that holds one), a ``transforms.json``,
+or an LLFF ``poses_bounds.npy`` (the Mip-NeRF 360 release's; rows in image-name order of ``--names-from``).
 Prints one table row: cameras compared, within 2 degrees and 2% of the extent, the median and
-largest errors.
+largest errors. Centres are compared after the similarity that most centres agree with;
+orientations after the rotation that best aligns them.
 """
 
 from __future__ import annotations
@@ -57,6 +58,16 @@ def robust_similarity(src: np.ndarray, dst: np.ndarray, extent: float, tolerance
     return best
 
 
+def orientation_alignment(est: np.ndarray, ref: np.ndarray) -> np.ndarray:
+    """The rotation Q minimising sum |Q R_est_i - R_ref_i|_F^2 (the chordal mean of R_ref_i
+    R_est_i^T, projected onto SO(3) by an SVD with the determinant's sign fixed)."""
+    M = np.einsum("vij,vkj->ik", ref, est)
+    U, _, Vt = np.linalg.svd(M)
+    D = np.eye(3)
+    D[2, 2] = np.sign(np.linalg.det(U @ Vt)) or 1.0
+    return U @ D @ Vt
+
+
 def agreement(estimated: dict[str, np.ndarray], reference: dict[str, np.ndarray]) -> dict:
     """Camera-to-world [4, 4] (OpenCV axes) by image name, both; compares the names in both."""
     names = sorted(set(estimated) & set(reference))
@@ -67,8 +78,11 @@ def agreement(estimated: dict[str, np.ndarray], reference: dict[str, np.ndarray]
     extent = max(float(np.linalg.norm(ref[:, None, :3, 3] - ref[None, :, :3, 3], axis=2).max()), 1e-12)
     s, R, t = robust_similarity(est[:, :3, 3], ref[:, :3, 3], extent)
     centre_error = np.linalg.norm(s * est[:, :3, 3] @ R.T + t - ref[:, :3, 3], axis=1) / extent
-    # rotation error: the angle of R_ref^T (R R_est), trace = 1 + 2 cos(angle)
-    rel = np.einsum("vji,jk,vkl->vil", ref[:, :3, :3], R, est[:, :3, :3])
+    # rotation error: the angle of R_ref^T (Q R_est), trace = 1 + 2 cos(angle), with Q the rotation
+    # that best aligns the orientations (the chordal mean of R_ref R_est^T, projected onto SO(3)):
+    # the centres of a short arc fix the similarity's rotation poorly about the arc's own axis
+    Q = orientation_alignment(est[:, :3, :3], ref[:, :3, :3])
+    rel = np.einsum("vji,jk,vkl->vil", ref[:, :3, :3], Q, est[:, :3, :3])
     angle = np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
     good = (angle <= ANGLE_DEG) & (centre_error <= EXTENT_SHARE)
     return {
@@ -96,6 +110,14 @@ def colmap_cameras(path: Path) -> dict[str, np.ndarray]:
     return out
 
 
+def transforms_cameras(path: Path) -> dict[str, np.ndarray]:
+    """Camera-to-world [4, 4] in OpenCV axes by file name from a transforms.json (OpenGL axes:
+    c2w_cv = c2w_gl diag(1, -1, -1, 1))."""
+    frames = json.loads(path.read_text())["frames"]
+    flip = np.diag([1.0, -1.0, -1.0, 1.0])
+    return {Path(f["file_path"]).name: np.asarray(f["transform_matrix"], dtype=np.float64) @ flip for f in frames}
+
+
 def llff_cameras(poses_bounds: Path, names: list[str]) -> dict[str, np.ndarray]:
     """Camera-to-world [4, 4] in OpenCV axes from an LLFF ``poses_bounds.npy`` whose rows are the
     sorted ``names``. LLFF's columns are [down, right, backwards]; OpenCV's [right, down, forward]
@@ -115,11 +137,13 @@ def llff_cameras(poses_bounds: Path, names: list[str]) -> dict[str, np.ndarray]:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("estimated", type=Path, help="a posed dataset (eg-process's --out) or a COLMAP model")
-    parser.add_argument("reference", type=Path, help="a COLMAP model or dataset, or a poses_bounds.npy")
+    parser.add_argument("reference", type=Path, help="a COLMAP model or dataset, a transforms.json or a poses_bounds.npy")
     parser.add_argument("--names-from", type=Path, help="for poses_bounds.npy: the folder of all its images")
     args = parser.parse_args(argv)
     estimated = colmap_cameras(args.estimated)
-    if args.reference.suffix == ".npy":
+    if args.reference.suffix == ".json":
+        reference = transforms_cameras(args.reference)
+    elif args.reference.suffix == ".npy":
         names = sorted(p.name for p in args.names_from.iterdir() if p.is_file())
         reference = llff_cameras(args.reference, names)
     else:

@@ -82,6 +82,8 @@ def _check_counts(found: dict) -> str:
              "strong pairs contradicted)"]
     if found["ordered"]:
         parts.append(f"jumps {len(found['jumps'])}")
+        if found.get("gaps"):
+            parts.append(f"gaps {len(found['gaps'])} (long steps the matches do not contradict)")
     parts.append(f"weak {len(found['weak'])}")
     return " (" + ", ".join(parts) + ")"
 
