@@ -745,3 +745,18 @@ def test_a_capture_that_skips_is_a_gap_not_a_fold(processed):
     # the long step is there, but the two views' matches agree with it (or they have none)
     assert found.jumps == [] and found.gaps == [("0006.png", "0018.png")] and found.passed
     assert checks.folded_warning(rec, "model") is None  # one long step alone does not fold a model
+
+
+def test_orientation_alignment_recovers_a_known_rotation():
+    from exploregs_plugin.bench.pose_agreement import orientation_alignment
+
+    rng = np.random.default_rng(3)
+
+    def random_rotation() -> np.ndarray:
+        q, r = np.linalg.qr(rng.normal(size=(3, 3)))
+        q = q * np.sign(np.diag(r))
+        return q * np.sign(np.linalg.det(q))
+
+    Q = random_rotation()
+    est = np.stack([random_rotation() for _ in range(20)])
+    assert np.allclose(orientation_alignment(est, np.einsum("ij,vjk->vik", Q, est)), Q, atol=1e-9)
