@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import re
 from dataclasses import replace
 from pathlib import Path
 
@@ -410,8 +411,6 @@ def test_spatial_matching_without_gps_is_one_line(capture, tmp_path, capsys):
 
 
 def test_pycolmap_logs_are_quiet_unless_verbose(capture, tmp_path, capfd):
-    import re
-
     photos = _subset(capture, tmp_path / "photos", step=4)
     glog_line = re.compile(r"^[IWE]\d{8} ", re.M)  # glog's prefix: level, date
     process_capture([photos], tmp_path / "quiet", CONFIG)
@@ -646,8 +645,8 @@ def test_progress_goes_to_the_log_and_to_a_console_that_is_not_a_terminal(tmp_pa
     lines = (tmp_path / progress.LOG_NAME).read_text().splitlines()
     assert lines[0].endswith("mapping (global): started, 10 registered")
     assert sum("mapping (global): 0 of 10 registered" in line for line in lines) >= 2
-    assert lines[-1].endswith("mapping (global): 7 of 10 registered, 0 s (done)")
-    assert "mapping (global): 7 of 10 registered, 0 s (done)" in printed.getvalue()
+    assert re.search(r"mapping \(global\): 7 of 10 registered, \d+ s \(done\)$", lines[-1])
+    assert re.search(r"mapping \(global\): 7 of 10 registered, \d+ s \(done\)", printed.getvalue())
     assert "━" not in printed.getvalue()  # no bar off a terminal
     assert progress.elapsed_text(190.4) == "3 min 10 s" and progress.elapsed_text(42) == "42 s"
 
