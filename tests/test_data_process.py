@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from exploregs_plugin.bench.pose_agreement import agreement, colmap_cameras, llff_cameras, umeyama
+from exploregs_plugin.bench.pose_agreement import agreement, break_cameras, colmap_cameras, llff_cameras, umeyama
 from exploregs_plugin.data.process import ProcessConfig, process_capture
 from exploregs_plugin.data.process import sfm
 from exploregs_plugin.data.process.inputs import IMAGE_SUFFIXES
@@ -495,20 +495,9 @@ def _break(dataset: Path, target: Path, how: str) -> Path:
     import pycolmap
 
     rec = pycolmap.Reconstruction(str(dataset / "sparse" / "0"))
-    images = sorted((im for im in rec.images.values()), key=lambda im: im.name)
-    centre = np.mean([p.xyz for p in rec.points3D.values()], axis=0)
-    for im in images[N_VIEWS // 2: N_VIEWS // 2 + N_VIEWS // 4]:
-        pose = im.cam_from_world()
-        R, t = pose.rotation.matrix(), pose.translation
-        c = -R.T @ t
-        if how == "mirrored":  # turned 180 degrees about the camera's own down axis: it looks away
-            R = np.diag([-1.0, 1.0, -1.0]) @ R
-        else:  # misplaced: moved by twice the distance to the scene
-            c = c + 2.0 * (c - centre)
-        new = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ c)
-        rec.frame(im.frame_id).rig_from_world = new
+    quarter = [f"{i:04d}.png" for i in range(N_VIEWS // 2, N_VIEWS // 2 + N_VIEWS // 4)]
     target.mkdir(parents=True)
-    rec.write(str(target))
+    break_cameras(rec, quarter, how).write(str(target))
     return target
 
 

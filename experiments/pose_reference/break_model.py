@@ -11,25 +11,10 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-import numpy as np
 import pycolmap
 
+from exploregs_plugin.bench.pose_agreement import break_cameras
 from exploregs_plugin.data.process import checks
-
-
-def broken(rec: pycolmap.Reconstruction, names: list[str], how: str) -> pycolmap.Reconstruction:
-    """A copy of ``rec`` with the cameras ``names`` posed wrong on purpose (``how``)."""
-    out = pycolmap.Reconstruction(rec)
-    centre = np.median([p.xyz for p in out.points3D.values()], axis=0)
-    for im in out.images.values():
-        if im.name not in names:
-            continue
-        R, t = im.cam_from_world().rotation.matrix(), im.cam_from_world().translation
-        c = -R.T @ t
-        R = np.diag([-1.0, 1.0, -1.0]) @ R if how == "mirrored" else R
-        c = c + 2.0 * (c - centre) if how == "misplaced" else c
-        out.frame(im.frame_id).rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ c)
-    return out
 
 
 def main(dataset: Path) -> None:
@@ -39,7 +24,7 @@ def main(dataset: Path) -> None:
     print("| model | suspect | of them broken | looks away | jumps | disagree (warning) | passed |")
     print("|---|---|---|---|---|---|---|")
     for how in ("as posed", "mirrored", "misplaced"):
-        model = rec if how == "as posed" else broken(rec, quarter, how)
+        model = rec if how == "as posed" else break_cameras(rec, quarter, how)
         found = checks.check_model(model, names, dataset / "database.db")
         hit = len(set(found.suspect) & set(quarter)) if how != "as posed" else 0
         label = how if how == "as posed" else f"{how} ({len(quarter)} of {len(names)})"

@@ -134,6 +134,27 @@ def llff_cameras(poses_bounds: Path, names: list[str]) -> dict[str, np.ndarray]:
     return out
 
 
+def break_cameras(rec, names: list[str], how: str):
+    """A copy of the pycolmap model ``rec`` with the cameras ``names`` posed wrong on purpose (what
+    the checks of eg-process must catch): ``mirrored`` turns each 180 degrees about its own down
+    axis (it looks away); ``misplaced`` moves each to twice its distance from the points' median."""
+    import pycolmap
+
+    if how not in ("mirrored", "misplaced"):
+        raise ValueError(f"how: 'mirrored' or 'misplaced', got {how!r}")
+    out = pycolmap.Reconstruction(rec)
+    centre = np.median([p.xyz for p in out.points3D.values()], axis=0)
+    for im in out.images.values():
+        if im.name not in names:
+            continue
+        R, t = im.cam_from_world().rotation.matrix(), im.cam_from_world().translation
+        c = -R.T @ t
+        R = np.diag([-1.0, 1.0, -1.0]) @ R if how == "mirrored" else R
+        c = c + 2.0 * (c - centre) if how == "misplaced" else c
+        out.frame(im.frame_id).rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ c)
+    return out
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("estimated", type=Path, help="a posed dataset (eg-process's --out) or a COLMAP model")

@@ -35,6 +35,8 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from .report import shown_names
+
 LOOK_AWAY_COS = 0.5
 """A camera looks away when cos(axis, direction to the common centre) < 0.5 (over 60 degrees)."""
 ORBIT_MEDIAN_COS = 0.8
@@ -195,85 +197,97 @@ def _pose(im) -> tuple[np.ndarray, np.ndarray]:
     return m[:, :3], m[:, 3]
 
 
-def _verified_pairs(database: Path, rec: pycolmap.Reconstruction) -> dict[tuple[str, str], np.ndarray]:
-    """Each image's strongest verified pairs between registered images: (name1, name2) -> the
-    inliers' keypoint coordinates [n, 4] (x1, y1, x2, y2)."""
-    registered = {im.name for im in rec.images.values() if im.has_pose}
-    with pycolmap.Database.open(database) as db:
-        names = {im.image_id: im.name for im in db.read_all_images()}
-        pair_ids, geometries = db.read_two_view_geometries()
-        strong = []
-        for pair_id, geometry in zip(pair_ids, geometries):
+class _Matches:
+    """The database's verified pairs, read once per check: inlier matches by (name1, name2) in
+    the database's id order, and keypoints read on demand from the open database ``db``."""
+
+    def __init__(self, db) -> None:
+        self.db = db
+        self.ids = {im.name: im.image_id for im in db.read_all_images()}
+        names = {i: n for n, i in self.ids.items()}
+        self.inliers = {}
+        for pair_id, geometry in zip(*db.read_two_view_geometries()):
             id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
-            n1, n2 = names.get(id1), names.get(id2)
-            inliers = geometry.inlier_matches
-            if n1 in registered and n2 in registered and len(inliers) >= STRONG_PAIR_INLIERS:
-                strong.append((len(inliers), id1, id2, inliers))
-        # each image keeps its MAX_PAIRS_PER_IMAGE strongest pairs (ties: lower ids first)
-        strong.sort(key=lambda s: (-s[0], s[1], s[2]))
-        kept_per_image: dict[int, int] = {}
-        keypoints: dict[int, np.ndarray] = {}
-        pairs = {}
-        for _, id1, id2, inliers in strong:
-            if max(kept_per_image.get(id1, 0), kept_per_image.get(id2, 0)) >= MAX_PAIRS_PER_IMAGE:
+            self.inliers[(names[id1], names[id2])] = geometry.inlier_matches
+        self._keypoints: dict[str, np.ndarray] = {}
+
+    def keypoints(self, name: str) -> np.ndarray:
+        if name not in self._keypoints:
+            self._keypoints[name] = self.db.read_keypoints(self.ids[name])[:, :2].astype(np.float64)
+        return self._keypoints[name]
+
+    def coordinates(self, n1: str, n2: str) -> np.ndarray | None:
+        """The verified inlier matches of ``n1`` and ``n2`` as keypoint coordinates [n, 4] (x1, y1,
+        x2, y2), or None when the pair has fewer than LINK_INLIERS."""
+        key = (n1, n2) if (n1, n2) in self.inliers else (n2, n1)
+        inliers = self.inliers.get(key, np.zeros((0, 2), np.uint32))
+        if len(inliers) < LINK_INLIERS:
+            return None
+        xy = np.concatenate([self.keypoints(key[0])[inliers[:, 0]], self.keypoints(key[1])[inliers[:, 1]]], axis=1)
+        return xy if key == (n1, n2) else xy[:, [2, 3, 0, 1]]
+
+    def linked(self) -> set[frozenset]:
+        """Unordered name pairs with a verified two-view geometry of at least LINK_INLIERS inliers."""
+        return {frozenset(k) for k, inliers in self.inliers.items() if len(inliers) >= LINK_INLIERS}
+
+    def strongest(self, registered: set[str]) -> list[tuple[str, str]]:
+        """Each registered image's MAX_PAIRS_PER_IMAGE strongest pairs (at least
+        STRONG_PAIR_INLIERS inliers) with other registered images; ties: lower ids first."""
+        strong = sorted(((len(v), self.ids[a], self.ids[b], a, b) for (a, b), v in self.inliers.items()
+                         if a in registered and b in registered and len(v) >= STRONG_PAIR_INLIERS),
+                        key=lambda s: (-s[0], s[1], s[2]))
+        kept_per_image: dict[str, int] = {}
+        pairs = []
+        for _, _, _, a, b in strong:
+            if max(kept_per_image.get(a, 0), kept_per_image.get(b, 0)) >= MAX_PAIRS_PER_IMAGE:
                 continue
-            kept_per_image[id1] = kept_per_image.get(id1, 0) + 1
-            kept_per_image[id2] = kept_per_image.get(id2, 0) + 1
-            for i in (id1, id2):
-                if i not in keypoints:
-                    keypoints[i] = db.read_keypoints(i)[:, :2].astype(np.float64)
-            pairs[(names[id1], names[id2])] = np.concatenate(
-                [keypoints[id1][inliers[:, 0]], keypoints[id2][inliers[:, 1]]], axis=1)
-    return pairs
+            kept_per_image[a] = kept_per_image.get(a, 0) + 1
+            kept_per_image[b] = kept_per_image.get(b, 0) + 1
+            pairs.append((a, b))
+        return pairs
 
 
-def _agrees(rec: pycolmap.Reconstruction, n1: str, n2: str, xy: np.ndarray) -> bool | None:
-    """Whether the matches ``xy`` [n, 4] of images ``n1`` and ``n2`` mostly satisfy the model's
-    epipolar geometry (Sampson distance within AGREE_PX for half of them); None when the model
-    puts the two at one place (a rotation only: the epipolar constraint says nothing)."""
-    by_name = {im.name: im for im in rec.images.values() if im.has_pose}
-    im1, im2 = by_name[n1], by_name[n2]
-    cam1, cam2 = rec.cameras[im1.camera_id], rec.cameras[im2.camera_id]
-    (R1, t1), (R2, t2) = _pose(im1), _pose(im2)
-    E, baseline = essential(R1, t1, R2, t2)
-    centres = np.array([im.projection_center() for im in by_name.values()])
-    if baseline < 1e-4 * max(float(np.ptp(centres, axis=0).max()), 1e-9):
-        return None
-    x1, x2 = cam1.cam_from_img(xy[:, :2]), cam2.cam_from_img(xy[:, 2:])
-    # normalised units: AGREE_PX pixels over the mean focal length of the two cameras
-    tolerance = AGREE_PX / max(0.5 * (cam1.mean_focal_length() + cam2.mean_focal_length()), 1e-9)
-    return float(np.mean(sampson_distance(E, x1, x2) <= tolerance)) >= 0.5
+class _Epipolar:
+    """Whether matches fit a model's relative poses (its cameras and extent computed once)."""
+
+    def __init__(self, rec: pycolmap.Reconstruction) -> None:
+        self.rec = rec
+        self.images = {im.name: im for im in rec.images.values() if im.has_pose}
+        centres = np.array([im.projection_center() for im in self.images.values()]).reshape(-1, 3)
+        self.extent = max(float(np.ptp(centres, axis=0).max()), 1e-9) if len(centres) else 1e-9
+
+    def agrees(self, n1: str, n2: str, xy: np.ndarray) -> bool | None:
+        """Whether the matches ``xy`` [n, 4] of images ``n1`` and ``n2`` mostly satisfy the
+        model's epipolar geometry (Sampson distance within AGREE_PX for half of them); None when
+        the model puts the two at one place (a rotation only: the epipolar constraint says
+        nothing)."""
+        im1, im2 = self.images[n1], self.images[n2]
+        cam1, cam2 = self.rec.cameras[im1.camera_id], self.rec.cameras[im2.camera_id]
+        (R1, t1), (R2, t2) = _pose(im1), _pose(im2)
+        E, baseline = essential(R1, t1, R2, t2)
+        if baseline < 1e-4 * self.extent:
+            return None
+        x1, x2 = cam1.cam_from_img(xy[:, :2]), cam2.cam_from_img(xy[:, 2:])
+        # normalised units: AGREE_PX pixels over the mean focal length of the two cameras
+        tolerance = AGREE_PX / max(0.5 * (cam1.mean_focal_length() + cam2.mean_focal_length()), 1e-9)
+        return float(np.mean(sampson_distance(E, x1, x2) <= tolerance)) >= 0.5
 
 
-def _disagreeing(rec: pycolmap.Reconstruction, pairs: dict) -> tuple[list[str], int]:
-    """Images most of whose strong pairs contradict the model; and how many pairs do."""
+def _disagreeing(epipolar: _Epipolar, matches: _Matches) -> tuple[list[str], int, int]:
+    """Images most of whose strong pairs contradict the model; how many strong pairs were
+    checked, and how many contradict it."""
+    pairs = matches.strongest(set(epipolar.images))
     votes: dict[str, list[bool]] = {}
     contradicted = 0
-    for (n1, n2), xy in pairs.items():
-        agrees = _agrees(rec, n1, n2, xy)
+    for n1, n2 in pairs:
+        agrees = epipolar.agrees(n1, n2, matches.coordinates(n1, n2))
         if agrees is None:
             continue
         contradicted += not agrees
         votes.setdefault(n1, []).append(agrees)
         votes.setdefault(n2, []).append(agrees)
     flagged = [n for n, v in votes.items() if v.count(False) >= max(2, DISAGREE_SHARE * len(v))]
-    return sorted(flagged), contradicted
-
-
-def _pair_matches(database: Path, n1: str, n2: str) -> np.ndarray | None:
-    """The verified inlier matches of images ``n1`` and ``n2`` as keypoint coordinates [n, 4]
-    (x1, y1, x2, y2), or None when the pair has fewer than LINK_INLIERS."""
-    with pycolmap.Database.open(database) as db:
-        ids = {im.name: im.image_id for im in db.read_all_images()}
-        a, b = sorted((ids[n1], ids[n2]))  # the database stores a pair's matches in id order
-        if not db.exists_two_view_geometry(a, b):
-            return None
-        inliers = db.read_two_view_geometry(a, b).inlier_matches
-        if len(inliers) < LINK_INLIERS:
-            return None
-        xy = np.concatenate([db.read_keypoints(a)[:, :2][inliers[:, 0]],
-                             db.read_keypoints(b)[:, :2][inliers[:, 1]]], axis=1).astype(np.float64)
-    return xy if ids[n1] == a else xy[:, [2, 3, 0, 1]]
+    return sorted(flagged), len(pairs), contradicted
 
 
 def _is_ordered(images: list, pairs_any: set[frozenset]) -> bool:
@@ -284,17 +298,10 @@ def _is_ordered(images: list, pairs_any: set[frozenset]) -> bool:
     return linked >= ORDER_SHARE * (len(images) - 1)
 
 
-def _linked_pairs(database: Path) -> set[frozenset]:
-    """Unordered name pairs with a verified two-view geometry of at least LINK_INLIERS inliers."""
-    with pycolmap.Database.open(database) as db:
-        names = {im.image_id: im.name for im in db.read_all_images()}
-        pair_ids, geometries = db.read_two_view_geometries()
-        out = set()
-        for pair_id, geometry in zip(pair_ids, geometries):
-            if len(geometry.inlier_matches) >= LINK_INLIERS:
-                id1, id2 = pycolmap.pair_id_to_image_pair(pair_id)
-                out.add(frozenset((names[id1], names[id2])))
-    return out
+def weak_floor(counts: list[int] | np.ndarray) -> float:
+    """Images seen with fewer 3D points than this are weak: WEAK_POINTS, or 10% of the median
+    image's count where that is more."""
+    return max(WEAK_POINTS, 0.1 * float(np.median(counts))) if len(counts) else float(WEAK_POINTS)
 
 
 def check_poses(rec: pycolmap.Reconstruction, names: list[str], ordered: bool,
@@ -329,10 +336,8 @@ def check_poses(rec: pycolmap.Reconstruction, names: list[str], ordered: bool,
         checks.jumps = [(images[i].name, images[i + 1].name) for i in jumps]
         checks.gaps = [(images[i].name, images[i + 1].name) for i in steps if i not in jumps]
         checks.beyond_jumps = sorted(images[i].name for i in beyond_jumps(len(images), jumps))
-    counts = np.array([im.num_points3D for im in images])
-    if len(counts):
-        floor = max(WEAK_POINTS, 0.1 * float(np.median(counts)))
-        checks.weak = sorted(im.name for im, c in zip(images, counts) if c < floor)
+    floor = weak_floor([im.num_points3D for im in images])
+    checks.weak = sorted(im.name for im in images if im.num_points3D < floor)
     return checks
 
 
@@ -341,17 +346,18 @@ def check_model(rec: pycolmap.Reconstruction, names: list[str], database: Path,
     """Run every check on ``rec`` (images ``names`` in capture order; ``database`` holds the
     matches it was mapped from). ``ordered``: whether names are a capture order (video frames:
     True); None decides from the matches."""
-    if ordered is None:
-        ordered = _is_ordered(_registered(rec, names), _linked_pairs(database))
+    epipolar = _Epipolar(rec)
+    with pycolmap.Database.open(database) as db:
+        matches = _Matches(db)
+        if ordered is None:
+            ordered = _is_ordered(_registered(rec, names), matches.linked())
 
-    def folded(a: str, b: str) -> bool:
-        matches = _pair_matches(database, a, b)
-        return matches is not None and _agrees(rec, a, b, matches) is False
+        def folded(a: str, b: str) -> bool:
+            xy = matches.coordinates(a, b)
+            return xy is not None and epipolar.agrees(a, b, xy) is False
 
-    checks = check_poses(rec, names, ordered, folded)
-    pairs = _verified_pairs(database, rec)
-    checks.pairs_checked = len(pairs)
-    checks.disagrees, checks.pairs_contradicted = _disagreeing(rec, pairs)
+        checks = check_poses(rec, names, ordered, folded)
+        checks.disagrees, checks.pairs_checked, checks.pairs_contradicted = _disagreeing(epipolar, matches)
     return checks
 
 
@@ -388,25 +394,22 @@ def leave_out(rec: pycolmap.Reconstruction, names: list[str]) -> int:
 
 def check_lines(checks: ModelChecks, registered: int) -> list[str]:
     """The summary's lines about the checks (one when all is well)."""
-    def shown(names: list[str]) -> str:
-        return ", ".join(names[:6]) + (f" and {len(names) - 6} more" if len(names) > 6 else "")
-
-    parts = [f"{len(checks.disagrees)} disagree with their matched views ({checks.pairs_contradicted} of "
+    parts = [f"{len(checks.looks_away)} look away from the common centre" if checks.orbit
+             else "not an orbit (no look-away check)",
+             f"{len(checks.disagrees)} disagree with their matched views ({checks.pairs_contradicted} of "
              f"{checks.pairs_checked} strong pairs contradicted)"]
-    parts.insert(0, f"{len(checks.looks_away)} look away from the common centre" if checks.orbit
-                 else "not an orbit (no look-away check)")
     if checks.ordered:
         parts.append(f"{len(checks.jumps)} jumps along the capture order")
     verdict = "passed" if checks.passed else f"failed, {len(checks.suspect)} suspect"
     lines = [f"checks ({verdict}): {registered} cameras: " + ", ".join(parts)]
     if checks.looks_away:
-        lines.append(f"  look away: {shown(checks.looks_away)}")
+        lines.append(f"  look away: {shown_names(checks.looks_away, 6)}")
     if checks.disagrees:
-        lines.append(f"  disagree (a warning): {shown(checks.disagrees)}")
+        lines.append(f"  disagree (a warning): {shown_names(checks.disagrees, 6)}")
     for a, b in checks.jumps[:6]:
         lines.append(f"  jump between {a} and {b}")
     for a, b in checks.gaps[:6]:
         lines.append(f"  gap between {a} and {b} (a long step their matches do not contradict; a warning)")
     if checks.weak:
-        lines.append(f"  weak (few 3D points; a warning): {shown(checks.weak)}")
+        lines.append(f"  weak (few 3D points; a warning): {shown_names(checks.weak, 6)}")
     return lines

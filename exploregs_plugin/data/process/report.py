@@ -62,16 +62,17 @@ def summary_lines(report: dict) -> list[str]:
         lines.append(f"other (smaller) models kept apart: {report['other_models_registered']} images registered")
     missing = [n for n in report["not_registered"] if n not in set(report.get("left_out", []))]
     if missing:
-        lines.append(f"not registered: {_names(missing)}")
+        lines.append(f"not registered: {shown_names(missing)}")
     if report.get("left_out"):
         lines.append(f"warning: {len(report['left_out'])} of {report['images_in']} images were posed inconsistently "
-                     f"with the rest and are left out of the dataset ({_names(report['left_out'])}); the capture "
+                     f"with the rest and are left out of the dataset ({shown_names(report['left_out'])}); the capture "
                      "may hold repeated or symmetric structure: try more photos between those views, --matching "
                      "exhaustive, or the other --mapper")
     return lines
 
 
-def _names(names: list[str], most: int = 10) -> str:
+def shown_names(names: list[str], most: int = 10) -> str:
+    """The first ``most`` names, then how many more."""
     return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
 
 

@@ -30,6 +30,7 @@ from .report import (
     REPORT_NAME,
     model_report,
     plot_top_view,
+    shown_names,
     summary_lines,
     write_report,
 )
@@ -268,8 +269,8 @@ def _second_round(layout: _Layout, database: Path, out: Path, rec, threads: int,
     """Retrieval's second round: the photos left unregistered, or registered on few points, are
     matched with more of their most similar photos. Returns the pairs it matched (0: none)."""
     registered = {im.name: im.num_points3D for im in rec.images.values() if im.has_pose}
-    median = sorted(registered.values())[len(registered) // 2] if registered else 0
-    weak = [n for n in layout.names if registered.get(n, 0) < max(checks.WEAK_POINTS, 0.1 * median)]
+    floor = checks.weak_floor(list(registered.values()))
+    weak = [n for n in layout.names if registered.get(n, 0) < floor]
     if not weak:
         return 0
     # the first round's plan again (it is deterministic): its pairs are done, found or not
@@ -335,6 +336,7 @@ def _mapping(layout: _Layout, database: Path, images: Path, out: Path, matching:
             log.line(f"{how}, {mapper}: {line}")
         return _Attempt(how, mapper, models, found)
 
+    other = "global" if config.mapper == "incremental" else "incremental"
     first = attempt(f"{matching} pairs", config.mapper, database)
     if matching == "retrieval" and first.models and _second_round(layout, database, out, _best(first.models),
                                                                   threads, console, log):
@@ -342,19 +344,17 @@ def _mapping(layout: _Layout, database: Path, images: Path, out: Path, matching:
     attempts = [first]
     if config.remedy and first.found is not None and not first.found.passed:
         log.line(f"note: the model fails its checks ({len(first.found.suspect)} suspect images: "
-                 f"{_first_names(first.found.suspect)}); trying to remedy it", show=True)
+                 f"{shown_names(first.found.suspect, 4)}); trying to remedy it", show=True)
         window_db = out / "database-window.db"
         if first.found.ordered and sfm.window_database(database, window_db, layout.names):
             attempts.append(attempt(f"neighbour pairs (window {sfm.SEQUENTIAL_OVERLAP})", config.mapper, window_db))
         window_db.unlink(missing_ok=True)
         if attempts[-1].found is None or not attempts[-1].found.passed:
-            other = "global" if config.mapper == "incremental" else "incremental"
             slow = " (slow on a large capture: over 25 minutes for 252 photos here)" if other == "incremental" else ""
             log.line(f"note: mapping again with the {other} mapper{slow}", show=True)
             attempts.append(attempt(f"{matching} pairs", other, database))
     kept = min(attempts, key=_Attempt.score)  # the first of equals: the plain attempt
     if not kept.models:
-        other = "global" if config.mapper == "incremental" else "incremental"
         raise DataError(out, f"no model could be built from the {len(layout.names)} images: too few "
                         f"matches; try photos with more overlap, --matching exhaustive or --mapper {other}")
     rec, others = _keep_largest(kept.models, out / ".mapping", out)
@@ -371,10 +371,6 @@ def _mapping(layout: _Layout, database: Path, images: Path, out: Path, matching:
                           "registered": _best(a.models).num_reg_images() if a.models else 0,
                           "suspect": len(a.found.suspect) if a.found else None} for a in attempts],
             "other_models": others}
-
-
-def _first_names(names: list[str], most: int = 4) -> str:
-    return ", ".join(names[:most]) + (f" and {len(names) - most} more" if len(names) > most else "")
 
 
 def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None = None,

@@ -19,8 +19,6 @@ import pycolmap
 
 Matching = Literal["exhaustive", "sequential", "spatial", "retrieval"]
 Mapper = Literal["incremental", "global"]
-EXHAUSTIVE_MAX_IMAGES = 300
-"""Above this many photos, exhaustive matching (n^2 / 2 pairs) gives way to sequential."""
 SEQUENTIAL_OVERLAP = 10
 """Sequential matching pairs each frame with the next 10 and with those 2^k frames ahead."""
 CROSS_VIDEO_KEYFRAMES = 30
