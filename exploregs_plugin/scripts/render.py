@@ -1,7 +1,8 @@
-"""eg-render: render a run, a checkpoint or a 3DGS PLY to PNG frames (and an MP4).
+"""eg-render: render a run, a checkpoint or a scene file (PLY, compressed PLY, .splat, .spz) to
+PNG frames (and an MP4).
 
 Cameras: the test views, the training views, or a smooth path through the training views.
-A PLY has no cameras of its own: ``--cameras-from`` names a run folder or a dataset.
+A scene file has no cameras of its own: ``--cameras-from`` names a run folder or a dataset.
 """
 
 from __future__ import annotations
@@ -29,18 +30,21 @@ from exploregs_plugin.scripts import parse_cli, run_cli
 @dataclass
 class RenderArgs:
     path: tyro.conf.Positional[Path]
-    """A run folder (latest checkpoint), a checkpoint file, or a 3DGS .ply file."""
+    """A run folder (latest checkpoint), a checkpoint file, or a scene file: a 3DGS .ply, a
+    compressed .ply (.compressed.ply), .splat or .spz."""
     out: Path | None = None
-    """Output folder (default: RUN/renders/TRAJECTORY-MODE-step-XXXXXXX, or PLY_STEM-render/TRAJECTORY-MODE beside a PLY)."""
+    """Output folder (default: RUN/renders/TRAJECTORY-MODE-step-XXXXXXX, or STEM-render/TRAJECTORY-MODE
+    beside a scene file)."""
     trajectory: Trajectory = "test"
     """Which cameras: the test views, the training views, a smooth path through the largest group of
     training cameras (path), or through all of them, across the gaps between groups (path-all)."""
     mode: RenderMode = "rgb"
     """What to draw: colour, expected depth (colour-mapped), or accumulated opacity."""
     cameras_from: str | None = None
-    """For a PLY: the run folder or dataset (path or builtin:NAME) whose cameras to use."""
+    """For a scene file: the run folder or dataset (path or builtin:NAME) whose cameras to use."""
     ply_frame: PlyFrame = "original"
-    """For a PLY: its coordinates are the dataset's original ones (as eg-export writes) or already normalised."""
+    """For a scene file: its coordinates are the dataset's original ones (as eg-export writes) or already
+    normalised."""
     num_frames: int = 120
     """Path trajectory: about this many frames in all."""
     max_keys: int | None = 16
@@ -51,7 +55,7 @@ class RenderArgs:
     """Path trajectory: close the path back to the first key camera."""
     data_factor: int | None = None
     """Render the dataset's images at 1/N size, as eg-train's --data-factor: the cameras of
-    --cameras-from DATASET for a PLY; for a run (or --cameras-from RUN), instead of the factor it
+    --cameras-from DATASET for a scene file; for a run (or --cameras-from RUN), instead of the factor it
     trained at (unset: the run's factor, or 1 for a dataset)."""
     sh_degree: int | None = None
     """SH degree to render with (default: the scene's)."""
@@ -76,7 +80,7 @@ class RenderArgs:
 
 def _default_out(args: RenderArgs, scene: RenderableScene) -> Path:
     leaf = f"{args.trajectory}-{args.mode}"
-    if scene.run_dir is None:  # a PLY: beside it
+    if scene.run_dir is None:  # a scene file: beside it
         return args.path.with_name(f"{args.path.stem}-render") / leaf
     # one folder of images per run: the end-of-training panels and these frames (runs from
     # before this had a separate RUN/render/, which stays where it is)
@@ -150,7 +154,8 @@ def main(args: RenderArgs) -> RenderedSequence:
 
 
 def entrypoint() -> None:
-    run_cli("eg-render", main, parse_cli("eg-render", RenderArgs, "Render an ExploreGS run or a 3DGS PLY to frames and video."))
+    description = "Render an ExploreGS run or a scene file (PLY, .splat, .spz) to frames and video."
+    run_cli("eg-render", main, parse_cli("eg-render", RenderArgs, description))
 
 
 if __name__ == "__main__":
