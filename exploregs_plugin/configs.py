@@ -49,6 +49,11 @@ def config_to_dict(value: Any) -> Any:
 MOVED_TYPES: dict[str, str] = {
     "exploregs_plugin.data.depth_supervision:DepthSupervisionConfig":
         "exploregs_plugin.analysis.depth_degradation:DepthSupervisionConfig",
+    # the gsplat adapters are named by direction (gsplat's strategies inside eg-train: from_gsplat)
+    "exploregs_plugin.integrations.gsplat_in_eg:GsplatDefaultStrategy":
+        "exploregs_plugin.integrations.from_gsplat:GsplatDefaultStrategy",
+    "exploregs_plugin.integrations.gsplat_in_eg:GsplatMCMCStrategy":
+        "exploregs_plugin.integrations.from_gsplat:GsplatMCMCStrategy",
 }
 """Config classes that moved to another module since configs were saved: old path -> new path."""
 

@@ -1,47 +1,43 @@
-"""The Trainer owns the loop: train steps, logging, evaluation, checkpoints, metrics."""
+"""The Trainer owns the loop: train steps, logging, evaluation, checkpoints, metrics. What it calls
+between steps has modules of its own: ``stopping`` (signals), ``watches`` (when the collapse and
+non-finite watches are read), ``thread_follower``, ``run_folder`` and ``rank_evaluation``."""
 
 from __future__ import annotations
 
 import os
 import signal
 import sys
-import threading
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
-from datetime import datetime
+from functools import partial
 from pathlib import Path
-from typing import Annotated, Any, Iterator, Sequence
+from typing import Annotated, Any, Sequence
 
 import torch
 import tyro
 
 from exploregs_plugin.callbacks import TrainingCallback
-from exploregs_plugin.collapse import CollapseError, CollapseWatch, deliberate_setback
 from exploregs_plugin.configs import load_config, save_config
 from exploregs_plugin.device import resolve_device
-from exploregs_plugin.distributed import (LAUNCHER_GONE, MachineConfig, init_world, launched_by_eg_train,
-                                          params_checksum)
-from exploregs_plugin.evaluation import (evaluate, evaluate_views, evaluation_panel, summarize_evaluation,
-                                         write_metrics_json)
-from exploregs_plugin.io.atomic import create_new_folder
+from exploregs_plugin.distributed import MachineConfig, init_world, params_checksum
+from exploregs_plugin.evaluation import evaluate, write_metrics_json
 from exploregs_plugin.io.checkpoint import (CheckpointError, checkpoint_path, load_checkpoint, load_run_checkpoint,
                                             save_checkpoint)
-from exploregs_plugin.pipeline import NonFiniteError, Pipeline, PipelineConfig, resolve_batch_size
+from exploregs_plugin.pipeline import Pipeline, PipelineConfig, resolve_batch_size
+from exploregs_plugin.rank_evaluation import evaluate_on_ranks
 from exploregs_plugin.rasterizer import backend_line
+from exploregs_plugin.run_folder import RunFolderError, new_run_dir, run_folder_errors  # noqa: F401 (importable here)
 from exploregs_plugin.run_logger import RunLogger, host_values
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.threads import IdleCpus, apply_threads, available_cpus, threads_for, threads_from_environment
+from exploregs_plugin.stopping import Stopped, StopOnSignals
+from exploregs_plugin.thread_follower import FollowIdleCpus, follows_idle_cpus
+from exploregs_plugin.threads import apply_threads
 from exploregs_plugin.viewer.callback import ViewerCallback
 from exploregs_plugin.viewer.config import ViewerConfig
+from exploregs_plugin.watches import RunWatches
 
 CONFIG_NAME = "config.yml"
 METRICS_NAME = "metrics.json"
-EVAL_PANELS = 2  # test views shown in tensorboard at each evaluation (render | truth | error)
-THREADS_CHECK_SECONDS = 5.0  # how often a run without --num-threads follows the CPUs left idle
-# ... and the first time, after this much training: the count the run starts with was measured when
-# the command started, before the data loaded, and a competitor may have come or gone since
-FIRST_THREADS_CHECK_SECONDS = 1.0
 
 
 @dataclass
@@ -164,7 +160,7 @@ class Trainer:
         # one run folder for all ranks: rank 0's (it claims a new timestamped folder unless one is named)
         named = run_dir or config.run_dir
         if named is None and self.world.is_main:
-            named = self._new_run_dir()
+            named = new_run_dir(config.output_dir, self.pipeline.datamanager.scene_name, config.method_name)
         self.run_dir = Path(self.world.broadcast_object(str(named or "")))
         self.start_step = 0
         self.train_seconds = 0.0
@@ -176,15 +172,15 @@ class Trainer:
         self._checkpointed_at = 0.0  # train_seconds at the last checkpoint
         self._wall_before = 0.0  # wall-clock seconds of the run before this call to train() (a resume)
         self._wall_started: float | None = None
-        self._collapse = CollapseWatch()
-        self._collapse_due: list[tuple[int, Any, Any, bool, Any]] = []  # steps the watch has not judged yet
+        self.watches = RunWatches(self.pipeline, self.schedule, config.collapse_watch, config.log_every,
+                                  config.checkpoint_every, lambda: self.last_checkpoint)
         self.threads_used: set[int] = set()  # torch thread counts this run trained with (metrics.json)
         self.logger: RunLogger | None = None
-        self._stop: _StopOnSignals | None = None
+        self._stop: StopOnSignals | None = None
         if checkpoint is not None:
             self._restore(checkpoint, payload)
         elif self.world.is_main:
-            with _run_folder_errors(self.run_dir):
+            with run_folder_errors(self.run_dir):
                 self.run_dir.mkdir(parents=True, exist_ok=True)
                 save_config(config, self.run_dir / CONFIG_NAME)
 
@@ -201,7 +197,8 @@ class Trainer:
         overrides the run's (a GPU run resumes on a CPU-only machine with device="cpu"), and
         ``num_devices`` its ranks per machine (the global batch stays the run's). A run folder
         resumes from its newest checkpoint that reads whole (a note names one that does not)."""
-        note = _note if os.environ.get("RANK", "0") == "0" else None  # the ranks all read the same files
+        # the ranks all read the same files: rank 0 alone notes a checkpoint it skipped
+        note = partial(print, file=sys.stderr) if os.environ.get("RANK", "0") == "0" else None
         run_dir, ckpt, payload = load_run_checkpoint(Path(path), note)
         config = load_config(run_dir / CONFIG_NAME)
         if device is not None:
@@ -214,24 +211,12 @@ class Trainer:
             config = replace(config, quiet=quiet)
         return cls(config, run_dir=run_dir, checkpoint=ckpt, callbacks=callbacks, payload=payload)
 
-    def _default_run_dir(self) -> Path:
-        stamp = datetime.now().strftime("%Y-%m-%d_%H%M%S")
-        return self.config.output_dir / self.pipeline.datamanager.scene_name / self.config.method_name / stamp
-
-    def _new_run_dir(self) -> Path:
-        """Create the timestamped run folder; a run that started in the same second (and so made
-        that name first) leaves this one ``<timestamp>-2``, ... (created atomically: two runs never
-        share a folder and overwrite each other's checkpoints)."""
-        default = self._default_run_dir()
-        with _run_folder_errors(default):
-            return create_new_folder(default)
-
     # ----------------------------------------------------------------------------- loop
     def train(self) -> dict[str, Any]:
         """Run from ``start_step`` to ``max_steps``; returns the final metrics."""
         self._wall_started = time.perf_counter()
         try:
-            with _run_folder_errors(self.run_dir):
+            with run_folder_errors(self.run_dir):
                 return self._train()
         finally:
             self._wall_before, self._wall_started = self.wall_seconds, None
@@ -245,11 +230,12 @@ class Trainer:
 
     def _train(self) -> dict[str, Any]:
         eval_steps = self._eval_steps()
-        threads = _FollowIdleCpus(self.threads_used) if self._follows_idle_cpus() else None
+        follow = follows_idle_cpus(self.config.num_threads, self.device, self.world.is_distributed)
+        threads = FollowIdleCpus(self.threads_used) if follow else None
         self.threads_used.add(torch.get_num_threads())
         try:
             with RunLogger(self.run_dir, self.schedule.max_steps, self.start_step, self.config.log_every,
-                           self.config.tensorboard, self.config.quiet) as logger, _StopOnSignals() as stop:
+                           self.config.tensorboard, self.config.quiet) as logger, StopOnSignals() as stop:
                 self.logger, self._stop = logger, stop
                 for callback in self.callbacks:
                     callback.on_train_start(self)
@@ -272,7 +258,7 @@ class Trainer:
                 callback.close()
         return self.write_metrics()
 
-    def _before_step(self, step: int, stop: "_StopOnSignals", threads: "_FollowIdleCpus | None") -> None:
+    def _before_step(self, step: int, stop: StopOnSignals, threads: FollowIdleCpus | None) -> None:
         """Callbacks, then the ranks' one agreement on a stop request or a due wall-clock
         checkpoint (so that they stop and checkpoint at the same step), then the thread count."""
         for callback in self.callbacks:
@@ -292,13 +278,13 @@ class Trainer:
         self.train_seconds += stats["step_seconds"]
         for op, n in stats["counts"].items():  # a count may be a tensor on the device: read when saved
             self.op_totals[op] = self.op_totals.get(op, 0) + n
-        if self._reads_at(step, eval_steps):  # the wait for the device is training time
+        if self.watches.reads_at(step, eval_steps):  # the wait for the device is training time
             start = time.perf_counter()
-            self._check_collapse(step, stats, read=True)
+            self.watches.check(step, stats, read=True)
             self.train_seconds += time.perf_counter() - start
         else:
-            self._check_collapse(step, stats, read=False)
-        self.logger.log_step(step, stats, self.pipeline.model.num_gaussians, self._lrs())
+            self.watches.check(step, stats, read=False)
+        self.logger.log_step(step, stats, self.pipeline.model.num_gaussians, self.pipeline.optim.lrs())
         for callback in self.callbacks:
             callback.after_step(self, step + 1, stats)
         if step + 1 in eval_steps:
@@ -306,74 +292,12 @@ class Trainer:
         if step + 1 < self.schedule.max_steps and (step + 1) % self.config.checkpoint_every == 0:
             self.save_checkpoint(step + 1)
 
-    def _follows_idle_cpus(self) -> bool:
-        """A CPU run whose thread count nobody set follows the CPUs other processes leave idle."""
-        return (self.config.num_threads is None and threads_from_environment() is None
-                and self.device.type == "cpu" and not self.world.is_distributed)
-
     def _train_step(self, step: int) -> dict[str, Any]:
         try:
             return self.pipeline.train_step(step)
         except Exception as err:
-            # a step after the run went non-finite may fail for that reason (a strategy's draw
-            # from NaN weights): the step that first went non-finite is the one to report
-            self._raise_if_nonfinite(self.pipeline.nonfinite_error(), cause=err)
+            self.watches.after_failed_step(err)
             raise
-
-    def _reads_at(self, step: int, eval_steps: set[int]) -> bool:
-        """Whether the trainer reads the device after ``step``: at its log line, an evaluation, a
-        periodic checkpoint and the last step. Elsewhere a step queues its work and goes on."""
-        done = step + 1
-        return (done % max(1, self.config.log_every) == 0 or done == self.schedule.max_steps or done in eval_steps
-                or done % self.config.checkpoint_every == 0)
-
-    def _check_collapse(self, step: int, stats: dict[str, Any], read: bool = True) -> None:
-        """Stop a run whose training PSNR collapses (see :class:`CollapseWatch`) or that went
-        non-finite, before it writes a checkpoint of that state.
-
-        The step's PSNR and loss stay on the device until a read point (``read``; the log line,
-        an evaluation, a checkpoint): there the steps since the last one are read in one go and
-        judged in order, as each would have been at its own step, so the error names the step
-        that collapsed. The run trains on to the read point meanwhile (at most ``log_every``
-        steps), which the checkpoints never see: :meth:`save_checkpoint` reads first."""
-        if self.config.collapse_watch:
-            views = stats.get("views", ())
-            restart = deliberate_setback(stats["counts"], self.pipeline.model.num_gaussians)
-            # a coarse-to-fine level ends: the next step's PSNR is of other (full-size) targets,
-            # which the records of the easier coarse ones must not judge
-            restart = restart or self.schedule.downscale_at(step + 1) != self.schedule.downscale_at(step)
-            self._collapse_due.append((step, stats["psnr"], stats["loss"], restart,
-                                       views[0] if len(views) == 1 else None))
-        if read:
-            self._read_watches()
-
-    def _read_watches(self) -> None:
-        """The read point: the non-finite record and the collapse watch's pending steps (one read
-        of the device each). Raises the error of the first step that went bad."""
-        bad = self.pipeline.nonfinite_error()
-        due, self._collapse_due = self._collapse_due, []
-        values = host_values({f"{name}{i}": value for i, (_, psnr, loss, _, _) in enumerate(due)
-                              for name, value in (("psnr", psnr), ("loss", loss))})
-        for i, (step, _, _, restart, view) in enumerate(due):
-            if bad is not None and bad.step <= step:
-                break  # that step stopped the run before the watch saw it
-            reason = self._collapse.update(step, values[f"psnr{i}"], values[f"loss{i}"], restart=restart, view=view)
-            if reason is not None:
-                raise CollapseError(f"step {step}: {reason}. Training stopped; {self._last_good()}")
-        self._raise_if_nonfinite(bad)
-
-    def _raise_if_nonfinite(self, bad: NonFiniteError | None, cause: BaseException | None = None) -> None:
-        """Raise ``bad``, the pipeline's error of the first step whose loss or parameters went
-        non-finite, as the run's error (None: nothing went non-finite)."""
-        if bad is not None:
-            raise NonFiniteError(f"{bad} (a learning rate too high, or non-finite values in the data?). "
-                                 f"Training stopped; {self._last_good()}", bad.step) from (cause or bad)
-
-    def _last_good(self) -> str:
-        """Where the run can be taken up again, for error messages."""
-        if self.last_checkpoint is None:
-            return "no checkpoint was written yet"
-        return f"the last good checkpoint is {self.last_checkpoint}"
 
     def _minutes_due(self) -> bool:
         """Whether checkpoint_minutes of training have passed since the last checkpoint."""
@@ -384,29 +308,14 @@ class Trainer:
         total, count = self.schedule.max_steps, max(1, self.config.eval_count)
         return {max(1, round(total * (i + 1) / count)) for i in range(count)}
 
-    def _lrs(self) -> dict[str, float]:
-        return self.pipeline.optim.lrs()
-
     # ----------------------------------------------------------------------------- eval
     def run_eval(self, step: int) -> dict[str, Any]:
         """Evaluate on the test views and record a point of the PSNR-against-time curve. In a
         data-parallel run each rank scores every world-size-th view and rank 0 gathers the parts."""
-        self._read_watches()
+        self.watches.read()
         final = step >= self.schedule.max_steps
         save_dir = self.run_dir / "renders" if (final and self.config.save_eval_images) else None
-        panels: list[tuple[int, str, torch.Tensor]] = []
-
-        def keep_panel(index: int, name: str, image: torch.Tensor, target: torch.Tensor) -> None:
-            if index < EVAL_PANELS:
-                panels.append((index, name or f"view{index}", evaluation_panel(image, target)))
-
-        dm, world = self.pipeline.datamanager, self.world
-        views = range(world.rank, len(dm.test_cameras), world.size)
-        part = evaluate_views(self.pipeline.model, dm, views, save_dir=save_dir, on_image=keep_panel)
-        parts = world.all_gather_object((part, panels))
-        metrics = summarize_evaluation([p for p, _ in parts], self.pipeline.model.num_gaussians)
-        panels = sorted(panel for _, rank_panels in parts for panel in rank_panels)
-        panels = [(name, image) for _, name, image in panels]
+        metrics, panels = evaluate_on_ranks(self.pipeline, self.world, save_dir)
         self.history.append({"step": step, "train_seconds": self.train_seconds, "psnr": metrics["psnr"],
                              "ssim": metrics["ssim"], "num_gaussians": metrics["num_gaussians"],
                              **({"region_psnr": metrics["region_psnr"]} if "region_psnr" in metrics else {})})
@@ -444,27 +353,20 @@ class Trainer:
         """Rank 0 writes the checkpoint (atomically); first the ranks compare a checksum of their
         parameters, so that a checkpoint never holds one of several diverged models, and the
         watches are read, so that it never holds a non-finite or collapsed one."""
-        self._read_watches()
+        self.watches.read()
         self.world.check_same(f"parameters at step {step}", torch.cat([
             params_checksum([p for _, p in self.pipeline.trained_tensors()]).to(self.device),
             torch.tensor([float(self.pipeline.model.num_gaussians)], dtype=torch.float64, device=self.device)]))
-        if not self.world.is_main:
+        if self.world.is_main:
+            payload = {"version": 1, "step": step, "train_seconds": self.train_seconds,
+                       "wall_seconds": self.wall_seconds, "history": self.history, "op_totals": self._op_totals(),
+                       **self.pipeline.state_dict()}
+            try:
+                self.last_checkpoint = save_checkpoint(self.run_dir, step, payload, self.config.keep_checkpoints)
+            except CheckpointError as err:  # a full disk: the run stops, the older checkpoint is whole
+                raise CheckpointError(f"{err}; training stopped, {self.watches.last_good()}") from err
+        else:  # rank 0 wrote it
             self.last_checkpoint = checkpoint_path(self.run_dir, step)
-            self._checkpointed_at = self.train_seconds
-            return self.last_checkpoint
-        payload = {
-            "version": 1,
-            "step": step,
-            "train_seconds": self.train_seconds,
-            "wall_seconds": self.wall_seconds,
-            "history": self.history,
-            "op_totals": self._op_totals(),
-            **self.pipeline.state_dict(),
-        }
-        try:
-            self.last_checkpoint = save_checkpoint(self.run_dir, step, payload, self.config.keep_checkpoints)
-        except CheckpointError as err:  # a full disk: the run stops, the older checkpoint is whole
-            raise CheckpointError(f"{err}; training stopped, {self._last_good()}") from err
         self._checkpointed_at = self.train_seconds
         return self.last_checkpoint
 
@@ -489,125 +391,3 @@ class Trainer:
         # a resumed checkpoint from another device or world: all ranks start from the same bits
         self.world.check_same("parameters after loading the checkpoint",
                               params_checksum([p for _, p in self.pipeline.trained_tensors()]))
-
-
-class _FollowIdleCpus:
-    """Every THREADS_CHECK_SECONDS, between steps, set torch's thread count (which bounds the
-    compositor's workers) to the CPUs other processes left idle: a process that starts competing
-    for the cores mid-run takes the run down to one thread instead of stalling it (see
-    :class:`exploregs_plugin.threads.IdleCpus`), and one that ends gives the cores back. The
-    count changes the speed, not the result (docs/training.md, "Threads")."""
-
-    def __init__(self, used: set[int]) -> None:
-        self.used = used  # every count set is added here
-        self.watch = IdleCpus()
-        self.cpus = available_cpus()
-        self.before = torch.get_num_threads()
-        self.checked = time.monotonic() - THREADS_CHECK_SECONDS + FIRST_THREADS_CHECK_SECONDS
-
-    def check(self) -> None:
-        if time.monotonic() - self.checked < THREADS_CHECK_SECONDS:
-            return
-        self.checked = time.monotonic()
-        wanted = threads_for(self.watch.sample(), self.cpus)
-        if wanted != torch.get_num_threads():
-            torch.set_num_threads(wanted)
-            self.used.add(wanted)
-
-    def restore(self) -> None:
-        if torch.get_num_threads() != self.before:
-            torch.set_num_threads(self.before)
-
-
-def _note(text: str) -> None:
-    print(text, file=sys.stderr)
-
-
-class RunFolderError(ValueError):
-    """The run folder cannot be written (read-only, full, missing permissions)."""
-
-
-@contextmanager
-def _run_folder_errors(run_dir: Path) -> Iterator[None]:
-    """An OSError about a file in ``run_dir`` (the error itself, or one it was raised from)
-    becomes one RunFolderError naming the folder; other errors pass unchanged."""
-    try:
-        yield
-    except OSError as err:
-        cause: BaseException | None = err
-        while cause is not None:
-            name = getattr(cause, "filename", None)
-            if isinstance(cause, OSError) and name is not None and _inside(Path(name), run_dir):
-                reason = cause.strerror or str(cause)
-                raise RunFolderError(f"cannot write the run folder {run_dir}: {reason} ({name})") from err
-            cause = cause.__cause__ or cause.__context__
-        raise
-
-
-def _inside(path: Path, folder: Path) -> bool:
-    try:
-        path.resolve().relative_to(folder.resolve())
-        return True
-    except ValueError:
-        return path.resolve() in folder.resolve().parents  # a parent that could not be created
-
-
-class Stopped(KeyboardInterrupt):
-    """Training stopped on a signal (Ctrl-C's SIGINT, or SIGTERM from a scheduler, a container or
-    ``kill``) at a step boundary, after writing a checkpoint. ``exit_code`` is 128 + signal."""
-
-    def __init__(self, signum: int, step: int | None = None, checkpoint: Path | None = None,
-                 where: str = "before training started") -> None:
-        self.signum, self.step, self.checkpoint = signum, step, checkpoint
-        name = signal.Signals(signum).name
-        if signum == LAUNCHER_GONE:
-            name += " (its launcher is gone)"
-        if step is not None:  # ``step`` steps are done (the progress line's count); the checkpoint holds them
-            where = f"after step {step}" if step else "before the first step"
-            where += f", saved in {checkpoint}"
-        super().__init__(f"stopped by {name} {where}")
-
-    @property
-    def exit_code(self) -> int:
-        return 128 + self.signum
-
-
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
-
-
-class _StopOnSignals:
-    """The first SIGINT or SIGTERM (or, in a rank of eg-train's launcher, SIGHUP) asks the loop to
-    stop at the next step boundary (so the checkpoint holds a consistent state, never half an
-    optimizer step); a second SIGINT or SIGTERM stops at once. Repeats of SIGHUP are one request:
-    the kernel sends a launched rank one per thread of its dying launcher (see
-    ``distributed.LAUNCHER_GONE``), and a rank that left at once would leave the others waiting in
-    a collective; once one came, later ones are ignored to the end of the process (they may still
-    arrive while the rank leaves its group). Installed from the main thread only (Python delivers
-    signals there)."""
-
-    def __init__(self) -> None:
-        self.signum: int | None = None
-        self.launcher_gone = False
-        self._previous: dict[int, Any] = {}
-
-    @property
-    def requested(self) -> bool:
-        return self.signum is not None
-
-    def _handler(self, signum: int, frame: Any) -> None:
-        if self.signum is not None and signum != LAUNCHER_GONE:
-            raise Stopped(signum, where="at once, without a checkpoint (a second signal)")
-        self.signum = self.signum or signum
-        self.launcher_gone |= signum == LAUNCHER_GONE
-
-    def __enter__(self) -> "_StopOnSignals":
-        if threading.current_thread() is threading.main_thread():
-            signals = STOP_SIGNALS + ((LAUNCHER_GONE,) if launched_by_eg_train() else ())
-            self._previous = {s: signal.signal(s, self._handler) for s in signals}
-        return self
-
-    def __exit__(self, *exc: Any) -> None:
-        for s, previous in self._previous.items():
-            if s == LAUNCHER_GONE and self.launcher_gone:
-                previous = signal.SIG_IGN
-            signal.signal(s, signal.SIG_DFL if previous is None else previous)

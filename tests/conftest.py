@@ -54,7 +54,7 @@ def tiny_scene_dir(exploregs_cache: Path) -> Path:
     """Folder of the built-in ``tiny`` scene (COLMAP text + depths + masks), made once.
 
     Read-only by convention: tests that modify a dataset copy it first."""
-    from exploregs_plugin.data.builtin import ensure_builtin
+    from exploregs_plugin.data.builtin.presets import ensure_builtin
 
     return ensure_builtin("tiny", exploregs_cache / "scenes")
 
@@ -80,7 +80,21 @@ def tiny_dm(tiny_scene_dir: Path):
 
 
 @pytest.fixture()
-def ctrl_c_after_step(monkeypatch: pytest.MonkeyPatch):
+def sigint_as_in_a_terminal():
+    """SIGINT raises KeyboardInterrupt for the test, as in a terminal's foreground, restored after.
+    A test that sends SIGINT depends on it: a shell's script that starts the tests in the
+    background (``bash -c 'python -m pytest ... &'``) starts Python with SIGINT ignored, which
+    Python keeps and the processes it starts inherit (a handler set here reaches them as the
+    default, which Python turns into KeyboardInterrupt again)."""
+    import signal
+
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, signal.SIG_DFL if before is None else before)  # None: set outside Python
+
+
+@pytest.fixture()
+def ctrl_c_after_step(monkeypatch: pytest.MonkeyPatch, sigint_as_in_a_terminal):
     """``arm(step)`` makes the next training send a real SIGINT (Ctrl-C) to this process right
     after that step, which the trainer handles at the step boundary; ``disarm()`` undoes it."""
     import os

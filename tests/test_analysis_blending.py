@@ -15,7 +15,7 @@ from exploregs_plugin.analysis.blending import (
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.gaussians import SH_C0
 from exploregs_plugin.rasterizer import rasterize, trace_pixel
-from exploregs_plugin.bench.raster_scenes import random_scene
+from exploregs_plugin.bench.components.raster_scenes import random_scene
 
 F64 = torch.float64
 W, H = 16, 12

@@ -18,7 +18,7 @@ from exploregs_plugin.cameras import Camera
 from exploregs_plugin.analysis.branch_ablation import render_detached
 from exploregs_plugin.model.gaussians import render_params
 from exploregs_plugin.rasterizer import rasterize_branched
-from exploregs_plugin.bench.raster_scenes import random_scene
+from exploregs_plugin.bench.components.raster_scenes import random_scene
 
 F64 = torch.float64
 

@@ -18,7 +18,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("bench", "analysis", "integrations"),
     ("runs",),
     ("trainer", "pipeline", "method_configs", "evaluation", "run_logger", "collapse", "loss_terms",
-     "nonfinite"),
+     "nonfinite", "stopping", "watches", "run_folder", "thread_follower", "rank_evaluation"),
     ("model", "data", "strategies", "viewer"),
     ("rasterizer", "io", "configs", "perceptual"),
     ("cameras", "schedule", "callbacks", "device", "distributed", "kernels", "threads", ""),  # "" = the package's own __init__
@@ -177,3 +177,13 @@ def test_the_circle_checker_counts_typing_only_imports(tmp_path):
     modules = {_module_name(p, tmp_path) for p in paths}
     graph = {_module_name(p, tmp_path): _module_imports(p, modules, tmp_path) for p in paths}
     assert _circles(graph) == [["exploregs_plugin.config", "exploregs_plugin.obj"]]
+
+
+def test_no_two_classes_of_the_package_share_a_name():
+    # one name, one class: a reader (or an import) never has to ask which SeedSplitStrategy is meant
+    defined: dict[str, list[str]] = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.ClassDef):
+                defined.setdefault(node.name, []).append(str(path.relative_to(PACKAGE)))
+    assert {name: where for name, where in defined.items() if len(where) > 1} == {}

@@ -6,7 +6,7 @@ from __future__ import annotations
 import json
 from dataclasses import replace
 
-from exploregs_plugin.bench import auto_cap
+from exploregs_plugin.bench.components import auto_cap
 from exploregs_plugin.scripts.train import parse_config
 from exploregs_plugin.trainer import Trainer
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from exploregs_plugin.bench.rasterizer import make_scene, run_child
+from exploregs_plugin.bench.components.rasterizer import make_scene, run_child
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.runs.load import load_run
 from exploregs_plugin.trainer import Trainer, TrainerConfig

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from exploregs_plugin.bench.memory import bytes_per_gaussian
-from exploregs_plugin.bench.scale import table
+from exploregs_plugin.bench.components.memory import bytes_per_gaussian
+from exploregs_plugin.bench.components.scale import table
 
 
 def test_scale_table_ratios_against_the_first_row():

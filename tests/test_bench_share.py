@@ -2,7 +2,7 @@
 
 import pytest
 
-from exploregs_plugin.bench.share import attribution_rows, count_rows, format_rows, tables
+from exploregs_plugin.bench.components.share import attribution_rows, count_rows, format_rows, tables
 from exploregs_plugin.runs import load_run
 
 

@@ -63,6 +63,26 @@ def test_eg_train_method_help_is_one_line_per_flag_and_keeps_every_flag(capsys, 
     assert "--strategy.noise.lr" in swapped and "--strategy.seeding.n-seed" not in swapped
 
 
+def test_a_methods_help_names_the_strategy_selector(capsys, monkeypatch):
+    from exploregs_plugin.scripts.train import parse_config
+    from exploregs_plugin.strategies.registry import builtin_strategies
+
+    short = _help(capsys, monkeypatch, lambda: parse_config(["exploregs-seedsplit", "--help"]))
+    lines = short.splitlines()
+    # first in the strategy's group, with the method's own strategy as its default
+    at = next(i for i, line in enumerate(lines) if line.startswith("strategy options:")) + 1
+    assert re.fullmatch(r"  --strategy NAME +Use another registered strategy, with its own flags \[seedsplit\]",
+                        lines[at])
+    # then every registered strategy, on lines indented to the descriptions' column
+    below = [line for line in lines[at + 1:at + 6] if line.startswith(" " * 33)]
+    listed = " ".join(line.strip() for line in below)
+    assert listed.startswith("one of: ") and set(builtin_strategies()) <= {n.strip(",") for n in listed.split()[2:]}
+    assert all(len(line) <= 100 for line in [lines[at], *below])
+    # the whole help names it too, after tyro's boxes
+    full = _help(capsys, monkeypatch, lambda: parse_config(["exploregs-mcmc", "--help-full"]))
+    assert "\nstrategy selector:\n  --strategy NAME" in full and "own flags [mcmc]" in full
+
+
 def test_eg_bench_help_says_what_unset_means(capsys, monkeypatch):
     from exploregs_plugin.scripts.bench import main
 

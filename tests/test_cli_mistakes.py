@@ -53,7 +53,8 @@ TINY_RUN = ["exploregs-default", "--data", "builtin:tiny", "--no-tensorboard", "
 
 
 def test_ctrl_c_before_the_first_checkpoint_says_nothing_was_saved_and_how_to_start_again(tmp_path, monkeypatch,
-                                                                                          capsys):
+                                                                                          capsys,
+                                                                                          sigint_as_in_a_terminal):
     import os
     import shlex
     import signal

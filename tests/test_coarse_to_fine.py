@@ -166,13 +166,13 @@ def test_a_coarse_to_fine_run_trains_and_evaluates_at_full_size(tmp_path):
 
     trainer.pipeline.model.render = spy
     restarts = []
-    update = trainer._collapse.update
+    update = trainer.watches.collapse.update
 
     def watch(step, psnr, loss, restart=False, view=None):
         restarts.append((step, restart))
         return update(step, psnr, loss, restart=restart, view=view)
 
-    trainer._collapse.update = watch
+    trainer.watches.collapse.update = watch
     metrics = trainer.train()
     # the collapse watch starts afresh after the last step of each level (its training PSNR is of
     # easier targets than the next level's): steps 9 and 19, and no other step here

@@ -13,7 +13,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from exploregs_plugin.bench.raster_scenes import random_scene
+from exploregs_plugin.bench.components.raster_scenes import random_scene
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
 
 pytestmark = [

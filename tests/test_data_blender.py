@@ -357,7 +357,7 @@ def test_images_of_different_sizes(tmp_path: Path) -> None:
 
 
 def test_generated_rgba_objects_scene_loads_with_soft_alpha(tmp_path: Path) -> None:
-    from exploregs_plugin.data.blender_objects import write_blender_objects
+    from exploregs_plugin.data.builtin.blender_objects import write_blender_objects
 
     root = write_blender_objects(tmp_path / "objects", size=24, seed=0, splits=(("train", 3), ("test", 2)))
     dm = _dm(root, tmp_path)

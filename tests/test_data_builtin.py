@@ -11,10 +11,10 @@ import pytest
 from PIL import Image
 
 from exploregs_plugin.data import DataError, ParseOptions, read_colmap
-from exploregs_plugin.data.builtin import PRESETS, ensure_builtin, generate, make_scene
+from exploregs_plugin.data.builtin.presets import PRESETS, ensure_builtin, generate, make_scene
 from exploregs_plugin.data.parsed import REGION_LABELS, normalize_scene
-from exploregs_plugin.data.raycast import pixel_rays, trace
-from exploregs_plugin.data.scene_layouts import build_world, camera_path, view_kinds
+from exploregs_plugin.data.builtin.raycast import pixel_rays, trace
+from exploregs_plugin.data.builtin.layouts import build_world, camera_path, view_kinds
 
 TINY = PRESETS["tiny"]
 SMALL = replace(TINY, width=32, height=24, n_views=6, n_points=100)

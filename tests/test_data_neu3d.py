@@ -11,12 +11,12 @@ import pytest
 from PIL import Image
 
 from exploregs_plugin.data import DataError, DataManagerConfig, ParseOptions
-from exploregs_plugin.data.builtin import ensure_builtin, preset_by_name
-from exploregs_plugin.data.builtin_dynamic import generate_dynamic, region_labels
+from exploregs_plugin.data.builtin.presets import ensure_builtin, preset_by_name
+from exploregs_plugin.data.builtin.dynamic import generate_dynamic, region_labels
 from exploregs_plugin.data.dataparser import resolve_data
 from exploregs_plugin.data.neu3d import llff_to_viewmat, read_neu3d, viewmat_to_llff
 from exploregs_plugin.data.parsed import REGION_LABELS
-from exploregs_plugin.data.scene_layouts import look_at
+from exploregs_plugin.data.builtin.layouts import look_at
 
 WIDTH, HEIGHT, FOCAL = 32, 24, 30.0
 

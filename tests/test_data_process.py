@@ -17,16 +17,16 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from exploregs_plugin.bench.pose_agreement import agreement, break_cameras, colmap_cameras, llff_cameras, umeyama
+from exploregs_plugin.bench.components.pose_agreement import agreement, break_cameras, colmap_cameras, llff_cameras, umeyama
 from exploregs_plugin.data.process import ProcessConfig, process_capture
 from exploregs_plugin.data.process import sfm
 from exploregs_plugin.data.process.inputs import IMAGE_SUFFIXES
 from exploregs_plugin.data.process.report import PLOT_NAME, REPORT_NAME
 from exploregs_plugin.data.process.video import sharpness, upright, window_length
-from exploregs_plugin.data.raycast import GroundPlane, Material
-from exploregs_plugin.data.scene_layouts import build_world, intrinsics, look_at
-from exploregs_plugin.data.scene_render import RenderSettings, render_view
-from exploregs_plugin.data.textures import Mosaic
+from exploregs_plugin.data.builtin.raycast import GroundPlane, Material
+from exploregs_plugin.data.builtin.layouts import build_world, intrinsics, look_at
+from exploregs_plugin.data.builtin.render import RenderSettings, render_view
+from exploregs_plugin.data.builtin.textures import Mosaic
 
 N_VIEWS = 24
 WIDTH, HEIGHT = 320, 240
@@ -138,21 +138,28 @@ def test_a_processed_folder_reads_and_trains(processed, tmp_path):
 def test_data_given_photos_poses_them_into_the_cache_once(capture, tmp_path, capsys):
     from exploregs_plugin.data.dataparser import resolve_data
 
-    photos = _subset(capture, tmp_path / "my photos", step=2)  # 12 views, 10 degrees apart
-    before = sorted(p.name for p in photos.iterdir())
+    photos = tmp_path / "my photos"  # 12 views, 10 degrees apart, in two subfolders as a phone exports them
+    for i, view in enumerate(sorted(capture[0].iterdir())[::2]):
+        folder = photos / ("100APPLE" if i < 6 else "101APPLE")
+        folder.mkdir(parents=True, exist_ok=True)
+        shutil.copy(view, folder / view.name)
+    before = sorted(p.relative_to(photos) for p in photos.rglob("*"))
     kind, path = resolve_data(str(photos), tmp_path / "cache")
     assert kind == "colmap" and path.parent.parent == tmp_path / "cache" / "derived"
-    assert (path / "sparse" / "0").is_dir() and sorted(p.name for p in photos.iterdir()) == before
+    assert (path / "sparse" / "0").is_dir() and sorted(p.relative_to(photos) for p in photos.rglob("*")) == before
     err = capsys.readouterr().err
     assert f"note: {photos} has no camera poses: posing it (as eg-process does) into {path}; the next run reuses it" in err
+    assert (f"note: {photos} holds no photos of its own: taking the 12 photos found in its 2 subfolders "
+            "(100APPLE, 101APPLE)") in err
+    assert sorted(recovered_cameras(path)) == sorted(p.relative_to(photos).as_posix() for p in photos.rglob("*.png"))
     stamp = (path / "sparse" / "0" / "images.bin").stat().st_mtime_ns
     assert resolve_data(str(photos), tmp_path / "cache") == ("colmap", path)
     assert f"note: {photos} has no camera poses: using those posed earlier in {path}" in capsys.readouterr().err
     assert (path / "sparse" / "0" / "images.bin").stat().st_mtime_ns == stamp  # reused, not posed again
-    shutil.copy(capture[0] / "0001.png", photos / "0001.png")  # the capture changed: posed again
+    shutil.copy(capture[0] / "0001.png", photos / "100APPLE" / "0001.png")  # the capture changed: posed again
     assert resolve_data(str(photos), tmp_path / "cache") == ("colmap", path)
     assert "posing it (as eg-process does)" in capsys.readouterr().err
-    assert "0001.png" in recovered_cameras(path)
+    assert "100APPLE/0001.png" in recovered_cameras(path)
 
 
 def write_mp4(frames: list[np.ndarray], path: Path, fps: float = 30.0) -> None:
@@ -324,7 +331,7 @@ def test_photos_are_imported_upright_heic_included(tmp_path):
     Image.fromarray(upright_rgb).save(photos / "c.png")
     taken = {"a.heic", "b.jpg", "c.png"}
     for name in sorted(taken):
-        written = output_name(photos / name, taken)
+        written = output_name(name, taken)
         assert import_photo(photos / name, out, written) == (60, 40)
     assert sorted(p.name for p in out.iterdir()) == ["a.jpg", "b.jpg", "c.png"]
     assert (out / "c.png").read_bytes() == (photos / "c.png").read_bytes()
@@ -332,6 +339,113 @@ def test_photos_are_imported_upright_heic_included(tmp_path):
         with Image.open(out / name) as im:
             assert im.size == (60, 40) and im.getexif().get(ORIENTATION_TAG, 1) == 1
             assert np.abs(np.asarray(im.convert("RGB")).astype(int) - upright_rgb).mean() < 8.0
+    # a converted HEIC keeps its subfolder, and never takes the name of another photo in any case
+    assert output_name("100APPLE/IMG_2.heic", {"100APPLE/IMG_2.heic"}) == "100APPLE/IMG_2.jpg"
+    assert output_name("IMG_1.HEIC", {"IMG_1.HEIC", "IMG_1.JPG"}) == "IMG_1.HEIC.jpg"
+    assert import_photo(photos / "a.heic", out, "100APPLE/a.jpg") == (60, 40)
+    assert sorted(p.name for p in (out / "100APPLE").iterdir()) == ["a.jpg"]  # no temporary file left
+
+
+def _phone_export(root: Path, capture) -> Path:
+    """A phone's export: DCIM/100APPLE and DCIM/101APPLE hold the photos (one a HEIC), beside a
+    clip, a hidden thumbnail folder and a posed dataset, none of which are the capture's photos."""
+    from exploregs_plugin.data.process.photos import register_heif
+
+    assert register_heif()  # PIL writes HEIC through pillow-heif, a dependency
+    dcim = root / "DCIM"
+    views = sorted(capture[0].iterdir())
+    for folder, names in (("100APPLE", ("IMG_0001.png", "IMG_0002.png")), ("101APPLE", ("IMG_0003.png",))):
+        (dcim / folder).mkdir(parents=True)
+        for name, view in zip(names, views[::6]):
+            shutil.copy(view, dcim / folder / name)
+    Image.open(views[18]).save(dcim / "101APPLE" / "IMG_0004.heic")
+    (dcim / "101APPLE" / "IMG_0005.mov").write_bytes(b"a clip")
+    (dcim / ".thumbnails").mkdir()
+    shutil.copy(views[0], dcim / ".thumbnails" / "IMG_0001.png")
+    (dcim / "posed" / "sparse").mkdir(parents=True)
+    (dcim / "posed" / "images").mkdir()
+    shutil.copy(views[0], dcim / "posed" / "images" / "0000.png")
+    return dcim
+
+
+def test_photos_in_subfolders_are_found_in_order_of_their_path(capture, tmp_path):
+    from exploregs_plugin.data.errors import DataError
+    from exploregs_plugin.data.process import find_capture, is_capture
+    from exploregs_plugin.scripts.process import parse_args
+
+    dcim = _phone_export(tmp_path, capture)
+    below = [dcim / "100APPLE" / "IMG_0001.png", dcim / "100APPLE" / "IMG_0002.png",
+             dcim / "101APPLE" / "IMG_0003.png", dcim / "101APPLE" / "IMG_0004.heic"]
+    found = find_capture([dcim])
+    assert found.kind == "images" and found.where == dcim and list(found.files) == below
+    assert found.note == (f"note: {dcim} holds no photos of its own: taking the 4 photos found in its 2 "
+                          "subfolders (100APPLE, 101APPLE); 1 video there left out")
+    assert is_capture(dcim) and not is_capture(dcim / "posed")
+    assert parse_args([str(dcim), "--out", str(tmp_path / "out"), "--recursive"]).options.recursive
+    # one or two photos of its own: too few, and the subfolders are named, not taken unasked
+    shutil.copy(capture[0] / "0003.png", dcim / "cover.png")
+    with pytest.raises(DataError) as err:
+        find_capture([dcim])
+    assert str(err.value).endswith("posing needs at least 3 overlapping photos; its 2 subfolders (100APPLE, "
+                                   "101APPLE) hold 4 more: eg-process --recursive takes them")
+    recursive = find_capture([dcim], recursive=True)
+    assert list(recursive.files) == below + [dcim / "cover.png"]  # in order of the path below DCIM
+    assert recursive.note == (f"note: {dcim}: taking its 1 photo and the 4 found in its 2 subfolders "
+                              "(100APPLE, 101APPLE) (--recursive); 1 video there left out")
+    for name in ("cover2.png", "cover3.png"):
+        shutil.copy(capture[0] / "0003.png", dcim / name)
+    own = find_capture([dcim])
+    assert [p.name for p in own.files] == ["cover.png", "cover2.png", "cover3.png"]
+    assert own.note == (f"note: {dcim}: taking its 3 photos; 4 photos in its 2 subfolders (100APPLE, 101APPLE) "
+                        "left out (eg-process --recursive takes them too)")
+
+
+def test_subfolders_holding_only_videos_is_one_line(tmp_path):
+    from exploregs_plugin.data.errors import DataError
+    from exploregs_plugin.data.process import find_capture
+
+    (tmp_path / "clips" / "day1").mkdir(parents=True)
+    (tmp_path / "clips" / "day1" / "a.mp4").write_bytes(b"a clip")
+    with pytest.raises(DataError) as err:
+        find_capture([tmp_path / "clips"])
+    assert str(err.value) == (f"{tmp_path / 'clips'}: holds no photos or videos of its own, and its subfolders "
+                              "only 1 video (day1/a.mp4): pass the video files themselves as the inputs")
+
+
+def test_eg_process_takes_the_subfolders_photos_keeping_their_path(capture, tmp_path, monkeypatch, capsys):
+    from exploregs_plugin.scripts.process import main, parse_args
+
+    dcim = _phone_export(tmp_path / "my phone", capture)
+    before = sorted(str(p.relative_to(dcim)) for p in dcim.rglob("*"))
+    out = tmp_path / "dataset"
+
+    def stop_after_import(*args, **kwargs):
+        raise KeyboardInterrupt  # the import is what is looked at: the posing is tested above
+
+    monkeypatch.setattr(sfm, "extract", stop_after_import)
+    with pytest.raises(KeyboardInterrupt):
+        main(parse_args([str(dcim), "--out", str(out)]))
+    err = capsys.readouterr().err
+    assert (f"note: {dcim} holds no photos of its own: taking the 4 photos found in its 2 subfolders "
+            "(100APPLE, 101APPLE); 1 video there left out") in err
+    names = json.loads((out / "process_state.json").read_text())["stages"]["import"]["layout"]["names"]
+    assert names == ["100APPLE/IMG_0001.png", "100APPLE/IMG_0002.png", "101APPLE/IMG_0003.png",
+                     "101APPLE/IMG_0004.jpg"]
+    assert sorted(p.relative_to(out / "images").as_posix() for p in (out / "images").rglob("*.*")) == names
+    assert sorted(str(p.relative_to(dcim)) for p in dcim.rglob("*")) == before  # the input is untouched
+
+
+def test_the_printed_train_command_pastes_with_a_space_in_the_path(tmp_path, monkeypatch, capsys):
+    import shlex
+
+    from exploregs_plugin.scripts import process
+
+    out = tmp_path / "my dataset's folder"
+    monkeypatch.setattr(process, "process_capture", lambda inputs, out, options: {})  # the line printed after
+    assert process.main(process.parse_args([str(tmp_path), "--out", str(out)])) == 0
+    line = capsys.readouterr().out.strip()
+    command = line.split("(train with: ", 1)[1].removesuffix(")")
+    assert shlex.split(command) == ["eg-train", "exploregs-seedsplit", "--data", str(out)]
 
 
 @pytest.mark.slow
@@ -736,7 +850,7 @@ def test_a_capture_that_skips_is_a_gap_not_a_fold(processed):
 
 
 def test_orientation_alignment_recovers_a_known_rotation():
-    from exploregs_plugin.bench.pose_agreement import orientation_alignment
+    from exploregs_plugin.bench.components.pose_agreement import orientation_alignment
 
     rng = np.random.default_rng(3)
 

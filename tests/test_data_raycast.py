@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from exploregs_plugin.data import raycast as rc
-from exploregs_plugin.data.raycast import pixel_rays, trace
-from exploregs_plugin.data.scene_layouts import build_world, intrinsics, look_at
-from exploregs_plugin.data.scene_render import count_visible
-from exploregs_plugin.data.textures import hash01, value_noise
+from exploregs_plugin.data.builtin import raycast as rc
+from exploregs_plugin.data.builtin.raycast import pixel_rays, trace
+from exploregs_plugin.data.builtin.layouts import build_world, intrinsics, look_at
+from exploregs_plugin.data.builtin.render import count_visible
+from exploregs_plugin.data.builtin.textures import hash01, value_noise
 
 GREY = rc.Material(lambda p, n: np.full_like(p, 0.5))
 

@@ -8,8 +8,8 @@ from pathlib import Path
 import pytest
 
 from exploregs_plugin.data import ParseOptions, read_colmap
-from exploregs_plugin.data.builtin import PRESETS
-from exploregs_plugin.data.builtin_dynamic import DYNAMIC_PRESETS
+from exploregs_plugin.data.builtin.presets import PRESETS
+from exploregs_plugin.data.builtin.dynamic import DYNAMIC_PRESETS
 from exploregs_plugin.scripts.scenes import main
 
 

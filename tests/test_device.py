@@ -18,7 +18,7 @@ import pytest
 import torch
 
 from exploregs_plugin.cameras import Camera
-from exploregs_plugin.bench.raster_scenes import random_scene
+from exploregs_plugin.bench.components.raster_scenes import random_scene
 from exploregs_plugin.device import DeviceError, make_generator, resolve_device, restore_generator, to_device
 from exploregs_plugin.evaluation import evaluate
 from exploregs_plugin.io.checkpoint import latest_checkpoint, load_checkpoint

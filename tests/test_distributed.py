@@ -326,7 +326,8 @@ def _alive(pid: int) -> bool:
 
 @pytest.mark.skipif(not Path("/proc/self/environ").exists(), reason="finds the ranks through /proc")
 @pytest.mark.parametrize("signum", [signal.SIGINT, pytest.param(signal.SIGTERM, marks=pytest.mark.slow)])
-def test_ctrl_c_or_sigterm_stops_a_launched_job_with_one_line(tmp_path, tiny_scene_dir, signum):
+def test_ctrl_c_or_sigterm_stops_a_launched_job_with_one_line(tmp_path, tiny_scene_dir, signum,
+                                                             sigint_as_in_a_terminal):
     run_dir = tmp_path / "run"
     proc = _launch(run_dir, "--checkpoint-every", "2")
     try:
@@ -351,11 +352,11 @@ def test_repeated_launcher_signals_are_one_stop_request_but_a_second_sigterm_sto
     repeats must not stop the rank at once (the other rank would wait in a collective forever),
     and after the loop they are ignored; a SIGTERM after them still means "stop now"."""
     from exploregs_plugin.distributed import LAUNCHER_GONE, LAUNCHER_PID
-    from exploregs_plugin.trainer import Stopped, _StopOnSignals
+    from exploregs_plugin.stopping import Stopped, StopOnSignals
 
     monkeypatch.setenv(LAUNCHER_PID, "1")
     before = signal.getsignal(LAUNCHER_GONE)
-    with _StopOnSignals() as stop:
+    with StopOnSignals() as stop:
         assert signal.getsignal(LAUNCHER_GONE) == stop._handler
         for _ in range(3):
             stop._handler(LAUNCHER_GONE, None)

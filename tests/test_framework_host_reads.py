@@ -195,7 +195,7 @@ def test_the_collapse_watch_read_at_the_log_line_names_the_step_that_collapsed(t
     for step, psnr in enumerate(psnrs[:-1]):  # tensors, left on the device until the read
         stats = {"psnr": torch.tensor(psnr, dtype=torch.float64), "loss": torch.tensor(0.3, dtype=torch.float64),
                  "counts": {}, "views": ()}
-        trainer._check_collapse(step, stats, read=False)
+        trainer.watches.check(step, stats, read=False)
     with pytest.raises(CollapseError) as raised:
-        trainer._check_collapse(len(psnrs) - 1, {"psnr": 2.0, "loss": 0.3, "counts": {}, "views": ()}, read=True)
+        trainer.watches.check(len(psnrs) - 1, {"psnr": 2.0, "loss": 0.3, "counts": {}, "views": ()}, read=True)
     assert str(raised.value).startswith(expected)

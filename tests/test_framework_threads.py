@@ -105,7 +105,7 @@ def test_a_cpu_gets_a_thread_only_when_three_quarters_of_it_is_idle():
 
 
 def test_the_thread_bench_tables_medians_threads_and_the_ratio():
-    from exploregs_plugin.bench.threads import table
+    from exploregs_plugin.bench.components.threads import table
 
     rows = [{"competitors": 0, "setting": "default", "seconds": 10.0, "threads": [2]},
             {"competitors": 0, "setting": "one thread", "seconds": 12.0, "threads": [1]},
@@ -135,14 +135,15 @@ def test_default_threads_follow_affinity_and_omp_num_threads(monkeypatch):
 def test_a_run_follows_the_idle_cpus_between_steps_and_restores_the_count(tmp_path, tiny_scene_dir, monkeypatch):
     import torch
 
+    from exploregs_plugin import thread_follower
     from exploregs_plugin import trainer as trainer_module
     from exploregs_plugin.callbacks import TrainingCallback
     from exploregs_plugin.threads import IdleCpus
 
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    monkeypatch.setattr(trainer_module, "THREADS_CHECK_SECONDS", 0.0)
-    monkeypatch.setattr(trainer_module, "FIRST_THREADS_CHECK_SECONDS", 0.0)
-    monkeypatch.setattr(trainer_module, "available_cpus", lambda: 2)
+    monkeypatch.setattr(thread_follower, "THREADS_CHECK_SECONDS", 0.0)
+    monkeypatch.setattr(thread_follower, "FIRST_THREADS_CHECK_SECONDS", 0.0)
+    monkeypatch.setattr(thread_follower, "available_cpus", lambda: 2)
     idle = iter([2.0, 2.0, 1.0, 1.0, 2.0, 2.0])  # a competitor comes and goes
     monkeypatch.setattr(IdleCpus, "sample", lambda self: next(idle, 2.0))
     seen: list[int] = []
@@ -165,14 +166,15 @@ def test_a_run_checks_the_idle_cpus_soon_after_it_starts(tmp_path, tiny_scene_di
     # THREADS_CHECK_SECONDS
     import torch
 
+    from exploregs_plugin import thread_follower
     from exploregs_plugin import trainer as trainer_module
     from exploregs_plugin.callbacks import TrainingCallback
     from exploregs_plugin.threads import IdleCpus
 
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
-    monkeypatch.setattr(trainer_module, "THREADS_CHECK_SECONDS", 1e6)
-    monkeypatch.setattr(trainer_module, "FIRST_THREADS_CHECK_SECONDS", 0.0)
-    monkeypatch.setattr(trainer_module, "available_cpus", lambda: 2)
+    monkeypatch.setattr(thread_follower, "THREADS_CHECK_SECONDS", 1e6)
+    monkeypatch.setattr(thread_follower, "FIRST_THREADS_CHECK_SECONDS", 0.0)
+    monkeypatch.setattr(thread_follower, "available_cpus", lambda: 2)
     idle = iter([1.0, 2.0])  # a competitor came while the data loaded (then left: too late to be seen)
     monkeypatch.setattr(IdleCpus, "sample", lambda self: next(idle))
     seen: list[int] = []

@@ -287,6 +287,70 @@ def test_sigterm_checkpoints_and_exits_143_with_one_line(tmp_path, tiny_scene_di
                                              f"resume with: eg-train --resume {run_dir}")
 
 
+def test_a_run_started_with_sigint_ignored_trains_on_through_it_and_stops_on_sigterm(tmp_path, tiny_scene_dir,
+                                                                                    exploregs_cache):
+    # a script that starts eg-train in the background (bash -c 'eg-train ... &') starts it with
+    # SIGINT ignored, so that a Ctrl-C meant for the foreground does not reach it: the run keeps
+    # that choice, and SIGTERM (a scheduler's, a kill's) still stops it with a checkpoint
+    import time
+
+    run_dir = tmp_path / "run"
+    env = {**os.environ, "EXPLOREGS_CACHE": str(exploregs_cache), "PYTHONUNBUFFERED": "1"}
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "exploregs_plugin.scripts.train", "exploregs-default", "--data", "builtin:tiny",
+         "--max-steps", "5000", "--run-dir", str(run_dir), "--no-tensorboard", "--eval-count", "1",
+         "--checkpoint-every", "100000", "--log-every", "1"],
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env,
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_IGN))
+    head: list[str] = []
+
+    def next_step() -> int | None:
+        """The count of the next progress line (without a terminal, "step N/5000 ..." every 10 steps)."""
+        deadline = time.monotonic() + 300
+        while time.monotonic() < deadline:
+            line = proc.stderr.readline()
+            head.append(line)
+            if not line:
+                return None
+            if line.startswith("step "):
+                return int(line.split()[1].split("/")[0])
+        return None
+
+    try:
+        first = next_step()
+        proc.send_signal(signal.SIGINT)  # handled, it would stop the run at the next step boundary
+        later = [next_step(), next_step()]
+        running = proc.poll() is None
+        proc.send_signal(signal.SIGTERM)
+        _, rest = proc.communicate(timeout=120)
+    finally:
+        proc.kill()
+    err = "".join(head) + rest
+    assert first is not None and later[0] is not None and first < later[0] < later[1] and running, err
+    assert proc.returncode == 143, err
+    ckpt = latest_checkpoint(run_dir)
+    step = int(load_checkpoint(ckpt)["step"])
+    assert later[1] <= step < 5000 and err.strip().splitlines()[-1] == (
+        f"eg-train: error: stopped by SIGTERM after step {step}, saved in {ckpt}; "
+        f"resume with: eg-train --resume {run_dir}")
+
+
+def test_training_leaves_an_ignored_sigint_ignored_and_a_handled_one_as_it_was():
+    from exploregs_plugin.stopping import StopOnSignals
+
+    before = signal.getsignal(signal.SIGINT)
+    try:
+        for disposition in (signal.SIG_IGN, signal.default_int_handler):
+            signal.signal(signal.SIGINT, disposition)
+            with StopOnSignals() as stop:
+                taken = signal.getsignal(signal.SIGINT)
+            assert (taken == stop._handler) is (disposition is not signal.SIG_IGN)
+            assert signal.getsignal(signal.SIGINT) is disposition
+            assert signal.getsignal(signal.SIGTERM) != stop._handler
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_DFL if before is None else before)
+
+
 def test_wall_clock_checkpoints_come_between_step_checkpoints(tmp_path, tiny_scene_dir):
     trainer = tiny_config(tmp_path / "run", max_steps=12, checkpoint_every=1000, checkpoint_minutes=1e-6,
                           keep_checkpoints=100).setup()
@@ -357,14 +421,14 @@ def test_a_bad_value_is_one_line_with_the_valid_range(capsys):
 def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path, tiny_scene_dir, monkeypatch):
     from datetime import datetime
 
-    import exploregs_plugin.trainer as trainer_module
+    import exploregs_plugin.run_folder as run_folder_module
 
     class Frozen(datetime):
         @classmethod
         def now(cls, tz=None):
             return datetime(2026, 11, 25, 1, 2, 3)
 
-    monkeypatch.setattr(trainer_module, "datetime", Frozen)
+    monkeypatch.setattr(run_folder_module, "datetime", Frozen)
     config = tiny_config(None, output_dir=tmp_path / "outputs", max_steps=2)
     first, second = Trainer(config), Trainer(config)
     base = tmp_path / "outputs" / "tiny" / "exploregs-default" / "2026-11-25_010203"
@@ -506,7 +570,7 @@ def test_the_collapse_watch_can_be_switched_off(tmp_path):
         assert trainer.config.collapse_watch is stops
         try:
             for step, stats in enumerate(falling):
-                trainer._check_collapse(step, stats)
+                trainer.watches.check(step, stats)
             stopped = False
         except CollapseError:
             stopped = True

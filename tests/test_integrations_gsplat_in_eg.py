@@ -1,6 +1,7 @@
-"""gsplat's own strategies inside eg-train (``--strategy gsplat-default`` / ``gsplat-mcmc``):
-registration, fields, the info conversion against our Default's statistic, one step against plain
-gsplat on identical inputs, the CPU stand-ins of MCMC, and short trainings on builtin:tiny."""
+"""gsplat's own strategies inside eg-train (``--strategy gsplat-default`` / ``gsplat-mcmc``,
+exploregs_plugin.integrations.from_gsplat): registration, fields, configs saved under the adapter's
+old module, the info conversion against our Default's statistic, one step against plain gsplat on
+identical inputs, the CPU stand-ins of MCMC, and short trainings on builtin:tiny."""
 
 from __future__ import annotations
 
@@ -15,17 +16,14 @@ import torch
 
 gs = pytest.importorskip("gsplat.strategy")
 
-from exploregs_plugin.integrations.gsplat_cpu import (  # noqa: E402
+from exploregs_plugin.integrations.from_gsplat import GsplatDefaultStrategy, GsplatMCMCStrategy  # noqa: E402
+from exploregs_plugin.integrations.from_gsplat_cpu import (  # noqa: E402
     STAND_INS,
     cpu_stand_ins,
     covariance_cpu,
     relocation_cpu,
 )
-from exploregs_plugin.integrations.gsplat_in_eg import (  # noqa: E402
-    GsplatDefaultStrategy,
-    GsplatMCMCStrategy,
-    gsplat_info,
-)
+from exploregs_plugin.integrations.gsplat_info import gsplat_info  # noqa: E402
 from exploregs_plugin.schedule import ScheduleConfig  # noqa: E402
 from exploregs_plugin.strategies import DefaultStrategy, StrategyError, available_strategies  # noqa: E402
 from exploregs_plugin.strategies.observation import ViewObservation  # noqa: E402
@@ -120,6 +118,28 @@ def test_eg_train_sets_the_fields_by_name(tmp_path):
     assert type(strategy) is GsplatMCMCStrategy and (strategy.cap_max, strategy.noise_lr) == (5000, 1e4)
 
 
+def test_a_config_saved_under_the_adapters_old_module_loads(tmp_path):
+    # config.yml of runs made before the adapters were named by direction names gsplat_in_eg
+    import yaml
+
+    from exploregs_plugin.configs import load_config, save_config
+    from exploregs_plugin.scripts.train import parse_config
+
+    config = parse_config(["exploregs-default", "--strategy", "gsplat-default", "--strategy.grow-grad2d", "0.0005"])
+    mcmc = parse_config(["exploregs-default", "--strategy", "gsplat-mcmc", "--strategy.cap-max", "5000"])
+    for old, cls in ((config, GsplatDefaultStrategy), (mcmc, GsplatMCMCStrategy)):
+        path = tmp_path / f"{cls.__name__}.yml"
+        save_config(old, path)
+        text = path.read_text()
+        new_path = f"exploregs_plugin.integrations.from_gsplat:{cls.__name__}"
+        assert new_path in text
+        path.write_text(text.replace(new_path, f"exploregs_plugin.integrations.gsplat_in_eg:{cls.__name__}"))
+        assert "gsplat_in_eg" in yaml.safe_load(path.read_text())["pipeline"]["strategy"]["_type"]
+        loaded = load_config(path).pipeline.strategy
+        assert type(loaded) is cls and loaded == old.pipeline.strategy
+    assert load_config(tmp_path / "GsplatDefaultStrategy.yml").pipeline.strategy.grow_grad2d == 0.0005
+
+
 def test_bad_settings_are_one_line():
     with pytest.raises(StrategyError, match="no cap"):
         GsplatDefaultStrategy(cap_max=10)
@@ -134,12 +154,13 @@ def test_the_modules_import_without_gsplat_and_using_it_names_the_install(monkey
 
     for name in ("gsplat", "gsplat.strategy", "gsplat.strategy.ops"):
         monkeypatch.setitem(sys.modules, name, None)  # import gsplat now fails
-    for module in ("gsplat_cpu", "gsplat_in_eg"):  # a fresh copy of each, as the registry's first load
+    # a fresh copy of each, as the registry's first load
+    for module in ("from_gsplat_cpu", "gsplat_info", "from_gsplat"):
         spec = importlib.util.spec_from_file_location(
             f"exploregs_plugin.integrations.{module}", f"{integrations.__path__[0]}/{module}.py")
         monkeypatch.setitem(sys.modules, spec.name, importlib.util.module_from_spec(spec))
         spec.loader.exec_module(sys.modules[spec.name])
-    fresh = sys.modules["exploregs_plugin.integrations.gsplat_in_eg"]
+    fresh = sys.modules["exploregs_plugin.integrations.from_gsplat"]
     strategy = fresh.GsplatDefaultStrategy()
     params = make_gaussians(3, torch.Generator())
     with pytest.raises(StrategyError, match=r"^gsplat's strategies need gsplat: pip install gsplat==1\.5\.3"):

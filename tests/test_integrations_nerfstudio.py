@@ -106,12 +106,15 @@ def _model(ns, monkeypatch, **fields):
 def test_the_model_builds_on_a_cpu_with_our_strategy_and_splatfacto_settings(ns, monkeypatch):
     from gsplat.strategy import DefaultStrategy
 
-    from exploregs_plugin.integrations import gsplat as integ
+    from exploregs_plugin.integrations import into_gsplat as integ
 
     model = _model(ns, monkeypatch, num_random=500, n_seed=7, n_split=3, exploration_seed=5, cull_alpha_thresh=0.2)
     strategy = model.strategy
-    assert isinstance(strategy, integ.SeedSplitStrategy) and isinstance(strategy, DefaultStrategy)
-    assert (strategy.n_seed, strategy.n_split, strategy.seed) == (7, 3, 5)
+    assert isinstance(strategy, integ.GsplatSeedSplitStrategy) and isinstance(strategy, DefaultStrategy)
+    # the model options configure eg-train's operators
+    assert (strategy.seeding.n_seed, strategy.splitting.n_split, strategy.splitting.every) == (7, 3, 1)
+    assert strategy.seed == 5
+    assert strategy.seeding.prune_scale3d == 10.0
     assert strategy.prune_opa == 0.2  # splatfacto's own settings came along
     assert strategy.pause_refine_after_reset == 4 + model.config.refine_every
     assert strategy.refine_every == model.config.refine_every
@@ -121,7 +124,7 @@ def test_the_model_builds_on_a_cpu_with_our_strategy_and_splatfacto_settings(ns,
 
 def test_a_refine_step_of_the_model_adds_splits_and_seeds_in_splatfacto_layout(ns, monkeypatch):
     # splatfacto's callbacks with gsplat 1.4's info (radii [C, N]), the way its get_outputs makes it
-    from exploregs_plugin.integrations import gsplat as integ
+    from exploregs_plugin.integrations import into_gsplat as integ
 
     model = _model(ns, monkeypatch, num_random=300, n_seed=7, n_split=3, warmup_length=0, refine_every=2,
                    reset_alpha_every=100, stop_split_at=1000)
@@ -150,6 +153,6 @@ def test_a_refine_step_of_the_model_adds_splits_and_seeds_in_splatfacto_layout(n
             assert optimizers[key].param_groups[0]["params"][0] is p
             assert optimizers[key].state[p]["exp_avg"].shape == p.shape
     assert sizes[0] == 300 + 3  # step 1: Random Splitting only (gsplat refines on even steps here)
-    assert sizes[1] >= sizes[0] + 3 + 7  # step 2: gsplat's growth, 3 more splits and 7 seeds
+    assert sizes[1] >= sizes[0] + 3 + 7  # step 2: gsplat's growth, 3 more splits and 7 seeds (every refine_every)
     assert params["opacities"].shape[1:] == (1,) and params["features_dc"].shape[1:] == (3,)
     assert not params["features_rest"][-7:].any()  # seeds: higher SH start at zero

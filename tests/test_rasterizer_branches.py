@@ -6,7 +6,7 @@ import torch
 
 from exploregs_plugin.rasterizer import rasterize, rasterize_branched, trace_pixel
 from exploregs_plugin.rasterizer.reference import reference_rasterize
-from exploregs_plugin.bench.raster_scenes import random_scene
+from exploregs_plugin.bench.components.raster_scenes import random_scene
 
 F64 = torch.float64
 

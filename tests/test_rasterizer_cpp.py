@@ -14,7 +14,7 @@ from dataclasses import replace
 import pytest
 import torch
 
-from exploregs_plugin.bench.raster_scenes import GaussianScene, random_scene
+from exploregs_plugin.bench.components.raster_scenes import GaussianScene, random_scene
 from exploregs_plugin.rasterizer import BackendError, RasterSettings, backend_line, backend_problem, rasterize
 from exploregs_plugin.rasterizer import backends
 from exploregs_plugin.rasterizer.cpp_backend import composite_cpp, cpp_problem, project_cpp, sh_colors_cpp

@@ -10,7 +10,7 @@ _impl = pytest.importorskip("gsplat.cuda._torch_impl", reason="gsplat has no pur
 
 from exploregs_plugin.rasterizer import RasterSettings  # noqa: E402
 from exploregs_plugin.rasterizer.projection import covariances_3d, project_gaussians  # noqa: E402
-from exploregs_plugin.bench.raster_scenes import random_scene  # noqa: E402
+from exploregs_plugin.bench.components.raster_scenes import random_scene  # noqa: E402
 from exploregs_plugin.rasterizer.sh import eval_sh  # noqa: E402
 
 F64 = torch.float64

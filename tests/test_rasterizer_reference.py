@@ -12,7 +12,7 @@ import torch
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
 from exploregs_plugin.rasterizer.reference import reference_rasterize
-from exploregs_plugin.bench.raster_scenes import GaussianScene, random_scene
+from exploregs_plugin.bench.components.raster_scenes import GaussianScene, random_scene
 
 F64 = torch.float64
 # every test runs once with the torch reference and once with the compiled CPU backend

@@ -114,3 +114,11 @@ def test_reversed_operators_run_reversed():
     assert counts["seeded"] == 5 and counts["random_split"] == 15
     assert params["means"].shape[0] == 30
     assert int(state["stats"]["seed"].sum()) == 10  # each seed's two children keep its flag
+
+
+@pytest.mark.parametrize("field, value", [("lr", -1.0), ("lr", float("nan")), ("gate_k", 0.0), ("gate_t", 1.5)])
+def test_position_noise_refuses_a_bad_scale_or_gate(field, value):
+    from exploregs_plugin.strategies.perturbation import PositionNoise
+
+    with pytest.raises(StrategyError, match=f"noise {field}"):
+        PositionNoise(**{field: value})

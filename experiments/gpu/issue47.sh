@@ -180,7 +180,7 @@ fi
 
 # ---- (a) our step over gsplat's (the command), then a host-side profile of 40 more steps
 # (torch.profiler, operators by self CPU time): where the time goes if the target is missed
-has a && run_part a a_train_step.log 210 80 python3 -m exploregs_plugin.bench.train_step \
+has a && run_part a a_train_step.log 210 80 python3 -m exploregs_plugin.bench.components.train_step \
     --data "$STAGE/beer" --data-factor 1 --device cuda --backends gsplat --warmup 3000 --max-steps 30000 --profile 40
 
 # ---- (b) gsplat's simple_trainer: its default, and our seedsplit through our launcher

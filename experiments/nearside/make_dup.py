@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from exploregs_plugin.data.scene_layouts import view_kinds
+from exploregs_plugin.data.builtin.layouts import view_kinds
 from scene_copy import copy_nearside, read_cameras, rewrite_sparse, sfm_points
 
 parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

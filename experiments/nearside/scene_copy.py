@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from exploregs_plugin.data.builtin import ensure_builtin, write_colmap_text
+from exploregs_plugin.data.builtin.presets import ensure_builtin, write_colmap_text
 
 
 def copy_nearside(dst: Path) -> tuple[Path, Path]:

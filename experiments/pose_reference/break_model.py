@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pycolmap
 
-from exploregs_plugin.bench.pose_agreement import break_cameras
+from exploregs_plugin.bench.components.pose_agreement import break_cameras
 from exploregs_plugin.data.process import checks
 
 

@@ -19,7 +19,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from exploregs_plugin.bench.pose_agreement import colmap_cameras, llff_cameras
+from exploregs_plugin.bench.components.pose_agreement import colmap_cameras, llff_cameras
 
 
 def main() -> None:

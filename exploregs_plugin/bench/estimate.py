@@ -31,7 +31,7 @@ RUN_OVERHEAD_SECONDS = 19.0
 
 def _reference(name: str) -> tuple[str, float] | None:
     """(measured scene, pixel ratio) for a built-in scene name, or None."""
-    from exploregs_plugin.data.builtin import PRESETS
+    from exploregs_plugin.data.builtin.presets import PRESETS
 
     if name in SECONDS_PER_STEP:
         return name, 1.0

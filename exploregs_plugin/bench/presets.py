@@ -381,7 +381,7 @@ def dnerf(root: Path | None = None) -> BenchSpec:
 
 def _analysis(name: str, scenes: tuple[str, ...]) -> BenchSpec:
     """An eg-analyze ablation (branch ablation, depth supervision, split ablation) as a bench."""
-    from exploregs_plugin.bench.experiments import EXPERIMENTS
+    from exploregs_plugin.analysis.ablations import EXPERIMENTS
 
     return BenchSpec(entries=EXPERIMENTS[name], scenes=tuple(BenchScene(s, f"builtin:{s}") for s in scenes),
                      seeds=(0,), steps=ANALYSIS_STEPS, eval_count=4, name=name,

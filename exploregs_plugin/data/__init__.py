@@ -6,7 +6,7 @@ Public entry points::
     dm = DataManagerConfig(data="builtin:tiny").setup()
 """
 
-from .builtin import PRESETS, ScenePreset, ensure_builtin, make_scene
+from .builtin.presets import PRESETS, ScenePreset, ensure_builtin, make_scene
 from .cache import CACHE_ENV, cache_root
 from .colmap import read_colmap
 from .datamanager import DataManager, DataManagerConfig

@@ -10,6 +10,7 @@ once, then read as COLMAP.
 
 from __future__ import annotations
 
+import shlex
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -18,7 +19,7 @@ import yaml
 
 from exploregs_plugin.io.checkpoint import CHECKPOINT_DIR, RUN_CONFIG
 
-from .builtin import ensure_builtin
+from .builtin.presets import ensure_builtin
 from .colmap import read_colmap
 from .errors import DataError
 from .images import conversion_note, derived_cache_dir
@@ -43,7 +44,8 @@ def another_commands_input(path: Path) -> str | None:
         data = yaml.safe_load((run / RUN_CONFIG).read_text())["pipeline"]["datamanager"]["data"]
     except (OSError, yaml.YAMLError, KeyError, TypeError):
         data = f"the dataset named in {run / RUN_CONFIG}"
-    return f"an eg-train run, not a dataset: it trained on {data} (eg-train --resume {run} continues it)"
+    return (f"an eg-train run, not a dataset: it trained on {data} "
+            f"(eg-train --resume {shlex.quote(str(run))} continues it)")
 
 
 def resolve_data(data: str, cache_dir: Path) -> tuple[str, Path]:

@@ -4,11 +4,12 @@ Registered under nerfstudio's ``nerfstudio.method_configs`` entry point (``pypro
 ``ns-train exploregs-splatfacto --data DATA`` finds it when this package and nerfstudio are
 installed in the same environment. The method is nerfstudio's own ``splatfacto`` (its trainer,
 data, optimizers and model config, copied from nerfstudio's registry) whose model swaps the
-``DefaultStrategy`` it builds for :class:`~exploregs_plugin.integrations.gsplat.SeedSplitStrategy`
-with every one of splatfacto's gsplat settings (``SeedSplitStrategy.from_default``). The
-exploration fields are model options: ``--pipeline.model.n-seed``, ``--pipeline.model.n-split``,
-``--pipeline.model.split-every``, ``--pipeline.model.seed-prune-scale3d``,
-``--pipeline.model.exploration-seed``.
+``DefaultStrategy`` it builds for
+:class:`~exploregs_plugin.integrations.into_gsplat.GsplatSeedSplitStrategy` with every one of
+splatfacto's gsplat settings (``GsplatSeedSplitStrategy.from_default``). The exploration settings
+are model options, which configure eg-train's operators (``RandomSplitting``, ``RandomSeeding``):
+``--pipeline.model.n-seed``, ``--pipeline.model.n-split``, ``--pipeline.model.split-every``,
+``--pipeline.model.seed-prune-scale3d``, ``--pipeline.model.exploration-seed``.
 
 Import order. nerfstudio loads the entry point while its own ``nerfstudio.configs.method_configs``
 module is still being imported (``discover_methods`` runs at its end), and that module is where
@@ -37,7 +38,8 @@ except ImportError as exc:  # one line, whatever part of nerfstudio failed to im
 
 from ..strategies.budget import PAPER_N_SEED, PAPER_N_SPLIT, PAPER_SPLIT_EVERY
 from ..strategies.seeding import RandomSeeding
-from .gsplat import SeedSplitStrategy
+from ..strategies.splitting import RandomSplitting
+from .into_gsplat import GsplatSeedSplitStrategy
 
 __all__ = ["METHOD_NAME", "ExploreSplatfactoModel", "ExploreSplatfactoModelConfig", "exploregs_splatfacto_config"]
 
@@ -51,30 +53,30 @@ class ExploreSplatfactoModelConfig(SplatfactoModelConfig):
 
     _target: type = field(default_factory=lambda: ExploreSplatfactoModel)
     n_seed: int = PAPER_N_SEED
-    """Seeds added on every step where splatfacto's densification refines (0 disables)."""
+    """Seeds added every refine_every steps inside splatfacto's refine window (Random Seeding's
+    rule: also in the pause after an opacity reset, where splatfacto does not refine; 0 disables)."""
     n_split: int = PAPER_N_SPLIT
     """Gaussians split per splitting step, drawn in proportion to their mean scale (0 disables)."""
     split_every: int = PAPER_SPLIT_EVERY
     """Random Splitting interval in steps, inside splatfacto's refine window."""
     seed_prune_scale3d: float = RandomSeeding.prune_scale3d
-    """While seeding, the world-size prune threshold (x scene scale) instead of cull_scale_thresh."""
+    """While seeding, the world-size prune threshold (x scene scale) instead of cull_scale_thresh
+    (RandomSeeding.prune_scale3d)."""
     exploration_seed: int = 0
     """Seed of the exploration's own torch.Generator."""
 
 
 class ExploreSplatfactoModel(SplatfactoModel):
-    """splatfacto whose densification strategy is :class:`SeedSplitStrategy`."""
+    """splatfacto whose densification strategy is :class:`GsplatSeedSplitStrategy`."""
 
     config: ExploreSplatfactoModelConfig
 
     def populate_modules(self) -> None:
         super().populate_modules()  # builds splatfacto's DefaultStrategy from its config
-        self.strategy = SeedSplitStrategy.from_default(
+        self.strategy = GsplatSeedSplitStrategy.from_default(
             self.strategy,
-            n_seed=self.config.n_seed,
-            n_split=self.config.n_split,
-            split_every=self.config.split_every,
-            seed_prune_scale3d=self.config.seed_prune_scale3d,
+            splitting=RandomSplitting(n_split=self.config.n_split, every=self.config.split_every),
+            seeding=RandomSeeding(n_seed=self.config.n_seed, prune_scale3d=self.config.seed_prune_scale3d),
             seed=self.config.exploration_seed,
         )
         self.strategy_state = self.strategy.initialize_state(scene_scale=1.0)

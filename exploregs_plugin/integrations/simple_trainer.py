@@ -11,9 +11,9 @@ added while the script runs (and removed when it ends):
   one of our strategies (so ``mcmc-ray`` keeps gsplat's ``init_opa``, ``init_scale``,
   ``opacity_reg`` and ``scale_reg`` for MCMC); the new fields become ``--strategy.*`` options;
 - ``gsplat.rendering.rasterization`` returns, in its ``info``, the ``viewmats`` it was called with:
-  gsplat's info has no camera, and the ray noise needs its centre (``camera_center`` in
-  :mod:`exploregs_plugin.integrations.gsplat`). simple_trainer imports the function from there,
-  so every render of the run carries its cameras.
+  gsplat's info has no camera, and the ray noise needs its centre (``camera_centers`` in
+  :mod:`exploregs_plugin.integrations.gsplat_info`). simple_trainer imports the function from
+  there, so every render of the run carries its cameras.
 
 simple_trainer decides what to call from the strategy's type (``isinstance(strategy,
 DefaultStrategy)`` or ``MCMCStrategy``), which our classes subclass; its code is not changed.
@@ -32,14 +32,21 @@ from typing import Any
 
 from ..strategies.base import StrategyError
 from .patching import attribute_set_to
-from .gsplat import MCMCRayStrategy, RayStrategy, SeedSplitStrategy, SeedStrategy, SplitStrategy
+from .into_gsplat import (
+    GsplatMCMCRayStrategy,
+    GsplatRayStrategy,
+    GsplatSeedSplitStrategy,
+    GsplatSeedStrategy,
+    GsplatSplitStrategy,
+)
 
 ENTRIES: dict[str, tuple[str, type, str]] = {
-    "seedsplit": ("default", SeedSplitStrategy, "3DGS densification + Random Splitting + Random Seeding (ExploreGS)."),
-    "seed": ("default", SeedStrategy, "3DGS densification + Random Seeding (ExploreGS, far side)."),
-    "split": ("default", SplitStrategy, "3DGS densification + Random Splitting (ExploreGS, near side)."),
-    "ray": ("default", RayStrategy, "3DGS densification + position noise along the viewing ray (ExploreGS)."),
-    "mcmc-ray": ("mcmc", MCMCRayStrategy, "3DGS-MCMC with its position noise along the viewing ray (ExploreGS)."),
+    "seedsplit": ("default", GsplatSeedSplitStrategy,
+                  "3DGS densification + Random Splitting + Random Seeding (ExploreGS)."),
+    "seed": ("default", GsplatSeedStrategy, "3DGS densification + Random Seeding (ExploreGS, far side)."),
+    "split": ("default", GsplatSplitStrategy, "3DGS densification + Random Splitting (ExploreGS, near side)."),
+    "ray": ("default", GsplatRayStrategy, "3DGS densification + position noise along the viewing ray (ExploreGS)."),
+    "mcmc-ray": ("mcmc", GsplatMCMCRayStrategy, "3DGS-MCMC with its position noise along the viewing ray (ExploreGS)."),
 }
 """Subcommand -> (simple_trainer's config it copies, our strategy class, description)."""
 

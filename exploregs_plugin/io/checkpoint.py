@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import os
 import re
+import shlex
 import sys
 from pathlib import Path
 from typing import Any, Callable
@@ -169,7 +170,7 @@ def check_run_folder(path: Path) -> None:
         return
     if is_dataset_folder(path):
         raise CheckpointError(f"{path} is a dataset, not a run folder (it has no {RUN_CONFIG}): "
-                              f"eg-train METHOD --data {path} trains a run on it")
+                              f"eg-train METHOD --data {shlex.quote(str(path))} trains a run on it")
     inside = [c.parent for depth in ("*", "*/*", "*/*/*") for c in path.glob(f"{depth}/{RUN_CONFIG}")]
     hint = ""
     if inside:

@@ -16,7 +16,7 @@ Derivative, with S_m = sum_{i>m} w_i (dL/dF . f_i):
     dL/dpower_m = alpha_m dL/dalpha_m = w_m (dL/dF . f_m) - S_m alpha_m / (1 - alpha_m),
 zero where the clamp is active and for pairs after the stop.
 
-Speed notes (per-element costs from `python -m exploregs_plugin.bench.opcost`): exp2 is
+Speed notes (per-element costs from `python -m exploregs_plugin.bench.components.opcost`): exp2 is
 ~3x cheaper than exp, boolean masks (masked_fill, where) ~25x dearer than arithmetic, and bmm
 wants its thin operand column-major; so masks are arithmetic (threshold, sign), exp is exp2
 with log2(e) folded into the conic, and feature tables are kept as [B, F, K].

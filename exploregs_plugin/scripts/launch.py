@@ -17,6 +17,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
+import shlex
 import signal
 import socket
 import sys
@@ -73,7 +74,7 @@ def resume_hint(note: Path, several: bool = False) -> str:
             return "if the run folder printed on machine 0 has a checkpoint, continue it with eg-train --resume RUN_DIR"
         return "no run folder was made yet: start the run again"
     if list_checkpoints(run_dir):
-        return f"continue with: eg-train --resume {run_dir}"
+        return f"continue with: eg-train --resume {shlex.quote(str(run_dir))}"
     return f"no checkpoint was written yet: start the run again ({run_dir / 'config.yml'} holds its settings)"
 
 

@@ -1,6 +1,7 @@
 """eg-process: photos or videos in, a COLMAP dataset (images/ + sparse/0) out, posed with pycolmap.
 
     eg-process path/to/photos --out path/to/dataset          # a folder of photos (JPEG, PNG, HEIC)
+    eg-process path/to/DCIM --out path/to/dataset            # photos in subfolders (100APPLE/, ...)
     eg-process clip.mp4 --out path/to/dataset                # a video (its sharpest 150 frames)
     eg-process a.mp4 b.mp4 --out path/to/dataset             # several videos (one camera each)
     eg-process path/to/photos --out path/to/dataset --mapper global
@@ -12,6 +13,7 @@ database.db, process_report.json and process_top_view.png.
 
 from __future__ import annotations
 
+import shlex
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,8 +32,9 @@ class ProcessArgs:
 
     inputs: Annotated[list[Path], tyro.conf.Positional,
                       tyro.conf.arg(metavar="INPUT", help_behavior_hint="(required)")]
-    """A folder of photos (or a dataset folder whose images/ has no sparse/), a video file, several
-    video files or a folder of videos. Never written to."""
+    """A folder of photos (or of subfolders of photos, as a phone exports them; or a dataset folder
+    whose images/ has no sparse/), a video file, several video files or a folder of videos. Never
+    written to."""
     out: Path
     """The dataset folder to write (new or empty, or an earlier eg-process output to resume)."""
     options: Annotated[ProcessConfig, tyro.conf.OmitArgPrefixes] = field(default_factory=ProcessConfig)
@@ -39,7 +42,9 @@ class ProcessArgs:
 
 def main(args: ProcessArgs) -> int:
     process_capture(args.inputs, args.out, args.options)
-    print(f"dataset: {args.out} (train with: eg-train exploregs-seedsplit --data {args.out})", flush=True)
+    # quoted, so that the command pastes as it is when the path holds a space
+    print(f"dataset: {args.out} (train with: eg-train exploregs-seedsplit --data {shlex.quote(str(args.out))})",
+          flush=True)
     return 0
 
 

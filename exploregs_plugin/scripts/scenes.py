@@ -20,8 +20,8 @@ import numpy as np
 import tyro
 from PIL import Image
 
-from exploregs_plugin.data.builtin import PRESETS, make_scene, preset_by_name
-from exploregs_plugin.data.builtin_dynamic import DYNAMIC_PRESETS, DynamicPreset
+from exploregs_plugin.data.builtin.presets import PRESETS, make_scene, preset_by_name
+from exploregs_plugin.data.builtin.dynamic import DYNAMIC_PRESETS, DynamicPreset
 from exploregs_plugin.data.colmap import read_colmap
 from exploregs_plugin.data.neu3d import is_neu3d, read_neu3d
 from exploregs_plugin.data.errors import DataError

@@ -13,6 +13,7 @@ import io
 import shlex
 import signal
 import sys
+import textwrap
 from dataclasses import replace
 from pathlib import Path
 
@@ -50,9 +51,10 @@ def parse_config(argv: list[str]) -> TrainerConfig:
         raise _fail(str(err), 2) from err
     if argv and not argv[0].startswith("-") and argv[0] not in methods and Path(argv[0]).expanduser().exists():
         if (Path(argv[0]).expanduser() / CONFIG_NAME).is_file():
-            raise _fail(f"{argv[0]} is an eg-train run, not a method: eg-train --resume {argv[0]} continues it", 2)
-        raise _fail(f"{argv[0]} is a path, not a method: eg-train METHOD --data {argv[0]} trains on it "
-                    "(eg-train --help lists the methods)", 2)
+            raise _fail(f"{argv[0]} is an eg-train run, not a method: eg-train --resume {shlex.quote(argv[0])} "
+                        "continues it", 2)
+        raise _fail(f"{argv[0]} is a path, not a method: eg-train METHOD --data {shlex.quote(argv[0])} "
+                    "trains on it (eg-train --help lists the methods)", 2)
     if argv and not argv[0].startswith("-") and argv[0] not in methods:
         raise _fail(f"unknown method {argv[0]!r}; known methods: {', '.join(sorted(methods))}", 2)
     try:
@@ -78,12 +80,42 @@ def parse_config(argv: list[str]) -> TrainerConfig:
     except SystemExit as exit_:
         if exit_.code in (0, None):  # --help (tyro writes it to stdout)
             text = shown.getvalue()
-            if not full_help and argv and not argv[0].startswith("-"):  # a method's flags
-                text = compact_help(text) + "Every flag's whole description: eg-train METHOD --help-full\n"
+            if argv and not argv[0].startswith("-"):  # a method's flags
+                text = _method_help(text, defaults[argv[0]].pipeline.strategy, full_help)
             sys.stdout.write(text)
             sys.stderr.write(captured.getvalue())
             raise
         raise _fail(tyro_error_text(captured.getvalue()) or f"invalid arguments {argv}", 2) from None
+
+
+def _strategy_selector_lines(strategy: object, width: int = 100) -> list[str]:
+    """The help lines of ``--strategy NAME``, which tyro does not list (eg-train takes it out of
+    the command line before tyro parses it): the method's strategy and every registered one, in
+    the columns of ``compact_help``'s flag lines."""
+    from exploregs_plugin.strategies.registry import StrategyPluginError, available_strategies, builtin_strategies
+
+    broken = ""
+    try:
+        registered = available_strategies()
+    except StrategyPluginError as err:  # a broken plugin must not hide the method's help: it is named
+        registered, broken = builtin_strategies(), f" (plugins not listed: {err})"
+    current = next((name for name, cls in registered.items() if type(strategy) is cls), type(strategy).__name__)
+    indent = " " * 33  # where compact_help's flag descriptions start
+    head = f"  {'--strategy NAME':<30} Use another registered strategy, with its own flags [{current}]"
+    names = textwrap.wrap("one of: " + ", ".join(sorted(registered)) + broken, width, initial_indent=indent,
+                          subsequent_indent=indent, break_on_hyphens=False)
+    return [head, *names]
+
+
+def _method_help(text: str, strategy: object, full_help: bool) -> str:
+    """A method's help from tyro's, naming ``--strategy NAME``: compact (one line per flag) with
+    the selector first in the strategy's group, or whole (``--help-full``) with it after the boxes."""
+    lines = _strategy_selector_lines(strategy)
+    if full_help:
+        return text.rstrip("\n") + "\nstrategy selector:\n" + "\n".join(lines) + "\n"
+    out = compact_help(text).splitlines()
+    at = next((i + 1 for i, line in enumerate(out) if line.startswith("strategy options:")), len(out))
+    return "\n".join(out[:at] + lines + out[at:]) + "\nEvery flag's whole description: eg-train METHOD --help-full\n"
 
 
 class _Utf8Text(io.StringIO):
@@ -104,7 +136,7 @@ def _how_to_go_on(trainer: Trainer | None, argv: list[str]) -> str:
     """The end of a stop line, true to what is on disk: resume when the run has a checkpoint (one
     written now, one resumed from), else that nothing was saved and the command that starts it again."""
     if trainer is not None and trainer.last_checkpoint is not None:
-        return f"resume with: eg-train --resume {trainer.run_dir}"
+        return f"resume with: eg-train --resume {shlex.quote(str(trainer.run_dir))}"
     if argv[:1] == ["--resume"]:  # stopped while loading the run: its checkpoints are as they were
         return f"resume with: eg-train {shlex.join(argv)}"
     return f"no checkpoint was saved, so there is nothing to resume; start again with: eg-train {shlex.join(argv)}"

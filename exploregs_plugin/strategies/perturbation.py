@@ -88,6 +88,14 @@ class PositionNoise(Operator):
     def __post_init__(self) -> None:
         if self.mode not in ("isotropic", "ray"):
             raise StrategyError(f"noise mode must be 'isotropic' or 'ray', got '{self.mode}'")
+        # lr = 0 switches the noise off; a negative or non-finite scale, a gate that does not fall
+        # with opacity (k <= 0) or a threshold outside the opacities' range is a mistake
+        if not (math.isfinite(self.lr) and self.lr >= 0.0):
+            raise StrategyError(f"noise lr must be finite and >= 0, got {self.lr}")
+        if not (math.isfinite(self.gate_k) and self.gate_k > 0.0):
+            raise StrategyError(f"noise gate_k must be finite and > 0, got {self.gate_k}")
+        if not 0.0 <= self.gate_t <= 1.0:
+            raise StrategyError(f"noise gate_t must be an opacity in [0, 1], got {self.gate_t}")
 
     def explore(self, owner: DefaultStrategy, ctx: StepContext) -> dict[str, int]:
         return {"perturbed": self.perturb(ctx, type(owner).__name__)}

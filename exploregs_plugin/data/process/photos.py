@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import shutil
-from pathlib import Path
+from pathlib import Path, PurePosixPath
 
 from PIL import Image, ImageOps
 
@@ -43,20 +43,27 @@ def open_photo(path: Path) -> Image.Image:
     return image
 
 
-def output_name(path: Path, taken: set[str]) -> str:
-    """``photo.jpg`` as it is when copied, ``photo.jpg`` for a converted ``photo.heic`` unless
-    another input has that name (then ``photo.heic.jpg``)."""
+def output_name(name: str, taken: set[str]) -> str:
+    """The dataset's name for the photo named ``name`` (its path below the input folder, ``/``
+    between parts; ``taken``: every input's): ``photo.jpg`` as it is when copied, ``photo.jpg``
+    for a converted ``photo.heic`` unless another input has that name, in any letter case (then
+    ``photo.heic.jpg``): a phone exports ``IMG_0001.HEIC`` beside an edited ``IMG_0001.JPG``, and
+    on a case-insensitive disk those two would be one file."""
+    path = PurePosixPath(name)
     if path.suffix.lower() in COPIED_SUFFIXES:
-        return path.name
-    name = f"{path.stem}.jpg"
-    return name if name not in taken else f"{path.name}.jpg"
+        return name
+    converted = str(path.with_suffix(".jpg"))
+    return converted if converted.lower() not in {t.lower() for t in taken} else f"{name}.jpg"
 
 
 def import_photo(path: Path, out_dir: Path, name: str) -> tuple[int, int]:
-    """Write ``path`` upright as ``out_dir/name`` (atomically); returns its (width, height)."""
+    """Write ``path`` upright as ``out_dir/name`` (atomically; ``name`` may hold subfolders:
+    ``100APPLE/IMG_0001.jpg``); returns its (width, height)."""
     image = open_photo(path)
     orientation = image.getexif().get(ORIENTATION_TAG, 1)
-    tmp = out_dir / f".{name}.{os.getpid()}.tmp"
+    target = out_dir / name
+    target.parent.mkdir(parents=True, exist_ok=True)
+    tmp = target.with_name(f".{target.name}.{os.getpid()}.tmp")
     if path.suffix.lower() in COPIED_SUFFIXES and orientation in (0, 1) and image.mode in ("RGB", "L", "RGBA", "P"):
         shutil.copyfile(path, tmp)
         size = image.size
@@ -65,5 +72,5 @@ def import_photo(path: Path, out_dir: Path, name: str) -> tuple[int, int]:
         exif = upright.info.get("exif")
         upright.convert("RGB").save(tmp, format="JPEG", quality=JPEG_QUALITY, **({"exif": exif} if exif else {}))
         size = upright.size
-    os.replace(tmp, out_dir / name)
+    os.replace(tmp, target)
     return size

@@ -22,7 +22,7 @@ from ...io.atomic import atomic_write_text
 from ...threads import default_threads
 from ..errors import DataError
 from . import checks, retrieval, sfm
-from .inputs import Capture, find_capture, input_key
+from .inputs import STATE_NAME, Capture, find_capture, input_key, relative_name
 from .photos import import_photo, output_name
 from .progress import StageLog, stage_progress
 from .report import (
@@ -36,7 +36,6 @@ from .report import (
 )
 from .video import extract_frames, frame_count
 
-STATE_NAME = "process_state.json"
 DATABASE_NAME = "database.db"
 STAGES = ("import", "features", "matching", "mapping")
 MIN_REGISTERED_SHARE = 0.5
@@ -80,6 +79,10 @@ class ProcessConfig:
     """Threads of pycolmap's stages (default: one per CPU that other processes leave idle)."""
     verbose: bool = False
     """Show pycolmap's own log lines."""
+    recursive: bool = False
+    """Also take the photos in the input folder's subfolders, at any depth, beside its own (a
+    folder with no photos of its own takes its subfolders' without this); they keep their path
+    below it in images/. Hidden folders and those of a dataset or run are passed over."""
 
     def __post_init__(self) -> None:
         if self.num_frames < 3:
@@ -177,11 +180,12 @@ def _import(capture: Capture, images: Path, config: ProcessConfig, console: Cons
         shutil.rmtree(images)
     images.mkdir(parents=True)
     if capture.kind == "images":
-        taken = {p.name for p in capture.files}
+        # a photo in a subfolder keeps its path below the input folder: unique, and stable
+        taken = {relative_name(p, capture.where) for p in capture.files}
         names, sizes = [], []
         with stage_progress(console, log, "import", len(capture.files), "photos") as advance:
             for path in capture.files:
-                name = output_name(path, taken)
+                name = output_name(relative_name(path, capture.where), taken)
                 sizes.append(import_photo(path, images, name))
                 names.append(name)
                 advance(1)
@@ -383,7 +387,7 @@ def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None 
 
     config = config or ProcessConfig()
     console = console or Console(stderr=True)
-    capture = find_capture([Path(p).expanduser() for p in inputs])
+    capture = find_capture([Path(p).expanduser() for p in inputs], config.recursive)
     out = Path(out).expanduser()
     state = claim_output(out, capture, input_key(capture), replace_other)
     log = StageLog(out, console)
@@ -396,6 +400,8 @@ def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None 
     })
     images, database = out / "images", out / DATABASE_NAME
     if not stages.done("import"):
+        if capture.note:  # which subfolders' photos are taken or left out, once, as they are imported
+            log.line(capture.note, show=True)
         start = time.perf_counter()
         layout = _import(capture, images, config, console, log)
         stages.finish("import", time.perf_counter() - start, layout=asdict(layout))

@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from exploregs_plugin.bench.experiments import BRANCH_ABLATION, DEPTH_SUPERVISION, EXPERIMENTS, SPLIT_ABLATION
+from exploregs_plugin.analysis.ablations import BRANCH_ABLATION, DEPTH_SUPERVISION, EXPERIMENTS, SPLIT_ABLATION
 from exploregs_plugin.bench.spec import BenchScene, BenchSpec, BenchSpecError, build_config, parse_overrides
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.trainer import TrainerConfig

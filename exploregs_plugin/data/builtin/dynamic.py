@@ -27,14 +27,14 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from .errors import DataError
-from .neu3d import POINTS_FILE, POSES_FILE, viewmat_to_llff
-from .parsed import REGION_LABELS
+from ..errors import DataError
+from ..neu3d import POINTS_FILE, POSES_FILE, viewmat_to_llff
+from ..parsed import REGION_LABELS
 from .raycast import Box, Cylinder, Dome, Hits, HorizonRing, Lighting, Material, Sphere, pixel_rays, shade, trace
-from .scene_layouts import _ground, intrinsics, look_at
-from .scene_render import RenderSettings, ViewRender, count_visible, sparse_points
+from .layouts import _ground, intrinsics, look_at
+from .render import RenderSettings, ViewRender, count_visible, sparse_points
 from .textures import Checker, Facades, Mosaic, Sky, Stripes, hash01
-from .transforms_json import write_ply_points
+from ..transforms_json import write_ply_points
 
 DYNAMIC_GENERATOR_VERSION = 2
 """Bump when the output changes, so cached scenes are regenerated."""

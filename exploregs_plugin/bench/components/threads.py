@@ -1,7 +1,7 @@
 """Threads beside busy processes: training time at the default thread count and at one thread.
 
-    python -m exploregs_plugin.bench.threads                         # 150 steps of builtin:default
-    python -m exploregs_plugin.bench.threads --cpus 0 1 --repeats 3  # on two CPUs of a larger machine
+    python -m exploregs_plugin.bench.components.threads                         # 150 steps of builtin:default
+    python -m exploregs_plugin.bench.components.threads --cpus 0 1 --repeats 3  # on two CPUs of a larger machine
 
 Each run trains ``--method`` on ``--data`` for ``--steps`` steps in a fresh ``eg-train`` process
 (quiet, no tensorboard, one evaluation, no saved images), at the default thread count (which

@@ -1,8 +1,8 @@
 """Where MCMC's ``cap_max auto`` stops growth, replayed on one traced run.
 
-    python -m exploregs_plugin.bench.auto_cap trace OUT.json --stop-step 6000 -- \\
+    python -m exploregs_plugin.bench.components.auto_cap trace OUT.json --stop-step 6000 -- \\
         exploregs-mcmc --data ../shared/scenes/beer --data-factor 6 --max-steps 30000 --strategy.cap-max 60000
-    python -m exploregs_plugin.bench.auto_cap replay OUT.json [--min-drop 0.01 0.02 ...] [--span 1 5 10]
+    python -m exploregs_plugin.bench.components.auto_cap replay OUT.json [--min-drop 0.01 0.02 ...] [--span 1 5 10]
 
 ``trace`` trains a run with a fixed (large) cap and records, for every step, its training view,
 its data loss (the loss the automatic cap reads) and the Gaussian count, until ``--stop-step``.

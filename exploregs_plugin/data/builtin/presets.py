@@ -27,12 +27,12 @@ import numpy as np
 import pycolmap
 from PIL import Image
 
-from .builtin_dynamic import (DYNAMIC_GENERATOR_VERSION, DYNAMIC_PRESETS, DynamicPreset, generate_dynamic,
+from .dynamic import (DYNAMIC_GENERATOR_VERSION, DYNAMIC_PRESETS, DynamicPreset, generate_dynamic,
                               write_dynamic_scene)
-from .cache import cache_root
-from .errors import DataError
-from .scene_layouts import LAYOUTS, build_world, camera_path, intrinsics
-from .scene_render import RenderSettings, count_visible, region_labels, render_view, sparse_points
+from ..cache import cache_root
+from ..errors import DataError
+from .layouts import LAYOUTS, build_world, camera_path, intrinsics
+from .render import RenderSettings, count_visible, region_labels, render_view, sparse_points
 
 GENERATOR_VERSION = 2
 """Bump when the generator's output changes, so cached scenes are regenerated."""

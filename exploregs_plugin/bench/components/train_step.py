@@ -1,8 +1,8 @@
 """Cost of one training step against the bare renderer step on the same Gaussians and camera.
 
-    python -m exploregs_plugin.bench.train_step --data builtin:default --methods exploregs-seedsplit
-    python -m exploregs_plugin.bench.train_step --data ../shared/scenes/beer --data-factor 4 --backends torch cpp
-    python -m exploregs_plugin.bench.train_step --data ../shared/scenes/beer --device cuda --backend gsplat
+    python -m exploregs_plugin.bench.components.train_step --data builtin:default --methods exploregs-seedsplit
+    python -m exploregs_plugin.bench.components.train_step --data ../shared/scenes/beer --data-factor 4 --backends torch cpp
+    python -m exploregs_plugin.bench.components.train_step --data ../shared/scenes/beer --device cuda --backend gsplat
 
 Trains ``--warmup`` steps (so the set has grown), then times ``--steps`` more of each, in turn:
 

@@ -1,7 +1,7 @@
 """Data-parallel scaling and batched views: images per second and PSNR at equal images seen.
 
-    python -m exploregs_plugin.bench.scale --data builtin:default --images 1500 --ranks 1 2
-    python -m exploregs_plugin.bench.scale --batches 1 2 4 8 --device cuda --threads 4
+    python -m exploregs_plugin.bench.components.scale --data builtin:default --images 1500 --ranks 1 2
+    python -m exploregs_plugin.bench.components.scale --batches 1 2 4 8 --device cuda --threads 4
 
 Each row is one ``eg-train`` run (a fresh process, so nothing is shared between rows) that sees
 about ``--images`` training images: ``round(images / B)`` steps of B views (the table gives the

@@ -1,7 +1,7 @@
 """Speed / memory / error benchmark of the rasterizer against a plain autograd compositor.
 
-    python -m exploregs_plugin.bench.rasterizer            # cpp and torch on S, M and (if present) beer
-    python -m exploregs_plugin.bench.rasterizer --methods torch torch-cuda gsplat --scenes S M L   # GPU
+    python -m exploregs_plugin.bench.components.rasterizer            # cpp and torch on S, M and (if present) beer
+    python -m exploregs_plugin.bench.components.rasterizer --methods torch torch-cuda gsplat --scenes S M L   # GPU
 
 Every (scene, method) runs in a fresh subprocess, so its peak resident memory is its own.
 Times are medians of ``--repeats`` runs after warm-up: wall clock and process CPU time (the
@@ -248,7 +248,7 @@ def main(argv: list[str] | None = None) -> None:
         rows = {}
         for method in reversed(a.methods):  # baselines first, so the later rows can show their ratio
             print(f"# {scene} / {method} ...", file=sys.stderr, flush=True)
-            cmd = [sys.executable, "-m", "exploregs_plugin.bench.rasterizer", "--child", scene, method,
+            cmd = [sys.executable, "-m", "exploregs_plugin.bench.components.rasterizer", "--child", scene, method,
                    "--repeats", str(a.repeats), "--threads", str(a.threads), "--tile-size", str(a.tile_size),
                    "--chunk-elements", str(a.chunk_elements), "--workers", str(a.workers)]  # fmt: skip
             res = subprocess.run(cmd, capture_output=True, text=True, check=False)

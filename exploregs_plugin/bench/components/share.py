@@ -1,7 +1,7 @@
 """What sharing a splat costs: each export format's size and what its quantisation does to the
 test views, and the smaller splats of ``eg-export --max-gaussians`` (with and without fine-tuning).
 
-    python -m exploregs_plugin.bench.share RUN [--fractions 1 2 4 8] [--finetune-steps 300] [--out FILE.md]
+    python -m exploregs_plugin.bench.components.share RUN [--fractions 1 2 4 8] [--finetune-steps 300] [--out FILE.md]
 
 Formats: every test view is rendered from the file read back (mapped into the run's frame as
 eg-render does) and scored against the ground truth and against the render of the run's own

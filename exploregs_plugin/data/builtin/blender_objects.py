@@ -4,7 +4,7 @@
 The only synthetic scene of the shared data (the tiny D-NeRF lego) lost its alpha, so this is
 what the RGBA path (compositing, ``--datamanager.background random``) is measured on::
 
-    python -m exploregs_plugin.data.blender_objects --out /tmp/objects-rgba
+    python -m exploregs_plugin.data.builtin.blender_objects --out /tmp/objects-rgba
 
 writes ``OUT/{train,val,test}/r_NNN.png`` (RGBA: alpha = the share of a pixel's 3x3 sub-samples
 that hit an object, colour = their mean colour) and ``OUT/transforms_{train,val,test}.json``
@@ -22,8 +22,8 @@ import numpy as np
 from PIL import Image
 
 from .raycast import Box, Cylinder, Lighting, Sphere, pixel_rays, shade, trace
-from .scene_layouts import build_world, intrinsics, look_at
-from .transforms_json import GL_TO_CV
+from .layouts import build_world, intrinsics, look_at
+from ..transforms_json import GL_TO_CV
 
 FOV_X_DEG = 39.6
 """Blender's NeRF-synthetic cameras: camera_angle_x = 0.6911 rad."""

@@ -1,6 +1,6 @@
 """Default's densification statistic of one Gaussian set rendered at each coarse-to-fine level.
 
-    python -m exploregs_plugin.bench.level_statistic RUN_OR_CHECKPOINT [--downscales 2 4]
+    python -m exploregs_plugin.bench.components.level_statistic RUN_OR_CHECKPOINT [--downscales 2 4]
 
 Renders every training view of a run's checkpoint at full size and at each downscale s (the
 views ``DataManager.train_item(i, None, s)`` serves a coarse-to-fine level), back-propagates the

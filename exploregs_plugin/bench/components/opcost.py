@@ -1,7 +1,7 @@
 """Per-element cost of the torch ops the compositor is built from, and the effect of
 ``torch.set_flush_denormal`` on a full render (thread CPU time, one thread).
 
-    python -m exploregs_plugin.bench.opcost
+    python -m exploregs_plugin.bench.components.opcost
 """
 
 from __future__ import annotations

@@ -2,7 +2,7 @@
 the cameras within an angle and a share of the camera extent (eg-process's measure on captures
 whose reference poses are published).
 
-    python -m exploregs_plugin.bench.pose_agreement outputs/process/bonsai252 REF [--reference-kind llff]
+    python -m exploregs_plugin.bench.components.pose_agreement outputs/process/bonsai252 REF [--reference-kind llff]
 
 REF is a COLMAP model folder (``sparse/0``, or a dataset that holds one), a ``transforms.json``,
 or an LLFF ``poses_bounds.npy`` (the Mip-NeRF 360 release's; rows in image-name order of ``--names-from``).

@@ -1,6 +1,6 @@
 """Bytes of training state per Gaussian, counted from a real pipeline's tensors.
 
-    python -m exploregs_plugin.bench.memory --methods exploregs-default exploregs-seedsplit exploregs-mcmc
+    python -m exploregs_plugin.bench.components.memory --methods exploregs-default exploregs-seedsplit exploregs-mcmc
 
 Trains a few steps of each method on ``--data`` (so the optimizer moments and the strategy's
 statistics exist), then sums ``nbytes`` over the parameters, their gradients (one float per

@@ -1,6 +1,6 @@
 """Training speed with and without the viewer's render thread running beside it.
 
-    python -m exploregs_plugin.bench.viewer --data builtin:default --steps 60 --shares 0.2 1.0
+    python -m exploregs_plugin.bench.components.viewer --data builtin:default --steps 60 --shares 0.2 1.0
 
 A simulated browser looks through the first training camera on a ``canvas`` sized canvas
 (camera at rest, so every frame is a sharp one); the render thread renders from snapshots

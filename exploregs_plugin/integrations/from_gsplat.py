@@ -12,7 +12,7 @@ scene, seed and schedule.
   same fractions of any run (docs/training.md); MCMC refines until 25/30 of the run (gsplat: 25k of
   30k). Not exposed: ``absgrad`` (our renderers compute no per-pixel absolute gradient) and
   ``key_for_gradient`` (2DGS).
-- Observations: :func:`gsplat_info` turns the step's views into the ``info`` dict gsplat reads.
+- Observations: :func:`~.gsplat_info.gsplat_info` turns the step's views into the ``info`` dict gsplat reads.
 - Randomness: gsplat draws from torch's global generator (its split's children, MCMC's sampling
   and noise). Its step runs under ``torch.random.fork_rng`` with the global generator set to the
   run's generator's state, and the run's generator continues from where gsplat left it
@@ -21,7 +21,7 @@ scene, seed and schedule.
 - Counts: the same keys as our Default (``cloned``, ``split``, ``pruned``, ``opacity_reset``) and
   our MCMC (``relocated``, ``added``, ``perturbed``), read from gsplat's own return values.
 - MCMC on CPU tensors uses torch stand-ins for gsplat's two CUDA-only helpers (relocation and
-  covariance), see :mod:`exploregs_plugin.integrations.gsplat_cpu`; on CUDA gsplat's kernels run.
+  covariance), see :mod:`exploregs_plugin.integrations.from_gsplat_cpu`; on CUDA gsplat's kernels run.
 
 gsplat is imported when a strategy is first used (``check_sanity``), not when this module is
 imported: the registry loads every entry point, and eg-train must work without gsplat installed.
@@ -30,13 +30,14 @@ imported: the registry loads every entry point, and eg-train must work without g
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import importlib
 import math
 import re
 from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -46,60 +47,14 @@ from ..strategies.base import StepContext, Strategy, StrategyError
 from ..strategies.mcmc import MCMC_STOP_FRACTION, MCMCStrategy
 from ..strategies.observation import ViewObservation
 from ..strategies.ops import Optimizers, Params, num_gaussians
-from .gsplat_cpu import cpu_stand_ins
+from .from_gsplat_cpu import cpu_stand_ins
+from .gsplat_info import gsplat_info
 
 GSPLAT_VERSION = (1, 5)
 """The gsplat minor version whose info layout (radii pairs [C, N, 2]) and strategy internals
 (``_grow_gs``, ``_prune_gs``, ``_relocate_gs``, ``_add_new_gs``) these adapters read."""
 
 INSTALL = "pip install gsplat==1.5.3"
-
-
-# ---------------------------------------------------------------------------- observations
-def gsplat_info(views: list[ViewObservation]) -> dict[str, Any]:
-    """The ``info`` dict gsplat 1.5.3's DefaultStrategy reads, made from the step's views (one per
-    view of the global batch). Every conversion from our observations to gsplat's layout is here.
-
-    gsplat reads, unpacked: ``means2d.grad`` [C, N, 2] in pixels, ``radii`` [C, N, 2] (a Gaussian
-    counts in a view where both are > 0; with ``refine_scale2d_stop_iter`` > 0 its screen size is
-    max(radii) / max(width, height)), ``width``, ``height``, ``n_cameras`` and ``gaussian_ids``
-    (None unpacked). It normalises each gradient to NDC as
-        g_ndc = (g_x * width / 2 * n_cameras, g_y * height / 2 * n_cameras)
-    with one width, height and n_cameras for all C views. Our views may differ in size and carry
-    their own n_cameras (the number of views whose mean loss made the gradient), so view v's
-    gradient is handed over as g_v * (W_v n_v / (W_0 n_0), H_v n_v / (H_0 n_0)) with view 0's
-    values in the dict: gsplat then computes exactly g_v * (W_v / 2, H_v / 2) * n_v, our Default's
-    statistic (factor 1 when the views agree, the common case, so the bits are the same). Radii
-    are scaled by max(W_0, H_0) / max(W_v, H_v) for the same reason. A view whose 2D means got
-    no gradient contributes zeros (gsplat needs a tensor)."""
-    if not views:
-        raise StrategyError("gsplat_info needs the step's views (a non-empty list)")
-    first = views[0]
-    n = first.num_gaussians
-    device = first.radii.device
-    ref = torch.tensor([float(first.width), float(first.height)], dtype=torch.float64) * float(first.n_cameras)
-    ref_size = float(max(first.width, first.height))
-    grads, radii = [], []
-    for view in views:
-        view.check_rows(n)
-        grad = view.screen_gradient()
-        grad = torch.zeros(n, 2, device=device) if grad is None else grad.detach().reshape(n, 2).to(torch.float32)
-        own = torch.tensor([float(view.width), float(view.height)], dtype=torch.float64) * float(view.n_cameras)
-        # ref > 0: image sizes and n_cameras are positive integers.
-        factor = (own / ref.clamp_min(1.0)).to(torch.float32).to(device)
-        grads.append(grad * factor)
-        size_factor = ref_size / max(float(max(view.width, view.height)), 1.0)
-        radii.append(view.radii.detach().to(torch.float32) * size_factor)
-    means2d = torch.zeros(len(views), n, 2, device=device)  # only a carrier of the gradient
-    means2d.grad = torch.stack(grads)
-    return {
-        "means2d": means2d,
-        "radii": torch.stack(radii),
-        "width": int(first.width),
-        "height": int(first.height),
-        "n_cameras": int(first.n_cameras),
-        "gaussian_ids": None,
-    }
 
 
 # ---------------------------------------------------------------------------- gsplat access
@@ -185,15 +140,26 @@ class GsplatStrategy(Strategy):
     verbose: bool = False
     """gsplat prints what each refinement did."""
 
+    GSPLAT_CLASS: ClassVar[str] = ""
+    """The name of the gsplat strategy class (in ``gsplat.strategy``) the adapter runs."""
+
     def check_sanity(self, params: Params, optimizers: Optimizers) -> None:
         """Our checks, and that gsplat is importable (one line with the install otherwise)."""
         super().check_sanity(params, optimizers)
         gsplat_strategies()
 
+    def gsplat_fields(self) -> dict[str, Any]:
+        """Our values of the fields gsplat's class has (the others, ``absgrad`` and
+        ``key_for_gradient``, keep gsplat's defaults; ``reset_every`` is ours only for MCMC)."""
+        theirs = {f.name for f in dataclasses.fields(getattr(gsplat_strategies(), self.GSPLAT_CLASS))}
+        return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name in theirs}
+
 
 @dataclass
 class GsplatDefaultStrategy(GsplatStrategy):
     """gsplat 1.5.3's DefaultStrategy (3DGS clone, split, prune) run inside eg-train."""
+
+    GSPLAT_CLASS = "DefaultStrategy"
 
     prune_opa: float = 0.005
     """Prune Gaussians whose opacity is below this (gsplat's default)."""
@@ -219,12 +185,6 @@ class GsplatDefaultStrategy(GsplatStrategy):
         super().__post_init__()
         if self.cap_max is not None:
             raise StrategyError("gsplat's DefaultStrategy has no cap on the number of Gaussians: leave cap_max unset")
-
-    def gsplat_fields(self) -> dict[str, Any]:
-        names = ("prune_opa", "grow_grad2d", "grow_scale3d", "grow_scale2d", "prune_scale3d", "prune_scale2d",
-                 "refine_scale2d_stop_iter", "refine_start_iter", "refine_stop_iter", "reset_every",
-                 "refine_every", "pause_refine_after_reset", "revised_opacity", "verbose")
-        return {name: getattr(self, name) for name in names}
 
     def gsplat_strategy(self) -> Any:
         strategy = _counting_classes()[0](**self.gsplat_fields())
@@ -268,6 +228,8 @@ class GsplatDefaultStrategy(GsplatStrategy):
 class GsplatMCMCStrategy(GsplatStrategy):
     """gsplat 1.5.3's MCMCStrategy (3DGS-MCMC: relocation, 5% growth, noise) run inside eg-train."""
 
+    GSPLAT_CLASS = "MCMCStrategy"
+
     cap_max: int | None = 1_000_000
     """Largest number of Gaussians (gsplat's default; our CPU `mcmc` uses 30 000)."""
     noise_lr: float = 5e5
@@ -293,11 +255,6 @@ class GsplatMCMCStrategy(GsplatStrategy):
         defaults = super().schedule_defaults(schedule)
         defaults["refine_stop_iter"] = int(math.floor(MCMC_STOP_FRACTION * schedule.max_steps))
         return defaults
-
-    def gsplat_fields(self) -> dict[str, Any]:
-        names = ("cap_max", "noise_lr", "refine_start_iter", "refine_stop_iter", "refine_every", "min_opacity",
-                 "verbose")
-        return {name: getattr(self, name) for name in names}
 
     def gsplat_strategy(self) -> Any:
         strategy = _counting_classes()[1](**self.gsplat_fields())

@@ -19,7 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .parsed import REGION_LABELS
+from ..parsed import REGION_LABELS
 from .raycast import Dome, Lighting, Primitive, apply_matrix, pixel_rays, shade, trace
 
 DEPTH_TOLERANCE = 0.02
