@@ -17,7 +17,7 @@ import torch
 import tyro
 
 from exploregs_plugin.callbacks import TrainingCallback
-from exploregs_plugin.configs import load_config, save_config
+from exploregs_plugin.config_io import load_config, save_config
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.distributed import MachineConfig, init_world, params_checksum
 from exploregs_plugin.evaluation import evaluate, write_metrics_json

@@ -20,7 +20,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("trainer", "pipeline", "method_configs", "evaluation", "run_logger", "collapse", "loss_terms",
      "nonfinite", "stopping", "watches", "run_folder", "thread_follower", "rank_evaluation"),
     ("model", "data", "strategies", "viewer"),
-    ("rasterizer", "io", "configs", "perceptual"),
+    ("rasterizer", "io", "config_io", "perceptual"),
     ("cameras", "schedule", "callbacks", "device", "distributed", "kernels", "threads", ""),  # "" = the package's own __init__
 ]
 LAYER_OF = {name: depth for depth, names in enumerate(LAYERS) for name in names}

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from exploregs_plugin.configs import load_config, save_config
+from exploregs_plugin.config_io import load_config, save_config
 from exploregs_plugin.schedule import ScheduleConfig
 
 
@@ -141,7 +141,7 @@ noise_mode: ray
 def _with_strategy(method: str, strategy_yaml: str) -> dict:
     import yaml
 
-    from exploregs_plugin.configs import config_to_dict
+    from exploregs_plugin.config_io import config_to_dict
     from exploregs_plugin.method_configs import get_method
 
     written = config_to_dict(get_method(method).config)
@@ -152,7 +152,7 @@ def _with_strategy(method: str, strategy_yaml: str) -> dict:
 def test_configs_saved_with_flat_strategy_fields_load_into_the_operators(tmp_path):
     import yaml
 
-    from exploregs_plugin.configs import config_from_dict, upgraded
+    from exploregs_plugin.config_io import config_from_dict, upgraded
     from exploregs_plugin.strategies import MCMCStrategy, PositionNoise, RandomSeeding, RandomSplitting, SeedSplitStrategy
 
     strategy = config_from_dict(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT)).pipeline.strategy
@@ -179,7 +179,7 @@ def test_the_bench_reuses_a_run_saved_with_flat_strategy_fields_only_for_the_sam
 
     from exploregs_plugin.bench.files import JOB_NAME
     from exploregs_plugin.bench.runner import same_config
-    from exploregs_plugin.configs import config_from_dict
+    from exploregs_plugin.config_io import config_from_dict
 
     (tmp_path / JOB_NAME).write_text(yaml.safe_dump(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT), sort_keys=False))
     same = config_from_dict(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT))
@@ -235,7 +235,7 @@ def test_a_config_saved_with_the_core_depth_degradation_loads_or_names_its_metho
 
 
 def test_a_wrapped_error_line_that_starts_with_a_dash_keeps_it():
-    from exploregs_plugin.configs import tyro_error_text
+    from exploregs_plugin.config_io import tyro_error_text
 
     # tyro's box, narrow enough that the bad value "-1" starts a wrapped line
     captured = ("╭─ Value error ──────────────────────────╮\n"
@@ -249,7 +249,7 @@ def test_a_wrapped_error_line_that_starts_with_a_dash_keeps_it():
 
 
 def test_a_config_error_is_named_by_its_flag_not_by_a_class_or_a_group_without_flags(capsys):
-    from exploregs_plugin.configs import tyro_error_text
+    from exploregs_plugin.config_io import tyro_error_text
     from exploregs_plugin.scripts.train import parse_config
 
     def boxed(message: str) -> str:
@@ -266,3 +266,26 @@ def test_a_config_error_is_named_by_its_flag_not_by_a_class_or_a_group_without_f
     assert exit_.value.code == 2
     assert capsys.readouterr().err.strip().splitlines() == [
         "eg-train: error: --checkpoint-every must be >= 1, got 0"]
+
+
+def test_a_config_naming_a_renamed_module_loads_and_compares_equal(tmp_path):
+    # strategies/ray.py, perturbation.py and operator.py were renamed (ray_perturbation,
+    # position_noise, operator_contract): the config.yml of earlier runs names the old modules,
+    # and a bench resuming those runs must see the same config (upgraded() rewrites the type)
+    from exploregs_plugin.config_io import MOVED_MODULES, config_to_dict, upgraded
+    from exploregs_plugin.method_configs import get_method
+
+    config = get_method("exploregs-ray").config
+    saved = tmp_path / "config.yml"
+    save_config(config, saved)
+    text = saved.read_text()
+    assert "strategies.ray_perturbation:RayPerturbationStrategy" in text
+    assert "strategies.position_noise:PositionNoise" in text
+    old = text.replace("strategies.ray_perturbation:", "strategies.ray:").replace(
+        "strategies.position_noise:", "strategies.perturbation:")
+    saved.write_text(old)
+    assert load_config(saved) == config
+    import yaml
+
+    assert upgraded(yaml.safe_load(old)) == config_to_dict(config)
+    assert MOVED_MODULES["exploregs_plugin.strategies.ray"] == "exploregs_plugin.strategies.ray_perturbation"

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 import torch
 
-from exploregs_plugin.configs import load_config
+from exploregs_plugin.config_io import load_config
 from exploregs_plugin.evaluation import evaluate
 from exploregs_plugin.io.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
 from exploregs_plugin.pipeline import NonFiniteError
@@ -386,17 +386,17 @@ def test_resume_names_the_step_or_says_how_to_start_over(tmp_path, tiny_scene_di
 def test_an_unwritable_run_folder_is_one_line(tmp_path, tiny_scene_dir, monkeypatch, capsys):
     import errno
 
-    from exploregs_plugin import configs
+    from exploregs_plugin import config_io
     from exploregs_plugin.scripts import run_cli
     from exploregs_plugin.scripts.train import main
 
     def read_only(path, text):
         raise OSError(errno.EROFS, "Read-only file system", str(path))
 
-    monkeypatch.setattr("exploregs_plugin.configs.atomic_write_text", read_only)
+    monkeypatch.setattr("exploregs_plugin.config_io.atomic_write_text", read_only)
     with pytest.raises(SystemExit) as exit_:
         run_cli("eg-train", main, ["exploregs-default", "--data", "builtin:tiny", "--run-dir", str(tmp_path / "ro")])
-    assert exit_.value.code == 2 and configs.atomic_write_text is read_only
+    assert exit_.value.code == 2 and config_io.atomic_write_text is read_only
     err = capsys.readouterr().err.strip().splitlines()
     assert err[-1] == (f"eg-train: error: cannot write the run folder {tmp_path / 'ro'}: Read-only file system "
                        f"({tmp_path / 'ro' / 'config.yml'})")

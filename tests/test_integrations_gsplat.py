@@ -46,7 +46,7 @@ from exploregs_plugin.strategies import (  # noqa: E402
     SeedSplitStrategy,
     SplittingStrategy,
     StrategyError,
-    ops,
+    row_ops,
 )
 from exploregs_plugin.strategies.observation import ViewObservation  # noqa: E402
 from exploregs_plugin.strategies.relocation import relocation_update  # noqa: E402
@@ -366,7 +366,7 @@ def test_our_layout_renames_and_reshapes_nerfstudios_parameters_with_their_momen
         assert sorted(ours) == sorted(integ.SEEDED)
         assert (ours["sh0"].shape, ours["opacities"].shape) == ((20, 1, 3), (20,))
         assert ours_opt["sh0"] is optimizers["features_dc"] and _moments(ours_opt, ours, "sh0")[0].shape == (20, 1, 3)
-        ops.remove(ours, ours_opt, {}, torch.arange(20) < 5)  # an op inside the block
+        row_ops.remove(ours, ours_opt, {}, torch.arange(20) < 5)  # an op inside the block
     for key, (value, *moments) in before.items():
         assert params[key].shape == (15, *value.shape[1:]) and torch.equal(params[key].detach(), value[5:])
         for mine, old in zip(_moments(optimizers, params, key), moments):  # the Adam follows its parameter

@@ -101,7 +101,7 @@ def test_schedule_fields_come_from_the_run_and_mcmc_refines_until_25_of_30():
 
 
 def test_eg_train_sets_the_fields_by_name(tmp_path):
-    from exploregs_plugin.configs import load_config, save_config
+    from exploregs_plugin.config_io import load_config, save_config
     from exploregs_plugin.scripts.train import parse_config
 
     config = parse_config(["exploregs-default", "--strategy", "gsplat-default", "--strategy.grow-grad2d", "0.0005",
@@ -122,7 +122,7 @@ def test_a_config_saved_under_the_adapters_old_module_loads(tmp_path):
     # config.yml of runs made before the adapters were named by direction names gsplat_in_eg
     import yaml
 
-    from exploregs_plugin.configs import load_config, save_config
+    from exploregs_plugin.config_io import load_config, save_config
     from exploregs_plugin.scripts.train import parse_config
 
     config = parse_config(["exploregs-default", "--strategy", "gsplat-default", "--strategy.grow-grad2d", "0.0005"])

@@ -9,7 +9,7 @@ import torch
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.strategies import DefaultStrategy, StrategyError, ops
+from exploregs_plugin.strategies import DefaultStrategy, StrategyError, row_ops
 from exploregs_plugin.strategies.observation import ViewObservation, observe_render
 from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_views
 
@@ -223,7 +223,7 @@ def test_parity_with_gsplat_default_strategy(monkeypatch):
 
     for name in ("duplicate", "split", "remove"):
         monkeypatch.setattr(gdefault, name, recorder("theirs", name, getattr(gdefault, name)))
-        monkeypatch.setattr(ops, name, recorder("ours", name, getattr(ops, name)))
+        monkeypatch.setattr(row_ops, name, recorder("ours", name, getattr(row_ops, name)))
 
     base = torch.exp(torch.empty(n).uniform_(-14.5, -9.5, generator=g))  # pixel grads ~ 5e-7..7e-5
     for step in range(31, 41):  # steps 31..39 accumulate, 40 refines (after the first reset)

@@ -11,7 +11,7 @@ import torch
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.strategies import MCMCStrategy, PositionNoise, RayPerturbationStrategy, StrategyError
 from exploregs_plugin.rasterizer.projection import covariances_3d
-from exploregs_plugin.strategies.perturbation import position_noise
+from exploregs_plugin.strategies.position_noise import position_noise
 from exploregs_plugin.strategies.relocation import binomial_table, relocation_update
 from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers, synthetic_views
 

@@ -118,7 +118,7 @@ def test_reversed_operators_run_reversed():
 
 @pytest.mark.parametrize("field, value", [("lr", -1.0), ("lr", float("nan")), ("gate_k", 0.0), ("gate_t", 1.5)])
 def test_position_noise_refuses_a_bad_scale_or_gate(field, value):
-    from exploregs_plugin.strategies.perturbation import PositionNoise
+    from exploregs_plugin.strategies.position_noise import PositionNoise
 
     with pytest.raises(StrategyError, match=f"noise {field}"):
         PositionNoise(**{field: value})

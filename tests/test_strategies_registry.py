@@ -37,7 +37,7 @@ def test_builtins_are_listed():
 FANCY_SOURCE = """
 from dataclasses import dataclass
 import torch
-from exploregs_plugin.strategies import DefaultStrategy, StepContext, ops
+from exploregs_plugin.strategies import DefaultStrategy, StepContext, row_ops
 
 @dataclass
 class FancyStrategy(DefaultStrategy):
@@ -48,7 +48,7 @@ class FancyStrategy(DefaultStrategy):
         n = ctx.params["means"].shape[0]
         mask = torch.zeros(n, dtype=torch.bool)
         mask[0] = True
-        counts["fancy"] = ops.duplicate(ctx.params, ctx.optimizers, ctx.state["stats"], mask)
+        counts["fancy"] = row_ops.duplicate(ctx.params, ctx.optimizers, ctx.state["stats"], mask)
         return counts
 """
 
@@ -146,7 +146,7 @@ def test_strategies_declare_what_they_need_and_the_renderer_computes_just_that()
     from exploregs_plugin.pipeline import renderer_for
     from exploregs_plugin.strategies import SeedSplitStrategy
     from exploregs_plugin.strategies.base import StrategyError
-    from exploregs_plugin.strategies.operator import Operator
+    from exploregs_plugin.strategies.operator_contract import Operator
     from exploregs_plugin.strategies.requirements import VIEW_ERRORS, VISIBILITY_STATS
     from exploregs_plugin.strategies.guided import GuidedSeedingStrategy
     from exploregs_plugin.strategies.occlusion import GuidedOcclusionStrategy, OcclusionSplittingStrategy

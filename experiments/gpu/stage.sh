@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Fills .gpu-stage/ (ignored through .git/info/exclude) with what issue 47's device script
-# (experiments/gpu/issue47.sh) needs and a lent GPU machine lacks: it has no package registry,
+# Fills .gpu-stage/ (ignored through .git/info/exclude) with what the device script gpu_comparison.sh
+# (experiments/gpu/gpu_comparison.sh) needs and a lent GPU machine lacks: it has no package registry,
 # and its image has torch, torchvision, torchmetrics, tensorboard, imageio, opencv, scipy,
 # scikit-learn, matplotlib, tqdm, pyyaml, rich, jaxtyping, ninja, setuptools and pytest (Python
 # 3.12), but not the packages below. Run it here, from the repository root:

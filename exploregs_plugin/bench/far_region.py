@@ -26,7 +26,7 @@ from torch import Tensor
 
 from exploregs_plugin.bench.runner import read_json
 from exploregs_plugin.bench.spec import BenchSpec
-from exploregs_plugin.configs import load_config
+from exploregs_plugin.config_io import load_config
 from exploregs_plugin.evaluation import write_metrics_json
 from exploregs_plugin.io.checkpoint import CheckpointError, atomic_torch_save, checkpoint_path
 from exploregs_plugin.model.losses import pooled_psnr, psnr

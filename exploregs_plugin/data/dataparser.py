@@ -23,7 +23,7 @@ from .builtin.presets import ensure_builtin
 from .colmap import read_colmap
 from .errors import DataError
 from .images import conversion_note, derived_cache_dir
-from .neu3d import is_neu3d, read_neu3d
+from .neu3d import CAMERA_NAME, POSES_FILE, is_neu3d, read_neu3d
 from .process import is_capture, is_posed, process_capture
 from .parsed import ParsedScene, ParseOptions, normalize_scene
 from .transforms_json import BLENDER_LAYOUT, read_transforms
@@ -76,6 +76,10 @@ def resolve_data(data: str, cache_dir: Path) -> tuple[str, Path]:
         return "transforms", path / "transforms.json"
     if (path / "transforms_train.json").is_file():
         return "transforms", path  # Blender / NeRF-synthetic: transforms_{train,val,test}.json
+    cameras = sorted(p.name for p in path.iterdir() if p.is_dir() and CAMERA_NAME.match(p.name))
+    if cameras:  # a multi-view video's camera folders: their frames are moments, not one still scene
+        raise DataError(path, f"not a dataset: it holds camera folders ({', '.join(cameras[:3])}"
+                        f"{', ...' if len(cameras) > 3 else ''}) of a multi-view video but no {POSES_FILE} (Neu3D)")
     if is_capture(path):  # photos or videos without poses
         return "colmap", posed_capture(path, Path(cache_dir).expanduser())
     raise DataError(path, "not a dataset: expected sparse/0 (COLMAP), transforms.json, transforms_train.json, "

@@ -46,7 +46,7 @@ from ..schedule import Schedule
 from ..strategies.base import StepContext, Strategy, StrategyError
 from ..strategies.mcmc import MCMC_STOP_FRACTION, MCMCStrategy
 from ..strategies.observation import ViewObservation
-from ..strategies.ops import Optimizers, Params, num_gaussians
+from ..strategies.row_ops import Optimizers, Params, num_gaussians
 from .from_gsplat_cpu import cpu_stand_ins
 from .gsplat_info import gsplat_info
 

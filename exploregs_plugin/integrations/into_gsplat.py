@@ -58,14 +58,14 @@ except ImportError as exc:  # one line, whatever part of gsplat failed to import
         f"exploregs_plugin.integrations.into_gsplat needs gsplat: pip install gsplat==1.5.3 ({exc})"
     ) from None
 
-from ..strategies import ops
+from ..strategies import row_ops
 from ..strategies.base import StepContext, StrategyError
 from ..strategies.budget import BUDGET_PRESETS, BudgetName, ExplorationBudget, resolve_budget
 from ..strategies.exploration import add_counts
 from ..strategies.mcmc import NO_CAP, MCMCStrategy
-from ..strategies.operator import Operator
-from ..strategies.ops import Optimizers, Params, num_gaussians
-from ..strategies.perturbation import PositionNoise
+from ..strategies.operator_contract import Operator
+from ..strategies.row_ops import Optimizers, Params, num_gaussians
+from ..strategies.position_noise import PositionNoise
 from ..strategies.seeding import RandomSeeding
 from ..strategies.splitting import RandomSplitting
 from .gsplat_info import observations, radii_layout
@@ -123,7 +123,7 @@ def _reshape_rows(params: dict[str, Tensor], optimizers: dict[str, Any], shapes:
     (through ``ops``, so the optimizer keeps pointing at the parameter it steps)."""
     for name, shape in shapes.items():
         if tuple(params[name].shape[1:]) != shape:
-            ops.update_params_and_optimizers(lambda _, p, s=shape: p.reshape(p.shape[0], *s),
+            row_ops.update_params_and_optimizers(lambda _, p, s=shape: p.reshape(p.shape[0], *s),
                                              lambda _, v, s=shape: v.reshape(v.shape[0], *s),
                                              params, optimizers, names=[name])
 
@@ -218,7 +218,7 @@ ExplorationT = TypeVar("ExplorationT", bound="GsplatExplorationStrategy")
 @dataclass
 class GsplatExplorationStrategy(gs.DefaultStrategy):
     """gsplat's DefaultStrategy followed by our exploration operators, the dataclass fields of a
-    subclass whose values are :class:`~exploregs_plugin.strategies.operator.Operator` configs,
+    subclass whose values are :class:`~exploregs_plugin.strategies.operator_contract.Operator` configs,
     run in the order of those fields (none here)."""
 
     budget: BudgetName = "paper"
@@ -361,7 +361,7 @@ class GsplatExplorationStrategy(gs.DefaultStrategy):
             add_counts(counts, op_counts)
             if more is not None:
                 mask = more if mask is None else mask | more
-        return pruned + (ops.remove(params, optimizers, state, mask) if mask is not None else 0)
+        return pruned + (row_ops.remove(params, optimizers, state, mask) if mask is not None else 0)
 
     def exploration_summary(self, state: dict[str, Any]) -> dict[str, int]:
         """The operators' current totals (Random Seeding: ``seeds_alive``, ``seeds_unseen``), as
@@ -413,7 +413,7 @@ class GsplatMCMCRayStrategy(gs.MCMCStrategy):
     """gsplat's MCMCStrategy type whose step is our 3DGS-MCMC (``MCMCStrategy`` of
     exploregs_plugin.strategies): every ``refine_every`` steps inside the refine window dead
     Gaussians (opacity <= ``min_opacity``) are relocated onto live ones and the set grows by 5% up
-    to ``cap_max`` (gsplat's rules: ``ops.relocate``, ``ops.sample_add``, eq. 9 in float64, drawn from
+    to ``cap_max`` (gsplat's rules: ``row_ops.relocate``, ``row_ops.sample_add``, eq. 9 in float64, drawn from
     this strategy's generator, on any device); after every step the positions get ``noise``, along
     the ray from the training camera by default, instead of gsplat's isotropic noise."""
 

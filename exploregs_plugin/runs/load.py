@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from exploregs_plugin.configs import load_config
+from exploregs_plugin.config_io import load_config
 from exploregs_plugin.device import resolve_device
 from exploregs_plugin.io.checkpoint import load_run_checkpoint
 from exploregs_plugin.pipeline import Pipeline

@@ -119,7 +119,7 @@ def cameras_from(source: str | Path, data_factor: int | None = None) -> CameraSo
     """Cameras of a run folder (its dataset, from config.yml; no checkpoint needed), or of any
     dataset the datamanager reads (a path or ``builtin:NAME``). ``data_factor``: the dataset's
     images at 1/N size, as eg-train's ``--data-factor`` (unset: the run's factor, or 1)."""
-    from exploregs_plugin.configs import load_config
+    from exploregs_plugin.config_io import load_config
     from exploregs_plugin.data import DataManagerConfig
     from exploregs_plugin.io.checkpoint import resolve_run
 

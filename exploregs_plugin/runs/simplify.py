@@ -30,7 +30,7 @@ from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.gaussians import render_params
 from exploregs_plugin.pipeline import Pipeline
 from exploregs_plugin.rasterizer import RasterSettings
-from exploregs_plugin.strategies import ops
+from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.base import Strategy
 
 
@@ -107,6 +107,6 @@ def simplify(pipeline: Pipeline, step: int, max_gaussians: int, finetune_steps: 
     keep = most_significant(significance, max_gaussians)
     total = float(significance.sum())
     share = float(significance[keep].sum()) / total if total > 0.0 else 1.0
-    ops.remove(params, pipeline.optimizers, {}, ~keep)
+    row_ops.remove(params, pipeline.optimizers, {}, ~keep)
     finetune(pipeline, step, finetune_steps)
     return Simplified(before, int(params["means"].shape[0]), share, finetune_steps)

@@ -21,7 +21,7 @@ import tyro
 
 from exploregs_plugin.bench.presets import PRESETS
 from exploregs_plugin.bench.spec import BenchSpec
-from exploregs_plugin.configs import unset
+from exploregs_plugin.config_io import unset
 from exploregs_plugin.data.dataparser import BUILTIN_PREFIX, another_commands_input
 from exploregs_plugin.data.errors import DataError
 from exploregs_plugin.device import resolve_device

@@ -20,7 +20,7 @@ from pathlib import Path
 import tyro
 
 from exploregs_plugin.collapse import CollapseError
-from exploregs_plugin.configs import compact_help, load_config, tyro_error_text
+from exploregs_plugin.config_io import compact_help, load_config, tyro_error_text
 from exploregs_plugin.distributed import (LAUNCHER_GONE, DistributedError, MachineConfig, PeerLostError,
                                           launched_by_eg_train, launched_by_torchrun, leave_world)
 from exploregs_plugin.io.checkpoint import check_output_folder, resolve_run

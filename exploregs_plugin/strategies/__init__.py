@@ -1,15 +1,15 @@
-"""Densification and exploration strategies; every change to the Gaussian set goes via ``ops``."""
+"""Densification and exploration strategies; every change to the Gaussian set goes via ``row_ops``."""
 
-from . import ops
+from . import row_ops
 from .base import StepContext, Strategy, StrategyError
 from .budget import BUDGET_PRESETS, ExplorationBudget, resolve_budget, scaled_budget
 from .default import DefaultStrategy
 from .exploration import ExplorationStrategy
 from .mcmc import MCMCStrategy
 from .mcmc_explore import MCMCExploreStrategy
-from .operator import Operator
-from .perturbation import PositionNoise, position_noise
-from .ray import RayPerturbationStrategy
+from .operator_contract import Operator
+from .position_noise import PositionNoise, position_noise
+from .ray_perturbation import RayPerturbationStrategy
 from .registry import ENTRY_POINT_GROUP, StrategyPluginError, available_strategies, builtin_strategies
 from .guided import GuidedSeeding, GuidedSeedingStrategy
 from .occlusion import GuidedOcclusionStrategy, OcclusionSplitting, OcclusionSplittingStrategy
@@ -44,7 +44,7 @@ __all__ = [
     "StrategyPluginError",
     "available_strategies",
     "builtin_strategies",
-    "ops",
+    "row_ops",
     "position_noise",
     "resolve_budget",
     "scaled_budget",

@@ -35,7 +35,7 @@ from torch import Tensor
 from ..schedule import Schedule
 from .errors import StrategyError
 from .observation import ViewObservation, require_views
-from .ops import Optimizers, Params, num_gaussians
+from .row_ops import Optimizers, Params, num_gaussians
 from .requirements import merged_requires
 
 REQUIRED_KEYS = ("means", "scales", "quats", "opacities")

@@ -23,11 +23,11 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from . import ops
+from . import row_ops
 from .observation import ViewObservation
 from .base import StepContext, Strategy, StrategyError, require_generator
 from .geometry import max_world_scale
-from .ops import Optimizers, Params, Stats, num_gaussians
+from .row_ops import Optimizers, Params, Stats, num_gaussians
 
 
 GRAD_STATS = ("grad2d", "count")
@@ -58,7 +58,7 @@ def accumulate_grad_stats(
     if stats["grad2d"].shape[0] != n:
         raise StrategyError(
             f"strategy statistics have {stats['grad2d'].shape[0]} rows but the gradient has {n}: "
-            f"the Gaussian set was changed without strategies.ops"
+            f"the Gaussian set was changed without strategies.row_ops"
         )
     norms = ndc_gradient_norms(pixel_grads, width, height, n_cameras, downscale)
     finite = torch.isfinite(norms)
@@ -216,7 +216,7 @@ class DefaultStrategy(Strategy):
                         state["stats"][key].zero_()
         counts.update(self.explore(ctx))
         if in_window and step > 0 and step % self.reset_every == 0:
-            ops.reset_opacity(params, optimizers, self.reset_opacity)
+            row_ops.reset_opacity(params, optimizers, self.reset_opacity)
             counts["opacity_reset"] = 1
         return counts
 
@@ -256,13 +256,13 @@ class DefaultStrategy(Strategy):
         if "grad2d" not in stats or num_gaussians(params) == 0:
             return 0, 0
         clone, split = self.growth(params, state)
-        n_cloned = ops.duplicate(params, optimizers, stats, clone)
+        n_cloned = row_ops.duplicate(params, optimizers, stats, clone)
         # Clones are appended at the end and are never split in the same step.
         split = torch.cat([split, torch.zeros(n_cloned, dtype=torch.bool, device=split.device)])
         n_split = 0
         if bool(split.any()):
             gen = require_generator(generator, f"{type(self).__name__} (split)")
-            n_split = ops.split(params, optimizers, stats, split, gen, self.split_scale_factor)
+            n_split = row_ops.split(params, optimizers, stats, split, gen, self.split_scale_factor)
         return n_cloned, n_split
 
     def _prune(self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int) -> dict[str, int]:
@@ -276,4 +276,4 @@ class DefaultStrategy(Strategy):
         extra, counts = self.extra_prune(params, state, step)
         if extra is not None:
             mask = mask | extra
-        return {**counts, "pruned": ops.remove(params, optimizers, state["stats"], mask)}
+        return {**counts, "pruned": row_ops.remove(params, optimizers, state["stats"], mask)}

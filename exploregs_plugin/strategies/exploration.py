@@ -1,7 +1,7 @@
 """Default's densification plus an ordered list of exploration operators, sharing one budget.
 
 A composed strategy declares its operators as dataclass fields whose values are
-:class:`~exploregs_plugin.strategies.operator.Operator` configs; they run in the order of those
+:class:`~exploregs_plugin.strategies.operator_contract.Operator` configs; they run in the order of those
 fields (the order of ``--help`` and ``config.yml``), each with its own namespace
 (``--strategy.seeding.n-seed``). Seed+Split, for example, is::
 
@@ -28,8 +28,8 @@ from .base import StepContext
 from .budget import BUDGET_PRESETS, BudgetName, resolve_budget
 from .default import DefaultStrategy
 from .observation import ViewObservation
-from .operator import Operator
-from .ops import Params
+from .operator_contract import Operator
+from .row_ops import Params
 
 ExplorationT = TypeVar("ExplorationT", bound="ExplorationStrategy")
 

@@ -26,7 +26,7 @@ from .errors import StrategyError
 from .exploration import ExplorationStrategy
 from .geometry import random_unit_quats
 from .observation import ViewObservation
-from .ops import Params
+from .row_ops import Params
 from .requirements import VIEW_ERRORS
 from .seeding import RandomSeeding, seed_box
 

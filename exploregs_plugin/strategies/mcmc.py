@@ -23,10 +23,10 @@ import torch
 from torch import Tensor
 
 from ..schedule import Schedule
-from . import ops
+from . import row_ops
 from .base import StepContext, Strategy, StrategyError
-from .ops import Optimizers, Params, num_gaussians
-from .perturbation import PositionNoise
+from .row_ops import Optimizers, Params, num_gaussians
+from .position_noise import PositionNoise
 from .relocation import N_MAX, binomial_table
 
 MCMC_STOP_FRACTION = 25_000 / 30_000
@@ -214,7 +214,7 @@ class MCMCStrategy(Strategy):
         if num_gaussians(params) == 0:
             return 0
         dead = self.dead_mask(params)
-        return ops.relocate(params, optimizers, state["stats"], dead, generator, state["binoms"], self.min_opacity)
+        return row_ops.relocate(params, optimizers, state["stats"], dead, generator, state["binoms"], self.min_opacity)
 
     def grow(self, params: Params, optimizers: Optimizers, state: dict[str, Any], generator: torch.Generator) -> int:
         """Add growth_rate x N new Gaussians, never beyond the cap (:meth:`growth_count`)."""
@@ -223,4 +223,4 @@ class MCMCStrategy(Strategy):
     def sample_copies(self, params: Params, optimizers: Optimizers, state: dict[str, Any], n: int,
                       generator: torch.Generator) -> int:
         """Append ``n`` copies of live Gaussians drawn by opacity, with the relocation update."""
-        return ops.sample_add(params, optimizers, state["stats"], n, generator, state["binoms"], self.min_opacity)
+        return row_ops.sample_add(params, optimizers, state["stats"], n, generator, state["binoms"], self.min_opacity)

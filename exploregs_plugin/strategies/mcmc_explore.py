@@ -33,12 +33,12 @@ from typing import Any
 
 import torch
 
-from . import ops
+from . import row_ops
 from .base import StepContext
 from .errors import StrategyError
 from .guided import GuidedSeeding
 from .mcmc import MCMCStrategy
-from .ops import Optimizers, Params, num_gaussians
+from .row_ops import Optimizers, Params, num_gaussians
 from .requirements import VIEW_ERRORS
 from .seeding import add_seeds
 from .splitting import split_drawn, split_weights
@@ -146,7 +146,7 @@ class MCMCExploreStrategy(MCMCStrategy):
         # the first k dead rows are freed (dead rows are interchangeable); removed before the
         # relocation, so none of them becomes a relocation source
         freed = dead & (torch.cumsum(dead.to(torch.int64), 0) <= k)
-        ops.remove(params, optimizers, state["stats"], freed)
+        row_ops.remove(params, optimizers, state["stats"], freed)
         moved = self.relocate_dead(params, optimizers, state, generator)
         placed = self.explore_rows(params, optimizers, state, k, generator)
         self.sample_copies(params, optimizers, state, k - placed, generator)

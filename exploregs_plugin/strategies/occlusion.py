@@ -27,7 +27,7 @@ from .errors import StrategyError
 from .exploration import ExplorationStrategy
 from .guided import GuidedSeeding
 from .observation import ViewObservation
-from .ops import Params, num_gaussians
+from .row_ops import Params, num_gaussians
 from .requirements import VISIBILITY_STATS
 from .splitting import RandomSplitting, split_weights
 

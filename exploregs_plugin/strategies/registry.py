@@ -26,7 +26,7 @@ def builtin_strategies() -> dict[str, type[Strategy]]:
     from .mcmc import MCMCStrategy
     from .mcmc_explore import MCMCExploreStrategy
     from .occlusion import GuidedOcclusionStrategy, OcclusionSplittingStrategy
-    from .ray import RayPerturbationStrategy
+    from .ray_perturbation import RayPerturbationStrategy
     from .seeding import SeedingStrategy
     from .seedsplit import SeedSplitStrategy
     from .splitting import SplittingStrategy

@@ -29,13 +29,13 @@ import torch
 from torch import Tensor
 
 from ..rasterizer.sh import rgb_to_sh0
-from . import ops
+from . import row_ops
 from .errors import StrategyError
 from .exploration import ExplorationStrategy
 from .geometry import random_unit_quats
 from .observation import ViewObservation
-from .operator import Operator
-from .ops import Optimizers, Params, num_gaussians
+from .operator_contract import Operator
+from .row_ops import Optimizers, Params, num_gaussians
 
 if TYPE_CHECKING:
     from .base import StepContext
@@ -142,7 +142,7 @@ def add_seeds(params: Params, optimizers: Optimizers, stats: dict[str, Tensor], 
     n_before = num_gaussians(params)
     for key in (SEED_FLAG, SEED_SEEN):
         stats.setdefault(key, torch.zeros(n_before, device=params["means"].device))
-    added = ops.append(params, optimizers, stats, rows)
+    added = row_ops.append(params, optimizers, stats, rows)
     stats[SEED_FLAG][n_before:] = 1.0
     return added
 

@@ -14,11 +14,11 @@ from typing import TYPE_CHECKING, Any
 import torch
 from torch import Tensor
 
-from . import ops
+from . import row_ops
 from .errors import StrategyError
 from .exploration import ExplorationStrategy
-from .operator import Operator
-from .ops import Optimizers, Params, num_gaussians
+from .operator_contract import Operator
+from .row_ops import Optimizers, Params, num_gaussians
 
 if TYPE_CHECKING:
     from .base import StepContext
@@ -51,12 +51,12 @@ def draw_rows(weights: Tensor, n: int, generator: torch.Generator) -> Tensor:
 
 def split_drawn(params: Params, optimizers: Optimizers, stats: dict[str, Tensor], weights: Tensor, n: int,
                 generator: torch.Generator, scale_factor: float = 1.6) -> int:
-    """Split up to ``n`` distinct rows drawn in proportion to ``weights`` [N] (``ops.split``: two
+    """Split up to ``n`` distinct rows drawn in proportion to ``weights`` [N] (``row_ops.split``: two
     children from the parent's Gaussian, scales / ``scale_factor``). Returns the number split."""
     idx = draw_rows(weights, n, generator)
     mask = torch.zeros(num_gaussians(params), dtype=torch.bool, device=params["means"].device)
     mask[idx] = True  # distinct rows: len(idx) of them
-    return ops.split(params, optimizers, stats, mask, generator, scale_factor, count=len(idx))
+    return row_ops.split(params, optimizers, stats, mask, generator, scale_factor, count=len(idx))
 
 
 @dataclass

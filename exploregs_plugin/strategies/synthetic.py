@@ -10,7 +10,7 @@ import torch
 from torch import Tensor
 
 from .observation import ViewObservation
-from .ops import Params
+from .row_ops import Params
 
 
 def make_gaussians(

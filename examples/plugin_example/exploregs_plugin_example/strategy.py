@@ -1,7 +1,7 @@
 """An operator and a strategy from outside ExploreGS: 3DGS density control under a hard budget.
 
 ``OpacityLimit`` is an exploration operator: after each step's densification, if there are more
-than ``max_gaussians`` Gaussians, it removes the most transparent ones (through ExploreGS's ops, so
+than ``max_gaussians`` Gaussians, it removes the most transparent ones (through ExploreGS's row_ops, so
 Adam moments stay aligned). ``OpacityBudgetStrategy`` composes it after Default's densification;
 ``SeedSplitUnderBudget`` runs it after Seed+Split's two operators, to show that a plugin operator
 composes with the built-in ones.
@@ -14,7 +14,7 @@ from typing import Any
 
 import torch
 
-from exploregs_plugin.strategies import ExplorationStrategy, Operator, SeedSplitStrategy, ops
+from exploregs_plugin.strategies import ExplorationStrategy, Operator, SeedSplitStrategy, row_ops
 
 
 @dataclass
@@ -27,14 +27,14 @@ class OpacityLimit(Operator):
     """Largest number of Gaussians kept after each step."""
 
     def explore(self, owner: Any, ctx: Any) -> dict[str, int]:
-        n = ops.num_gaussians(ctx.params)
+        n = row_ops.num_gaussians(ctx.params)
         excess = n - self.max_gaussians
         if excess <= 0:
             return {"budget_pruned": 0}
         opacities = ctx.params["opacities"].detach()
         drop = torch.zeros(n, dtype=torch.bool)
         drop[torch.topk(opacities, excess, largest=False).indices] = True
-        return {"budget_pruned": ops.remove(ctx.params, ctx.optimizers, ctx.state["stats"], drop)}
+        return {"budget_pruned": row_ops.remove(ctx.params, ctx.optimizers, ctx.state["stats"], drop)}
 
 
 @dataclass

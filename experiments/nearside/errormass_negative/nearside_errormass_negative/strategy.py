@@ -41,7 +41,7 @@ from exploregs_plugin.strategies.requirements import VIEW_ERRORS, VISIBILITY_STA
 from exploregs_plugin.strategies.default import DefaultStrategy
 from exploregs_plugin.strategies.geometry import max_world_scale
 from exploregs_plugin.strategies.observation import ViewObservation
-from exploregs_plugin.strategies.ops import Params, num_gaussians
+from exploregs_plugin.strategies.row_ops import Params, num_gaussians
 
 ERROR_MASS = "error_mass"
 """Per-Gaussian statistic: the largest error mass over the views of the current window."""

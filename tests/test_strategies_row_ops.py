@@ -1,4 +1,4 @@
-"""strategies.ops: parameters, Adam moments and statistics stay aligned with the rows."""
+"""strategies.row_ops: parameters, Adam moments and statistics stay aligned with the rows."""
 
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import math
 import pytest
 import torch
 
-from exploregs_plugin.strategies import ops
+from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.relocation import binomial_table
 from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers
 
@@ -69,7 +69,7 @@ def test_duplicate_aligns_rows_and_zeroes_new_moments():
     g, params, optimizers, stats = _setup()
     snap = _snapshot(params, optimizers, stats)
     sel = [1, 4, 7]
-    assert ops.duplicate(params, optimizers, stats, _mask(N, sel)) == 3
+    assert row_ops.duplicate(params, optimizers, stats, _mask(N, sel)) == 3
     assert params["means"].shape[0] == N + 3
     _check_rows(params, optimizers, stats, snap, torch.arange(N), torch.arange(N))
     new = torch.arange(N, N + 3)
@@ -84,7 +84,7 @@ def test_remove_aligns_rows():
     snap = _snapshot(params, optimizers, stats)
     gone = [0, 5, 6, 11]
     keep = torch.tensor([i for i in range(N) if i not in gone])
-    assert ops.remove(params, optimizers, stats, _mask(N, gone)) == 4
+    assert row_ops.remove(params, optimizers, stats, _mask(N, gone)) == 4
     assert params["quats"].shape[0] == N - 4
     _check_rows(params, optimizers, stats, snap, torch.arange(N - 4), keep)
     assert torch.equal(stats["count"], snap["_stats"]["count"][keep])
@@ -92,7 +92,7 @@ def test_remove_aligns_rows():
 
 def test_remove_everything_leaves_empty_consistent_state():
     g, params, optimizers, stats = _setup()
-    ops.remove(params, optimizers, stats, torch.ones(N, dtype=torch.bool))
+    row_ops.remove(params, optimizers, stats, torch.ones(N, dtype=torch.bool))
     for name, p in params.items():
         assert p.shape[0] == 0
         assert optimizers[name].state[p]["exp_avg"].shape == p.shape
@@ -104,7 +104,7 @@ def test_split_children_from_parent_and_alignment():
     snap = _snapshot(params, optimizers, stats)
     sel = [2, 3, 9]
     rest = torch.tensor([i for i in range(N) if i not in sel])
-    assert ops.split(params, optimizers, stats, _mask(N, sel), torch.Generator().manual_seed(3)) == 3
+    assert row_ops.split(params, optimizers, stats, _mask(N, sel), torch.Generator().manual_seed(3)) == 3
     assert params["means"].shape[0] == N - 3 + 6
     _check_rows(params, optimizers, stats, snap, torch.arange(len(rest)), rest)
     children = torch.arange(len(rest), len(rest) + 6)
@@ -132,7 +132,7 @@ def test_append_new_rows_zero_moments_and_stats():
     snap = _snapshot(params, optimizers, stats)
     new = make_gaussians(5, torch.Generator().manual_seed(9), sh_degree=0)
     rows = {k: v.detach() for k, v in new.items()}
-    assert ops.append(params, optimizers, stats, rows) == 5
+    assert row_ops.append(params, optimizers, stats, rows) == 5
     _check_rows(params, optimizers, stats, snap, torch.arange(N), torch.arange(N))
     tail = torch.arange(N, N + 5)
     for name, p in params.items():
@@ -148,22 +148,22 @@ def test_append_rejects_missing_keys_and_bad_shapes():
     bad = dict(rows)
     del bad["sh0"]
     with pytest.raises(ValueError, match="missing"):
-        ops.append(params, optimizers, stats, bad)
+        row_ops.append(params, optimizers, stats, bad)
     bad = dict(rows, means=torch.zeros(2, 4))
     with pytest.raises(ValueError, match="trailing shape"):
-        ops.append(params, optimizers, stats, bad)
+        row_ops.append(params, optimizers, stats, bad)
 
 
 def test_mask_validation():
     g, params, optimizers, stats = _setup()
     with pytest.raises(ValueError, match="bool tensor of shape"):
-        ops.remove(params, optimizers, stats, torch.ones(N - 1, dtype=torch.bool))
+        row_ops.remove(params, optimizers, stats, torch.ones(N - 1, dtype=torch.bool))
 
 
 def test_reset_opacity_clamps_and_zeroes_only_opacity_moments():
     g, params, optimizers, stats = _setup()
     snap = _snapshot(params, optimizers, stats)
-    ops.reset_opacity(params, optimizers, 0.01)
+    row_ops.reset_opacity(params, optimizers, 0.01)
     o = torch.sigmoid(params["opacities"].detach())
     assert torch.all(o <= 0.01 + 1e-7)
     lower = torch.sigmoid(snap["opacities"]["param"]) < 0.01
@@ -179,7 +179,7 @@ def test_relocate_reuses_dead_rows_and_zeroes_their_moments():
         params["opacities"][[0, 4, 8]] = -10.0  # dead: sigmoid < 0.005
     snap = _snapshot(params, optimizers, stats)
     dead = torch.sigmoid(params["opacities"].detach()) <= 0.005
-    n = ops.relocate(params, optimizers, stats, dead, torch.Generator().manual_seed(1), binomial_table())
+    n = row_ops.relocate(params, optimizers, stats, dead, torch.Generator().manual_seed(1), binomial_table())
     assert n == 3 and params["means"].shape[0] == N
     o = torch.sigmoid(params["opacities"].detach())
     assert torch.all(o[[0, 4, 8]] > 0.005)
@@ -198,7 +198,7 @@ def test_relocate_reuses_dead_rows_and_zeroes_their_moments():
 
 def test_sample_add_appends_copies():
     g, params, optimizers, stats = _setup()
-    n = ops.sample_add(params, optimizers, stats, 4, torch.Generator().manual_seed(2), binomial_table())
+    n = row_ops.sample_add(params, optimizers, stats, 4, torch.Generator().manual_seed(2), binomial_table())
     assert n == 4 and params["means"].shape[0] == N + 4
     tail = torch.arange(N, N + 4)
     _check_zero_moments(params, optimizers, tail)
@@ -224,17 +224,17 @@ def test_adam_step_after_op_equals_rebuilt_optimizer(op):
     mask = _mask(N, [1, 6, 10])
     gen = torch.Generator().manual_seed(5)
     if op == "duplicate":
-        ops.duplicate(params, optimizers, stats, mask)
+        row_ops.duplicate(params, optimizers, stats, mask)
     elif op == "split":
-        ops.split(params, optimizers, stats, mask, gen)
+        row_ops.split(params, optimizers, stats, mask, gen)
     elif op == "remove":
-        ops.remove(params, optimizers, stats, mask)
+        row_ops.remove(params, optimizers, stats, mask)
     elif op == "append":
-        ops.append(params, optimizers, stats, {k: v.detach()[:3] * 0 + 7.0 for k, v in params.items()})
+        row_ops.append(params, optimizers, stats, {k: v.detach()[:3] * 0 + 7.0 for k, v in params.items()})
     elif op == "relocate":
-        ops.relocate(params, optimizers, stats, torch.sigmoid(params["opacities"].detach()) <= 0.005, gen, binomial_table())
+        row_ops.relocate(params, optimizers, stats, torch.sigmoid(params["opacities"].detach()) <= 0.005, gen, binomial_table())
     else:
-        ops.sample_add(params, optimizers, stats, 3, gen, binomial_table())
+        row_ops.sample_add(params, optimizers, stats, 3, gen, binomial_table())
     n_new = params["means"].shape[0]
     # Which new rows are survivors that kept their identity (and moments)?
     survivor_src = {}

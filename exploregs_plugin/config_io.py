@@ -57,9 +57,27 @@ MOVED_TYPES: dict[str, str] = {
 }
 """Config classes that moved to another module since configs were saved: old path -> new path."""
 
+MOVED_MODULES: dict[str, str] = {
+    # renamed so that each name says what it holds (the noise itself, the strategy that uses it,
+    # the operators' contract beside the row operations), with every class in them
+    "exploregs_plugin.strategies.ray": "exploregs_plugin.strategies.ray_perturbation",
+    "exploregs_plugin.strategies.perturbation": "exploregs_plugin.strategies.position_noise",
+    "exploregs_plugin.strategies.operator": "exploregs_plugin.strategies.operator_contract",
+}
+"""Modules whose config classes moved whole, since configs were saved: old module -> new module
+(``exploregs_plugin.strategies.ray:RayPerturbationStrategy`` is
+``exploregs_plugin.strategies.ray_perturbation:RayPerturbationStrategy``)."""
+
+
+def current_type(spec: str) -> str:
+    """Where the config class that a saved config names (``module:QualName``) lives now."""
+    spec = MOVED_TYPES.get(spec, spec)
+    module_name, sep, qualname = spec.partition(":")
+    return f"{MOVED_MODULES[module_name]}{sep}{qualname}" if module_name in MOVED_MODULES else spec
+
 
 def _import_type(spec: str) -> Any:
-    spec = MOVED_TYPES.get(spec, spec)
+    spec = current_type(spec)
     module_name, _, qualname = spec.partition(":")
     try:
         obj: Any = importlib.import_module(module_name)
@@ -165,8 +183,8 @@ def upgraded(value: Any) -> Any:
     spec = value.get(_TYPE_KEY)
     if not isinstance(spec, str) or ":" not in spec:
         return value
-    if spec in MOVED_TYPES:
-        spec = value[_TYPE_KEY] = MOVED_TYPES[spec]
+    if current_type(spec) != spec:
+        spec = value[_TYPE_KEY] = current_type(spec)
     try:
         cls = _import_type(spec)
     except ValueError:

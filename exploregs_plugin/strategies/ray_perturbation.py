@@ -5,7 +5,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 from .exploration import ExplorationStrategy
-from .perturbation import PositionNoise
+from .position_noise import PositionNoise
 
 
 @dataclass

@@ -14,7 +14,7 @@ factor)::
     exploration_summary(state)                  # totals logged at each evaluation
 
 Operators keep their per-Gaussian statistics in ``state["stats"]`` (kept aligned with the rows by
-``ops``) under names of their own, and draw random numbers only from ``ctx.generator``.
+``row_ops``) under names of their own, and draw random numbers only from ``ctx.generator``.
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 from torch import Tensor
 
 from .observation import ViewObservation
-from .ops import Params
+from .row_ops import Params
 from .requirements import merged_requires
 
 if TYPE_CHECKING:  # the strategies hold operators; an operator only reads its owner's settings

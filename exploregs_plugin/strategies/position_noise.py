@@ -19,8 +19,8 @@ from torch import Tensor
 
 from ..rasterizer.projection import covariances_3d
 from .errors import StrategyError
-from .operator import Operator
-from .ops import num_gaussians
+from .operator_contract import Operator
+from .row_ops import num_gaussians
 
 if TYPE_CHECKING:
     from .base import StepContext

@@ -1,15 +1,16 @@
 #!/usr/bin/env bash
-# Issue 47, item 2: the GPU measurements, in one device call of about 9 minutes. Run ON the lent
+# The GPU comparison (our training step against gsplat's, gsplat's simple_trainer with our
+# strategies, eg-train's time to quality against it, the CUDA tests), in one device call of about 9 minutes. Run ON the lent
 # machine, from the repository root, with the folder that experiments/gpu/stage.sh filled carried
 # along (experiments/gpu/README.md gives the call):
 #
-#     bash experiments/gpu/issue47.sh
+#     bash experiments/gpu/gpu_comparison.sh
 #
 # (a) bench.train_step on beer at full resolution, gsplat backend: our training step over a bare
 #     step written with gsplat's own rasterization (the issue's target: at most 1.15x);
 # (b) gsplat 1.5.3's own examples/simple_trainer.py on beer, full resolution, $STEPS steps with
 #     its evaluation at the end: its `default` (DefaultStrategy) as is, and `seedsplit` (our
-#     SeedSplitStrategy) through our launcher, exploregs_plugin.integrations.simple_trainer;
+#     GsplatSeedSplitStrategy) through our launcher, exploregs_plugin.integrations.simple_trainer;
 # (c) time to quality: eg-train against (b)'s `default` run, same scene, resolution, steps and
 #     test views (every 8th in name order in both), wall time and test PSNR of each;
 # (d) python -m pytest -q -m cuda (tests/test_cuda.py holds every test with the cuda marker).
@@ -18,7 +19,7 @@
 # .gpu-stage (see stage.sh). Each part has its own time limit inside a budget of $BUDGET_S
 # seconds; a part that no longer fits is skipped and named in summary.txt. On the same warm
 # machine a second call skips the installs and builds (kept under $WORK):
-#     PARTS="c" bash experiments/gpu/issue47.sh
+#     PARTS="c" bash experiments/gpu/gpu_comparison.sh
 #
 # Environment: PARTS (default "a b c d"), STEPS (7000), BUDGET_S (540), C_ARGS (eg-train's method
 # and options for (c)).
@@ -26,8 +27,8 @@ set -uo pipefail  # no -e: a part that fails must not stop the parts after it
 
 REPO=$(pwd)
 STAGE=$REPO/.gpu-stage
-OUT=${OUT:-$REPO/outputs/issue47}
-WORK=/tmp/eg47  # outside the repository: kept between calls on a warm machine
+OUT=${OUT:-$REPO/outputs/gpu_comparison}
+WORK=/tmp/eg_gpu_comparison  # outside the repository: kept between calls on a warm machine
 SITE=$WORK/site
 PARTS=${PARTS:-a b c d}
 STEPS=${STEPS:-7000}
