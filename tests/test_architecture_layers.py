@@ -17,7 +17,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("scripts",),
     ("bench", "analysis", "integrations"),
     ("runs",),
-    ("trainer", "pipeline", "method_configs", "evaluation", "run_logger", "collapse", "loss_terms",
+    ("trainer", "training_loop", "pipeline", "method_configs", "evaluation", "run_logger", "collapse", "loss_terms",
      "nonfinite", "stopping", "watches", "run_folder", "thread_follower", "rank_evaluation"),
     ("model", "data", "strategies", "viewer"),
     ("rasterizer", "io", "config_io", "perceptual"),
