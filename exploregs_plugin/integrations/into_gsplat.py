@@ -61,7 +61,8 @@ except ImportError as exc:  # one line, whatever part of gsplat failed to import
 from ..strategies import row_ops
 from ..strategies.base import StepContext, StrategyError
 from ..strategies.budget import BUDGET_PRESETS, BudgetName, ExplorationBudget, resolve_budget
-from ..strategies.exploration import add_counts
+from ..strategies.exploration import (add_counts, first_size_prune_factor, operator_fields, operators_extra_prune,
+                                      operators_summary)
 from ..strategies.mcmc import NO_CAP, MCMCStrategy
 from ..strategies.operator_contract import Operator
 from ..strategies.row_ops import Optimizers, Params, num_gaussians
@@ -260,8 +261,7 @@ class GsplatExplorationStrategy(gs.DefaultStrategy):
 
     def operators(self) -> list[tuple[str, Operator]]:
         """(field name, operator) for every operator field, in the order they run."""
-        return [(f.name, getattr(self, f.name)) for f in dataclasses.fields(self)
-                if isinstance(getattr(self, f.name), Operator)]
+        return operator_fields(self)
 
     def resolved_operators(self, views_per_step: int = 1) -> list[tuple[str, Operator]]:
         """The operators with their fields left at None filled from :attr:`budget`, for gsplat's
@@ -341,11 +341,8 @@ class GsplatExplorationStrategy(gs.DefaultStrategy):
     def size_prune_factor(self, operators: list[tuple[str, Operator]], step: int) -> float:
         """gsplat's world-size prune threshold (x scene scale) at ``step``: the first operator's
         with an opinion (Random Seeding relaxes it while it seeds), else ``prune_scale3d``."""
-        for _, op in operators:
-            factor = op.size_prune_factor(self, step)
-            if factor is not None:
-                return factor
-        return self.prune_scale3d
+        factor = first_size_prune_factor(operators, self, step)
+        return self.prune_scale3d if factor is None else factor
 
     @torch.no_grad()
     def _prune_gs(self, params: Params, optimizers: Optimizers, state: dict[str, Any], step: int) -> int:
@@ -355,21 +352,13 @@ class GsplatExplorationStrategy(gs.DefaultStrategy):
         if self._step is None:
             return pruned
         operators, op_state, counts = self._step
-        mask = None
-        for _, op in operators:
-            more, op_counts = op.extra_prune(self, params, op_state, step)
-            add_counts(counts, op_counts)
-            if more is not None:
-                mask = more if mask is None else mask | more
+        mask, _ = operators_extra_prune(operators, self, params, op_state, step, None, counts)
         return pruned + (row_ops.remove(params, optimizers, state, mask) if mask is not None else 0)
 
     def exploration_summary(self, state: dict[str, Any]) -> dict[str, int]:
         """The operators' current totals (Random Seeding: ``seeds_alive``, ``seeds_unseen``), as
         eg-train logs them at each evaluation."""
-        summary: dict[str, int] = {}
-        for _, op in self.operators():
-            summary.update(op.exploration_summary(self.operator_state(state)))
-        return summary
+        return operators_summary(self.operators(), self.operator_state(state))
 
 
 @dataclass

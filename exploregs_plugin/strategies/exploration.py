@@ -41,6 +41,45 @@ def add_counts(total: dict[str, int], more: dict[str, int]) -> dict[str, int]:
     return total
 
 
+# How a composed strategy runs its operators at Default's hooks. Functions, so that a strategy
+# for another trainer (gsplat's: integrations/into_gsplat.py) composes them exactly as ours does.
+def operator_fields(strategy: Any) -> list[tuple[str, Operator]]:
+    """(field name, operator) for every operator field of the dataclass ``strategy``, in the
+    order they run."""
+    return [(f.name, getattr(strategy, f.name)) for f in dataclasses.fields(strategy)
+            if isinstance(getattr(strategy, f.name), Operator)]
+
+
+def first_size_prune_factor(operators: list[tuple[str, Operator]], owner: Any, step: int) -> float | None:
+    """The world-size prune factor of the first operator with an opinion (Seeding relaxes it
+    while it is active), or None when none has one."""
+    for _, op in operators:
+        factor = op.size_prune_factor(owner, step)
+        if factor is not None:
+            return factor
+    return None
+
+
+def operators_extra_prune(operators: list[tuple[str, Operator]], owner: Any, params: Params, state: dict[str, Any],
+                          step: int, mask: Tensor | None, counts: dict[str, int]) -> tuple[Tensor | None, dict[str, int]]:
+    """``mask`` or-ed with every operator's extra rows to prune at a refinement step (None: no
+    row), their counts added to ``counts``."""
+    for _, op in operators:
+        more, op_counts = op.extra_prune(owner, params, state, step)
+        add_counts(counts, op_counts)
+        if more is not None:
+            mask = more if mask is None else mask | more
+    return mask, counts
+
+
+def operators_summary(operators: list[tuple[str, Operator]], state: dict[str, Any]) -> dict[str, int]:
+    """The operators' current totals (Random Seeding's ``seeds_alive``, ...)."""
+    summary: dict[str, int] = {}
+    for _, op in operators:
+        summary.update(op.exploration_summary(state))
+    return summary
+
+
 @dataclass
 class ExplorationStrategy(DefaultStrategy):
     """3DGS adaptive density control with exploration operators, run in the order of their fields."""
@@ -58,8 +97,7 @@ class ExplorationStrategy(DefaultStrategy):
 
     def operators(self) -> list[tuple[str, Operator]]:
         """(field name, operator) for every operator field, in the order they run."""
-        return [(f.name, getattr(self, f.name)) for f in dataclasses.fields(self)
-                if isinstance(getattr(self, f.name), Operator)]
+        return operator_fields(self)
 
     # ----------------------------------------------------------------- configuration
     def setup(self: ExplorationT, schedule: Schedule) -> ExplorationT:
@@ -85,21 +123,12 @@ class ExplorationStrategy(DefaultStrategy):
         return counts
 
     def size_prune_factor(self, step: int) -> float:
-        # the first operator with an opinion sets it (Seeding relaxes it while it is active)
-        for _, op in self.operators():
-            factor = op.size_prune_factor(self, step)
-            if factor is not None:
-                return factor
-        return super().size_prune_factor(step)
+        factor = first_size_prune_factor(self.operators(), self, step)
+        return super().size_prune_factor(step) if factor is None else factor
 
     def extra_prune(self, params: Params, state: dict[str, Any], step: int) -> tuple[Tensor | None, dict[str, int]]:
         mask, counts = super().extra_prune(params, state, step)
-        for _, op in self.operators():
-            more, op_counts = op.extra_prune(self, params, state, step)
-            add_counts(counts, op_counts)
-            if more is not None:
-                mask = more if mask is None else mask | more
-        return mask, counts
+        return operators_extra_prune(self.operators(), self, params, state, step, mask, counts)
 
     def explore(self, ctx: StepContext) -> dict[str, int]:
         counts = super().explore(ctx)
@@ -115,7 +144,4 @@ class ExplorationStrategy(DefaultStrategy):
         return counts
 
     def exploration_summary(self, state: dict[str, Any]) -> dict[str, int]:
-        summary = super().exploration_summary(state)
-        for _, op in self.operators():
-            summary.update(op.exploration_summary(state))
-        return summary
+        return {**super().exploration_summary(state), **operators_summary(self.operators(), state)}

@@ -25,13 +25,10 @@ import torch
 from torch import Tensor
 
 from exploregs_plugin.evaluation import evaluate
-from exploregs_plugin.io.scene_files import SCENE_FORMATS, read_scene, write_scene
+from exploregs_plugin.io.scene_files import SCENE_FORMATS, SUFFIXES, read_scene, write_scene
 from exploregs_plugin.runs import dataset_normalization, load_run
 from exploregs_plugin.runs.scene import model_from_params
 from exploregs_plugin.runs.simplify import simplify
-
-SUFFIX = {"ply": ".ply", "splat": ".splat", "spz": ".spz", "compressed-ply": ".compressed.ply"}
-
 
 def _psnr_to(reference: Tensor, image: Tensor) -> float:
     mse = float(((reference.double() - image.double()) ** 2).mean())
@@ -56,7 +53,7 @@ def format_rows(run: Any, folder: Path) -> list[dict[str, Any]]:
     variants = [(fmt, {}) for fmt in SCENE_FORMATS] + [("spz", {"spz_sh_bits": (8, 8)})]
     for fmt, options in variants:
         name = fmt + "".join(f" sh bits {' '.join(map(str, v))}" for v in options.values())
-        path = folder / f"scene-{len(options)}{SUFFIX[fmt]}"
+        path = folder / f"scene-{len(options)}{SUFFIXES[fmt]}"
         start = time.perf_counter()
         written = write_scene(path, params, normalization, fmt=fmt, **options)
         seconds = time.perf_counter() - start
@@ -78,7 +75,7 @@ def attribution_rows(run: Any, folder: Path, fmt: str = "spz", **options: Any) -
     model, dm = run.pipeline.model, run.pipeline.datamanager
     params = {k: v.detach().cpu() for k, v in model.params.items()}
     normalization = dataset_normalization(dm)
-    path = folder / f"attribution{SUFFIX[fmt]}"
+    path = folder / f"attribution{SUFFIXES[fmt]}"
     write_scene(path, params, normalization, fmt=fmt, **options)
     stored = read_scene(path, normalization).params
     if stored["means"].shape != params["means"].shape:
@@ -105,7 +102,7 @@ def count_rows(path: Path, fractions: list[int], finetune_steps: int, folder: Pa
             scored = evaluate(model, dm)
             sizes = {}
             for fmt in ("ply", "spz"):
-                file = folder / f"x{fraction}-{steps}{SUFFIX[fmt]}"
+                file = folder / f"x{fraction}-{steps}{SUFFIXES[fmt]}"
                 write_scene(file, model.params, dataset_normalization(dm), fmt=fmt)
                 sizes[fmt] = file.stat().st_size
             rows.append({"fraction": fraction, "finetune_steps": steps, "gaussians": done.after,
