@@ -21,15 +21,15 @@ def main(dataset: Path) -> None:
     rec = pycolmap.Reconstruction(str(dataset / "sparse" / "0"))
     names = sorted(im.name for im in rec.images.values() if im.has_pose)
     quarter = names[len(names) // 2: len(names) // 2 + len(names) // 4]
-    print("| model | suspect | of them broken | looks away | jumps | disagree (warning) | passed |")
-    print("|---|---|---|---|---|---|---|")
+    print("| model | suspect | of them broken | looks away | jumps | seams | disagree (warning) | passed |")
+    print("|---|---|---|---|---|---|---|---|")
     for how in ("as posed", "mirrored", "misplaced"):
         model = rec if how == "as posed" else break_cameras(rec, quarter, how)
         found = checks.check_model(model, names, dataset / "database.db")
         hit = len(set(found.suspect) & set(quarter)) if how != "as posed" else 0
         label = how if how == "as posed" else f"{how} ({len(quarter)} of {len(names)})"
         print(f"| {label} | {len(found.suspect)} | {hit} | "
-              f"{len(found.looks_away)} | {len(found.jumps)} | {len(found.disagrees)} | {found.passed} |")
+              f"{len(found.looks_away)} | {len(found.jumps)} | {len(found.seams)} | {len(found.disagrees)} | {found.passed} |")
 
 
 if __name__ == "__main__":

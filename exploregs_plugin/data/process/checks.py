@@ -9,12 +9,18 @@ What does show it, without learned weights:
 - **looks away** (orbits): the cameras of an object capture look at one place, the point nearest
   to all optical axes. A camera whose axis points more than 60 degrees away from it, while most
   cameras look straight at it, is posed wrong (the failure above: cosines of -0.4 to -1.0).
-- **jumps** (captures with an order: video frames, photos whose consecutive names overlap): the
-  path between consecutive cameras jumps far beyond its usual step, in rotation or position.
-  A long step counts as a jump when the two images' own matches contradict the model (a capture
-  may skip; a fold turns cameras that see the same thing). The cameras on the smaller side of the
-  jumps are suspect. Beer's 71 video frames, mapped
-  from all pairs, turned by 172 degrees between frames 20 and 21 that look the same.
+- **jumps** (captures with an order: video frames, photos whose consecutive names overlap): a
+  step between consecutive cameras that the two images' own matches contradict. Neighbours in a
+  capture order overlap for real, so their verified matches fit a right model (beer's and
+  bonsai's right models: every consecutive pair, 70 and 251, at least 89% of its inliers); a
+  block of cameras mapped onto false matches breaks the path where it meets the right ones, long
+  step or not. Beer's 71 video frames, mapped from all pairs, turned by 172 degrees between
+  frames 20 and 21 that look the same (none of their 160 inliers fits); a 24-view arc over a
+  tiled floor, mapped by the global mapper, shifted its first 7 cameras by 30 degrees in a step
+  as long as the others (half of the boundary pair's 395 inliers fit). The jumps cut the path
+  into runs; runs whose near pairs (up to 10 apart in the order) mostly fit the model are one
+  part, and the cameras outside the largest part are suspect. A long step the matches do not
+  contradict is a gap (a capture may skip).
 - **disagrees** (a warning): each strong verified pair of the database should satisfy the
   model's epipolar geometry; an image most of whose strong pairs contradict the model is listed.
   It does not fail a model: where the structure repeats, false pairs verify as strongly as true
@@ -36,6 +42,7 @@ import numpy as np
 import pycolmap
 
 from .report import shown_names
+from .sfm import SEQUENTIAL_OVERLAP
 
 LOOK_AWAY_COS = 0.5
 """A camera looks away when cos(axis, direction to the common centre) < 0.5 (over 60 degrees)."""
@@ -45,7 +52,17 @@ STRONG_PAIR_INLIERS = 40
 """A verified pair with at least this many inlier matches is evidence about its two poses."""
 AGREE_PX = 4.0
 """A match agrees with the model when its Sampson distance is within 4 px (verification's own
-threshold); a pair agrees when half of its inliers do."""
+threshold)."""
+AGREE_SHARE = 0.5
+"""A pair agrees with the model when half of its inliers do: a wide-baseline pair's verified
+inliers hold false matches too (the right model of a 24-view arc over a tiled floor fits pairs 8
+to 10 views apart at 50-95%), and a fold contradicts all (beer's: none of 160)."""
+NEIGHBOUR_AGREE_SHARE = 0.8
+"""Consecutive images an ordinary step apart agree with the model when 80% of their inliers do:
+seen from nearly one place, their matches are true (right models: at least 89% on beer's 70
+consecutive pairs, 99% on bonsai's 251, 100% on the arc's 23), and the pair where a misplaced
+block meets the right cameras fits a wrong model at 0 to 73% (a block shifted by 30 degrees kept
+50-58%: half was not enough)."""
 DISAGREE_SHARE = 0.5
 """An image disagrees when at least half of its strong pairs (and at least two) contradict the model."""
 MAX_PAIRS_PER_IMAGE = 12
@@ -55,6 +72,17 @@ JUMP_FACTOR = 10.0
 percentile step (bursts of photos from one spot shrink the median, not the 90th percentile)."""
 JUMP_MIN_DEGREES = 45.0
 """... and a rotation step is a jump only above 45 degrees."""
+SEAM_SHARE = 0.5
+"""Consecutive images an ordinary step apart meet at a seam when the share of the 3D points of
+the one with fewer that both see is under half the path's median share. Neighbours see the same
+points: right models' smallest share was 77-92% of their median (beer 0.62 of 0.75, bonsai 0.50
+of 0.65, a 101-frame desk video 0.35 of 0.44, the 24-view arc 0.60 of 0.65). Where two parts of
+a model are held by few points, the step between them can stretch along its own direction, which
+no epipolar constraint sees: the arc's global model kept 102 of 399 points (0.26 of 0.68) at the
+step where its last 11 cameras sat 2-10% of the arc's width off."""
+NEAR_WINDOW = SEQUENTIAL_OVERLAP
+"""Images up to this far apart in a capture order are near: their matches are taken as true
+(the neighbours matched by sequential matching)."""
 LINK_INLIERS = 15
 """Two images share a verified pair when it has at least this many inliers."""
 ORDER_SHARE = 0.8
@@ -72,6 +100,7 @@ class ModelChecks:
     looks_away: list[str] = field(default_factory=list)
     disagrees: list[str] = field(default_factory=list)
     jumps: list[tuple[str, str]] = field(default_factory=list)
+    seams: list[tuple[str, str]] = field(default_factory=list)
     gaps: list[tuple[str, str]] = field(default_factory=list)
     beyond_jumps: list[str] = field(default_factory=list)
     weak: list[str] = field(default_factory=list)
@@ -87,7 +116,8 @@ class ModelChecks:
         return not self.suspect
 
     def to_dict(self) -> dict:
-        return {**asdict(self), "jumps": [list(j) for j in self.jumps], "gaps": [list(g) for g in self.gaps],
+        return {**asdict(self), "jumps": [list(j) for j in self.jumps], "seams": [list(j) for j in self.seams],
+                "gaps": [list(g) for g in self.gaps],
                 "suspect": self.suspect,
                 "passed": self.passed}
 
@@ -160,6 +190,70 @@ def beyond_jumps(count: int, jumps: list[int]) -> list[int]:
     even = sum(len(r) for r in runs[0::2])
     wrong = runs[1::2] if even >= count - even else runs[0::2]
     return [i for r in wrong for i in r]
+
+
+def wrong_runs(count: int, breaks: list[int], votes: list[tuple[int, int, bool]]) -> list[int]:
+    """Indices of an ordered path of ``count`` cameras that lie off its main part.
+
+    ``breaks``: steps i -> i+1 the two images' matches contradict; they cut the path into runs.
+    ``votes``: (i, j, agrees) for pairs of images near each other in the order (neighbours that
+    overlap for real), whether their matches fit the model.
+
+    1. Runs are one part when more of the votes between them agree than contradict: the two
+       sides of a short excursion meet again, a block shifted rigidly does not. Two runs a break
+       separates are never one part, whatever the votes: a model bent rather than shifted (the
+       first 13 of 24 cameras drifting by 5 to 17 degrees) kept most near pairs across its break.
+    2. The part with the most cameras (ties: the earliest) is the main part.
+    3. A part no vote ties to the main part either way (a long excursion: its far side is more
+       than the window away; a tie) joins it when its runs are an even number of jumps from the
+       main part's largest run: each jump of a fold goes out to the wrong side or comes back. A
+       row of single cameras each at odds with both neighbours counts as one excursion (each
+       is wrong on its own: a mirrored block contradicts itself at every step).
+    So a path with a break always leaves cameras outside the main part, and they are returned."""
+    if count == 0:
+        return []
+    run_of = np.zeros(count, dtype=np.int64)
+    for i in sorted(set(breaks)):
+        run_of[i + 1:] += 1
+    n_runs = int(run_of[-1]) + 1
+    balance = np.zeros((n_runs, n_runs), dtype=np.int64)
+    for i, j, agrees in votes:
+        a, b = int(run_of[i]), int(run_of[j])
+        if a != b:
+            balance[a, b] += 1 if agrees else -1
+            balance[b, a] += 1 if agrees else -1
+    parent = list(range(n_runs))
+
+    def root(r: int) -> int:
+        while parent[r] != r:
+            parent[r] = parent[parent[r]]
+            r = parent[r]
+        return r
+
+    def members(r: int) -> np.ndarray:
+        return np.array([q for q in range(n_runs) if root(q) == root(r)])
+
+    def apart(runs: np.ndarray, others: np.ndarray) -> bool:  # no break between the two sets
+        return bool(np.abs(runs[:, None] - others[None, :]).min() > 1)
+
+    for a, b in zip(*np.nonzero(np.triu(balance > 0))):
+        if root(int(a)) != root(int(b)) and apart(members(int(a)), members(int(b))):
+            parent[root(int(b))] = root(int(a))
+    part_of = np.array([root(r) for r in range(n_runs)])
+    run_sizes = np.bincount(run_of, minlength=n_runs)
+    part_sizes = np.bincount(part_of, weights=run_sizes, minlength=n_runs)
+    main = int(np.argmax(part_sizes))  # argmax: the first of equals, the part with the earliest cameras
+    seed = max((r for r in range(n_runs) if part_of[r] == main), key=lambda r: (run_sizes[r], -r))
+    # excursions: a row of single-camera runs is one
+    single = run_sizes == 1
+    excursion = np.cumsum([1] + [0 if single[r] and single[r - 1] else 1 for r in range(1, n_runs)])
+    in_main = part_of == main
+    for part in sorted(set(part_of.tolist()) - {main}):
+        runs, main_runs = np.flatnonzero(part_of == part), np.flatnonzero(in_main)
+        untied = not balance[np.ix_(runs, main_runs)].any()
+        if untied and apart(runs, main_runs) and all((excursion[r] - excursion[seed]) % 2 == 0 for r in runs):
+            in_main[runs] = True
+    return [int(i) for i in np.flatnonzero(~in_main[run_of])]
 
 
 def essential(R1: np.ndarray, t1: np.ndarray, R2: np.ndarray, t2: np.ndarray) -> tuple[np.ndarray, float]:
@@ -256,11 +350,10 @@ class _Epipolar:
         centres = np.array([im.projection_center() for im in self.images.values()]).reshape(-1, 3)
         self.extent = max(float(np.ptp(centres, axis=0).max()), 1e-9) if len(centres) else 1e-9
 
-    def agrees(self, n1: str, n2: str, xy: np.ndarray) -> bool | None:
-        """Whether the matches ``xy`` [n, 4] of images ``n1`` and ``n2`` mostly satisfy the
-        model's epipolar geometry (Sampson distance within AGREE_PX for half of them); None when
-        the model puts the two at one place (a rotation only: the epipolar constraint says
-        nothing)."""
+    def fit_share(self, n1: str, n2: str, xy: np.ndarray) -> float | None:
+        """The share of the matches ``xy`` [n, 4] of images ``n1`` and ``n2`` that satisfy the
+        model's epipolar geometry (Sampson distance within AGREE_PX); None when the model puts the
+        two at one place (a rotation only: the epipolar constraint says nothing)."""
         im1, im2 = self.images[n1], self.images[n2]
         cam1, cam2 = self.rec.cameras[im1.camera_id], self.rec.cameras[im2.camera_id]
         (R1, t1), (R2, t2) = _pose(im1), _pose(im2)
@@ -270,7 +363,12 @@ class _Epipolar:
         x1, x2 = cam1.cam_from_img(xy[:, :2]), cam2.cam_from_img(xy[:, 2:])
         # normalised units: AGREE_PX pixels over the mean focal length of the two cameras
         tolerance = AGREE_PX / max(0.5 * (cam1.mean_focal_length() + cam2.mean_focal_length()), 1e-9)
-        return float(np.mean(sampson_distance(E, x1, x2) <= tolerance)) >= 0.5
+        return float(np.mean(sampson_distance(E, x1, x2) <= tolerance))
+
+    def agrees(self, n1: str, n2: str, xy: np.ndarray) -> bool | None:
+        """Whether the matches mostly fit the model (AGREE_SHARE of them); None: no evidence."""
+        share = self.fit_share(n1, n2, xy)
+        return None if share is None else share >= AGREE_SHARE
 
 
 def _disagreeing(epipolar: _Epipolar, matches: _Matches) -> tuple[list[str], int, int]:
@@ -304,17 +402,30 @@ def weak_floor(counts: list[int] | np.ndarray) -> float:
     return max(WEAK_POINTS, 0.1 * float(np.median(counts))) if len(counts) else float(WEAK_POINTS)
 
 
+def seam_steps(images: list) -> list[int]:
+    """Steps i -> i+1 of a capture order whose two images share few 3D points (SEAM_SHARE)."""
+    if len(images) < 4:
+        return []
+    seen = [{p.point3D_id for p in im.points2D if p.has_point3D()} for im in images]
+    shares = np.array([len(a & b) / max(min(len(a), len(b)), 1) for a, b in zip(seen, seen[1:])])
+    return [int(i) for i in np.flatnonzero(shares < SEAM_SHARE * float(np.median(shares)))]
+
+
 def check_poses(rec: pycolmap.Reconstruction, names: list[str], ordered: bool,
-                folded: Callable[[str, str], bool] | None = None) -> ModelChecks:
+                fits: Callable[[str, str], float | None] | None = None) -> ModelChecks:
     """The checks that need only the model: looks away, jumps (when ``ordered``: ``names`` are a
     capture order) and weak images.
 
-    A long step is not always a fold: a capture can skip (fox's frames 54 to 68 are 14 median steps
-    and 43 degrees apart, rightly). ``folded(a, b)`` says whether the model contradicts the
-    matches of two consecutive images (beer's folded frames 20 and 21 share 160 inliers, none of
-    which fits the model's 172-degree turn; frames that fit agree 100%); a long step it does not
-    confirm is a gap (a warning). Without it (no database), only jumps that go out and come back
-    (two or more) count."""
+    ``fits(a, b)``: the share of two images' matches that fit the model (None: no evidence).
+    Every consecutive step the matches contradict is a jump, long or not: an ordinary step below
+    NEIGHBOUR_AGREE_SHARE (a block shifted by 30 degrees kept half), a long step below
+    AGREE_SHARE (beer's folded frames 20 and 21 share 160 inliers, none of which fits the
+    model's 172-degree turn). A long step is not always a fold: a capture can skip (fox's frames
+    54 to 68 are 14 median steps and 43 degrees apart, rightly), and a skip's wide-baseline
+    matches fit less well, so a long step they do not contradict is a gap (a warning). The pairs
+    up to NEAR_WINDOW apart decide which runs between jumps are one part (``wrong_runs``).
+    Without ``fits`` (no database), only long steps count, only when they go out and come back
+    (two or more), and the runs beyond them alternate (``beyond_jumps``)."""
     images = _registered(rec, names)
     centres = np.array([im.projection_center() for im in images]).reshape(-1, 3)
     axes = np.array([im.viewing_direction() for im in images]).reshape(-1, 3)
@@ -329,13 +440,21 @@ def check_poses(rec: pycolmap.Reconstruction, names: list[str], ordered: bool,
     if ordered:
         rotations = np.array([_pose(im)[0] for im in images]).reshape(-1, 3, 3)
         steps = find_jumps(centres, rotations)
-        if folded is not None:
-            jumps = [i for i in steps if folded(images[i].name, images[i + 1].name)]
+        if fits is not None:
+            shares = {(i, j): share for i in range(len(images)) for j in range(i + 1, min(i + NEAR_WINDOW + 1, len(images)))
+                      if (share := fits(images[i].name, images[j].name)) is not None}
+            jumps = [i for (i, j), share in shares.items()
+                     if j == i + 1 and share < (AGREE_SHARE if i in steps else NEIGHBOUR_AGREE_SHARE)]
+            seams = [i for i in seam_steps(images) if i not in steps and i not in jumps]
+            checks.seams = [(images[i].name, images[i + 1].name) for i in seams]
+            votes = [(i, j, share >= AGREE_SHARE) for (i, j), share in shares.items()]
+            wrong = wrong_runs(len(images), jumps + seams, votes)
         else:
             jumps = steps if len(steps) >= 2 else []
+            wrong = beyond_jumps(len(images), jumps)
         checks.jumps = [(images[i].name, images[i + 1].name) for i in jumps]
         checks.gaps = [(images[i].name, images[i + 1].name) for i in steps if i not in jumps]
-        checks.beyond_jumps = sorted(images[i].name for i in beyond_jumps(len(images), jumps))
+        checks.beyond_jumps = sorted(images[i].name for i in wrong)
     floor = weak_floor([im.num_points3D for im in images])
     checks.weak = sorted(im.name for im in images if im.num_points3D < floor)
     return checks
@@ -352,11 +471,11 @@ def check_model(rec: pycolmap.Reconstruction, names: list[str], database: Path,
         if ordered is None:
             ordered = _is_ordered(_registered(rec, names), matches.linked())
 
-        def folded(a: str, b: str) -> bool:
+        def fits(a: str, b: str) -> float | None:
             xy = matches.coordinates(a, b)
-            return xy is not None and epipolar.agrees(a, b, xy) is False
+            return None if xy is None else epipolar.fit_share(a, b, xy)
 
-        checks = check_poses(rec, names, ordered, folded)
+        checks = check_poses(rec, names, ordered, fits)
         checks.disagrees, checks.pairs_checked, checks.pairs_contradicted = _disagreeing(epipolar, matches)
     return checks
 
@@ -400,6 +519,8 @@ def check_lines(checks: ModelChecks, registered: int) -> list[str]:
              f"{checks.pairs_checked} strong pairs contradicted)"]
     if checks.ordered:
         parts.append(f"{len(checks.jumps)} jumps along the capture order")
+        if checks.seams:
+            parts.append(f"{len(checks.seams)} seams")
     verdict = "passed" if checks.passed else f"failed, {len(checks.suspect)} suspect"
     lines = [f"checks ({verdict}): {registered} cameras: " + ", ".join(parts)]
     if checks.looks_away:
@@ -408,6 +529,8 @@ def check_lines(checks: ModelChecks, registered: int) -> list[str]:
         lines.append(f"  disagree (a warning): {shown_names(checks.disagrees, 6)}")
     for a, b in checks.jumps[:6]:
         lines.append(f"  jump between {a} and {b}")
+    for a, b in checks.seams[:6]:
+        lines.append(f"  seam between {a} and {b} (neighbours that share few 3D points)")
     for a, b in checks.gaps[:6]:
         lines.append(f"  gap between {a} and {b} (a long step their matches do not contradict; a warning)")
     if checks.weak:

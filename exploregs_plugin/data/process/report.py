@@ -83,6 +83,8 @@ def _check_counts(found: dict) -> str:
              "strong pairs contradicted)"]
     if found["ordered"]:
         parts.append(f"jumps {len(found['jumps'])}")
+        if found.get("seams"):
+            parts.append(f"seams {len(found['seams'])}")
         if found.get("gaps"):
             parts.append(f"gaps {len(found['gaps'])} (long steps the matches do not contradict)")
     parts.append(f"weak {len(found['weak'])}")
