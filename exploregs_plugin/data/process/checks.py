@@ -310,13 +310,18 @@ class _Matches:
             self._keypoints[name] = self.db.read_keypoints(self.ids[name])[:, :2].astype(np.float64)
         return self._keypoints[name]
 
+    def count(self, n1: str, n2: str) -> int:
+        """The verified inlier matches of ``n1`` and ``n2``: their number, 0 when under LINK_INLIERS."""
+        n = len(self.inliers.get((n1, n2), self.inliers.get((n2, n1), ())))
+        return n if n >= LINK_INLIERS else 0
+
     def coordinates(self, n1: str, n2: str) -> np.ndarray | None:
         """The verified inlier matches of ``n1`` and ``n2`` as keypoint coordinates [n, 4] (x1, y1,
         x2, y2), or None when the pair has fewer than LINK_INLIERS."""
-        key = (n1, n2) if (n1, n2) in self.inliers else (n2, n1)
-        inliers = self.inliers.get(key, np.zeros((0, 2), np.uint32))
-        if len(inliers) < LINK_INLIERS:
+        if not self.count(n1, n2):
             return None
+        key = (n1, n2) if (n1, n2) in self.inliers else (n2, n1)
+        inliers = self.inliers[key]
         xy = np.concatenate([self.keypoints(key[0])[inliers[:, 0]], self.keypoints(key[1])[inliers[:, 1]]], axis=1)
         return xy if key == (n1, n2) else xy[:, [2, 3, 0, 1]]
 
@@ -490,11 +495,7 @@ def check_model(rec: pycolmap.Reconstruction, names: list[str], database: Path,
             xy = matches.coordinates(a, b)
             return None if xy is None else epipolar.fit_share(a, b, xy)
 
-        def inliers(a: str, b: str) -> int:
-            xy = matches.coordinates(a, b)
-            return 0 if xy is None else len(xy)
-
-        checks = check_poses(rec, names, ordered, fits, inliers)
+        checks = check_poses(rec, names, ordered, fits, matches.count)
         checks.disagrees, checks.pairs_checked, checks.pairs_contradicted = _disagreeing(epipolar, matches)
     return checks
 
