@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
+from functools import partial
 from typing import Any
 
 import torch
@@ -13,13 +14,14 @@ from exploregs_plugin.device import make_generator, restore_generator, to_device
 from exploregs_plugin.distributed import World
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
-from exploregs_plugin.model.losses import DepthSpace, psnr_on_device
+from exploregs_plugin.model.losses import DepthSpace, pooled_psnr, psnr_on_device
 from exploregs_plugin.nonfinite import NonFiniteError, NonFiniteWatch
 from exploregs_plugin.model.optim import OptimizerConfig, OptimizerSet, batch_betas, batch_lr_scale
 from exploregs_plugin.strategies.observation import ViewError, ViewObservation, observe_render
 from exploregs_plugin.rasterizer import BackendError, backend_problem
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
+from exploregs_plugin.strategies.count_rule import MIN_VIEWS, held_out_indices
 from exploregs_plugin.strategies.requirements import VIEW_ERRORS, VISIBILITY_STATS
 
 
@@ -156,6 +158,8 @@ class Pipeline:
         centers = torch.stack([camera.camera_center for camera in dm.train_cameras])
         self.strategy_state = to_device(self.strategy.initialize_state(
             scene_scale=self.scene_extent, scene_center=centers.mean(dim=0)), device)
+        if self.strategy.holds_out_views(self.strategy_state, 0):
+            self._hold_out_views()
         if config.random_background and not dm.has_alpha:
             raise ValueError("random_background needs a dataset whose images have an alpha channel")
         # --datamanager.background random asks for the same as random_background
@@ -222,7 +226,9 @@ class Pipeline:
             generator=self.generator,
             # the data loss, a tensor as summed (MCMC's cap_max auto reads it once per refinement)
             loss=totals["loss"] - totals["reg"] if "reg" in totals else totals["loss"],
+            held_out_psnr=partial(self.held_out_psnr, step) if self.datamanager.held_out else None,
         )
+        notes = self._return_held_views(step)
         return {
             "loss": totals["loss"],
             "terms": {k: v for k, v in totals.items() if k not in ("loss", "psnr")},
@@ -230,7 +236,43 @@ class Pipeline:
             "views": tuple(int(i) for i in indices),
             "counts": dict(counts or {}),
             "means_lr": means_lr,
+            "notes": notes,
         }
+
+    def _hold_out_views(self) -> None:
+        """Keep :func:`held_out_indices` of the training views out of training while the strategy
+        decides (:meth:`Strategy.holds_out_views`)."""
+        n = len(self.datamanager.train_cameras)
+        held = held_out_indices(n)
+        if not held:
+            raise ValueError(f"{type(self.strategy).__name__}: a count decided on held-out views needs at least "
+                             f"{MIN_VIEWS} training views; {self.datamanager.scene_name} has {n} (give --strategy.cap-max "
+                             f"a number)")
+        self.datamanager.hold_out(held)
+
+    def held_out_psnr(self, step: int) -> float:
+        """PSNR (dB) of the held-out training views, their squared errors pooled, rendered without
+        gradients at the step's SH degree on the dataset's background: one read of the device."""
+        squared, count = torch.zeros((), dtype=torch.float64, device=self.device), 0
+        with torch.no_grad():
+            for index in self.datamanager.held_out:
+                camera, target, _ = self.datamanager.train_item(index, self.device)
+                image = self.model.render(camera, self.sh_degree_at(step), self.background)[0]
+                squared = squared + ((image.double() - target.double()) ** 2).sum()
+                count += target.numel()
+        return pooled_psnr(float(squared), count)
+
+    def _return_held_views(self, step: int) -> list[str]:
+        """Once the strategy no longer holds views out, they return to training; the line that
+        says so (and why growth stopped) is returned for the trainer to print."""
+        if not self.datamanager.held_out or self.strategy.holds_out_views(self.strategy_state, step + 1):
+            return []
+        held = len(self.datamanager.held_out)
+        self.datamanager.return_held()
+        reason = self.strategy.count_decision(self.strategy_state) or (
+            f"growth ran to the end of the refinements ({self.model.num_gaussians:,} Gaussians at step "
+            f"{step + 1}) with every growth window paying back")
+        return [f"{reason}; the {held} held-out views return to training"]
 
     def _train_view(self, step: int, index: int, background: Tensor, first: bool,
                     totals: dict[str, Tensor]) -> ViewObservation:

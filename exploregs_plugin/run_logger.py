@@ -131,6 +131,11 @@ class RunLogger:
         self.window_start = time.perf_counter()
         self.window_steps = 0
 
+    def note(self, text: str) -> None:
+        """One line of what the run decided (above the progress bar; not with quiet)."""
+        if not self.quiet:
+            self.console.print(text, soft_wrap=True)
+
     def log_eval(self, step: int, metrics: dict[str, Any], panels: list[tuple[str, torch.Tensor]]) -> None:
         self.scalar("test/psnr", metrics["psnr"], step)
         self.scalar("test/ssim", metrics["ssim"], step)

@@ -193,6 +193,8 @@ class Trainer:
         else:
             self.watches.check(step, stats, read=False)
         self.logger.log_step(step, stats, self.pipeline.model.num_gaussians, self.pipeline.optim.lrs())
+        for note in stats.get("notes", ()):  # e.g. the count a rule chose, and why
+            self.logger.note(note)
         for callback in self.callbacks:
             callback.after_step(self, step + 1, stats)
         if step + 1 in eval_steps:
@@ -252,6 +254,9 @@ class Trainer:
             "strategy_counts": dict(sorted(self._op_totals().items())),
             "exploration": self.pipeline.exploration_summary(),
         })
+        decision = self.pipeline.strategy.count_decision(self.pipeline.strategy_state)
+        if decision:
+            metrics["count_decision"] = decision
         if self.world.is_main:
             write_metrics_json(self.run_dir / METRICS_NAME, metrics)
         return metrics

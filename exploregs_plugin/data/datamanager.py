@@ -200,6 +200,7 @@ class DataManager:
         self._order: Tensor = torch.randperm(len(self._train), generator=self._generator, device="cpu")
         self._position = 0
         self._epoch = 0
+        self._held: list[int] = []  # training indices kept out of the order (hold_out)
         self._coarse: dict[tuple[int, int], _Item] = {}  # (train index, downscale) -> its coarse level
 
     def _render_background(self, composited: np.ndarray) -> np.ndarray:
@@ -317,17 +318,37 @@ class DataManager:
 
     def next_train_indices(self, count: int) -> list[int]:
         """The next ``count`` training indices of the seeded order (a fresh permutation each
-        epoch). Every rank of a data-parallel run draws the whole global batch this way, so the
-        ranks agree on it, and loads only its own share with :meth:`train_item`."""
+        epoch), passing over held-out ones (:meth:`hold_out`). Every rank of a data-parallel run
+        draws the whole global batch this way, so the ranks agree on it, and loads only its own
+        share with :meth:`train_item`."""
         indices = []
-        for _ in range(count):
+        while len(indices) < count:
             if self._position >= len(self._order):
                 self._order = torch.randperm(len(self._train), generator=self._generator, device="cpu")
                 self._position = 0
                 self._epoch += 1
-            indices.append(int(self._order[self._position]))
+            index = int(self._order[self._position])
             self._position += 1
+            if index not in self._held:
+                indices.append(index)
         return indices
+
+    def hold_out(self, indices: list[int]) -> None:
+        """Keep these training views out of the order until :meth:`return_held` (a count rule
+        scores them); at least one view stays in training."""
+        if any(not 0 <= i < len(self._train) for i in indices) or len(set(indices)) >= len(self._train):
+            raise ValueError(f"hold_out: {indices} must be distinct training indices, fewer than "
+                             f"{len(self._train)}")
+        self._held = sorted(set(int(i) for i in indices))
+
+    def return_held(self) -> None:
+        """The held-out views take part in training again (from the next draw of the order)."""
+        self._held = []
+
+    @property
+    def held_out(self) -> list[int]:
+        """Training indices currently held out of training (:meth:`hold_out`)."""
+        return list(self._held)
 
     def state_dict(self) -> dict[str, Any]:
         """Everything needed to continue the same camera order after a resume."""
@@ -337,6 +358,7 @@ class DataManager:
             "epoch": self._epoch,
             "generator": self._generator.get_state(),
             "train_names": [c.name for c in self.train_cameras],
+            "held_out": list(self._held),
         }
 
     def load_state_dict(self, state: dict[str, Any]) -> None:
@@ -350,6 +372,11 @@ class DataManager:
         self._position = int(state["position"])
         self._epoch = int(state["epoch"])
         self._generator.set_state(state["generator"])
+        held = [int(i) for i in state.get("held_out", [])]  # a checkpoint from before hold_out held none
+        if held:
+            self.hold_out(held)
+        else:
+            self.return_held()
 
     @property
     def epoch(self) -> int:

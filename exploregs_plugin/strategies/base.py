@@ -11,7 +11,9 @@ Call shape (the same as gsplat's, so strategies can be reused across trainers)::
     loss.backward(); optimizer.step() for each; zero_grad()
     counts = strategy.step_post_backward(params, optimizers, state, step, views,
                                          lr=means_lr, generator=gen,    # dict[str, int]
-                                         loss=step_loss)                # 0-d tensor, optional
+                                         loss=step_loss,                # 0-d tensor, optional
+                                         held_out_psnr=score)           # () -> float, optional
+    strategy.holds_out_views(state, step)   # keep views out of training (cap_max 'validated')?
     # at each evaluation:
     strategy.exploration_summary(state)                                  # dict[str, int]
 
@@ -27,7 +29,7 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any, ClassVar, TypeVar
+from typing import Any, Callable, ClassVar, TypeVar
 
 import torch
 from torch import Tensor
@@ -61,6 +63,10 @@ class StepContext:
     the regularisers), as the pipeline computed it: possibly on the device, so a strategy that
     reads it adds it to its state as a tensor and converts it only when it decides (MCMC's
     ``cap_max auto``, at its refinement steps). None when the caller gave none."""
+    held_out_psnr: Callable[[], float] | None = None
+    """Renders the views held out of training (:meth:`Strategy.holds_out_views`) with the current
+    parameters and returns their PSNR in dB (one read of the device); None when the caller holds
+    none out. MCMC's ``cap_max validated`` calls it once per window of refinements."""
 
     def rng(self, who: str) -> torch.Generator:
         """The caller's generator; a clear error when randomness is needed and none was given."""
@@ -202,6 +208,7 @@ class Strategy:
         lr: float = 0.0,
         generator: torch.Generator | None = None,
         loss: Tensor | None = None,
+        held_out_psnr: Callable[[], float] | None = None,
     ) -> dict[str, int]:
         """Called after the optimizer step; returns counts of what it did (dict[str, int]; a count
         may be a 0-dim integer tensor on the device, which the trainer reads only where it logs,
@@ -209,10 +216,12 @@ class Strategy:
 
         Checks that the schedule is resolved and ``views`` is a list of observations, and hands
         one :class:`StepContext` to :meth:`post_backward`, which subclasses implement. ``loss`` is
-        the step's training loss as a 0-d tensor (:attr:`StepContext.loss`)."""
+        the step's training loss as a 0-d tensor (:attr:`StepContext.loss`), ``held_out_psnr`` the
+        score of the views held out of training (:attr:`StepContext.held_out_psnr`)."""
         self.require_schedule()
         views = require_views(views, f"{type(self).__name__}.step_post_backward")
-        return self.post_backward(StepContext(params, optimizers, state, step, views, lr, generator, loss))
+        return self.post_backward(StepContext(params, optimizers, state, step, views, lr, generator, loss,
+                                              held_out_psnr))
 
     def post_backward(self, ctx: StepContext) -> dict[str, int]:
         """The strategy's work after each optimizer step. Default: nothing."""
@@ -226,6 +235,18 @@ class Strategy:
         """Current totals of what the strategy explored (not events), logged at each evaluation
         and written to metrics.json, e.g. Seeding's ``seeds_alive``. Default: none."""
         return {}
+
+    def holds_out_views(self, state: dict[str, Any], step: int) -> bool:
+        """Whether the caller keeps a few training views out of training before ``step`` and scores
+        them for :attr:`StepContext.held_out_psnr` (MCMC's ``cap_max validated``, while it
+        decides the count). Asked at the start of the run and after every step; once False, the
+        views return to training for good. Default: never."""
+        return False
+
+    def count_decision(self, state: dict[str, Any]) -> str:
+        """One line that says at what count growth stopped and why, once a rule has stopped it
+        ('' before, and for a strategy without such a rule)."""
+        return ""
 
 
 def _field_at(config: Any, dotted: str) -> Any:

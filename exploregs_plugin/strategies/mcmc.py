@@ -3,8 +3,10 @@
 Every ``refine_every`` steps inside the refinement window: dead Gaussians (opacity <=
 ``min_opacity``) are relocated onto live ones drawn in proportion to opacity, with the paper's
 opacity/scale update (:mod:`.relocation`); then the set grows by ``growth_rate`` (5%) of its size,
-by sampling new copies the same way, up to ``cap_max``. With ``cap_max = 'auto'`` the training
-loss decides instead (:func:`keeps_growing`): the set grows while the mean training loss over the
+by sampling new copies the same way, up to ``cap_max``. With ``cap_max = 'validated'`` views
+held out of training decide (:mod:`.count_rule`): growth alternates with windows without it, and
+stops at the first growth window that added less to the held-out PSNR than training alone did
+around it. With ``cap_max = 'auto'`` the training loss decides instead (:func:`keeps_growing`): the set grows while the mean training loss over the
 last ``auto_span`` refinement intervals still falls by at least ``auto_min_drop`` of the mean over
 the ``auto_span`` intervals before them, and stops for good, at its count then, after
 ``auto_patience`` refinements in a row where it does not. After every step the positions get the
@@ -23,7 +25,7 @@ import torch
 from torch import Tensor
 
 from ..schedule import Schedule
-from . import row_ops
+from . import count_rule, row_ops
 from .base import StepContext, Strategy, StrategyError
 from .row_ops import Optimizers, Params, num_gaussians
 from .position_noise import PositionNoise
@@ -40,6 +42,20 @@ AUTO_LOSS, AUTO_STEPS, AUTO_MEANS, AUTO_BELOW, AUTO_CAP = (
 loss's device, or None), its steps, the means of the last 2 x span closed windows (floats), the
 refinements in a row below the drop, and the cap once growth has stopped (None while it grows)."""
 NO_CAP = 1 << 62
+
+VALIDATED = "validated"
+"""``cap_max = 'validated'``: the count is decided on held-out views (:mod:`.count_rule`)."""
+COUNT_READINGS, COUNT_GROWS, COUNT_CAP, COUNT_CONTRASTS, COUNT_NOTE = (
+    "count_readings", "count_grows", "count_cap", "count_contrasts", "count_note")
+"""State of the validated count: the held-out PSNR at each window start (floats), whether the
+current refinement lies in a grow window, the cap once growth has stopped (None while it
+decides), each grow window's (count at its end, contrast in dB), and the one line that says why
+growth stopped ('' before)."""
+
+
+def validated_state() -> dict[str, Any]:
+    """The validated count's state at the start of a run (kept in the strategy state: checkpointed)."""
+    return {COUNT_READINGS: [], COUNT_GROWS: False, COUNT_CAP: None, COUNT_CONTRASTS: [], COUNT_NOTE: ""}
 
 
 def keeps_growing(means: list[float], below: int, min_drop: float, span: int, patience: int
@@ -100,10 +116,14 @@ def auto_close_window(state: dict[str, Any], n: int, min_drop: float, span: int,
 class MCMCStrategy(Strategy):
     """3DGS-MCMC: relocation of dead Gaussians, 5% growth to cap_max, noise after every step."""
 
-    cap_max: int | Literal["auto"] | None = 30_000
-    """Largest number of Gaussians (required for MCMC; the paper uses 1-3M on GPU), or 'auto':
-    grow while the slow average of the training loss (over auto_span refinements) still falls by
-    auto_min_drop, stop for good after auto_patience refinements in a row where it does not."""
+    cap_max: int | Literal["auto", "validated"] | None = 30_000
+    """Largest number of Gaussians (required for MCMC; the paper uses 1-3M on GPU), or
+    'validated': a few training views are held out while growth alternates with windows without
+    it, and growth stops at the first growth window that added less than count_min_gain dB to
+    their PSNR beyond what training alone added around it (the views then return to training);
+    or 'auto': grow while the slow average of the training loss (over auto_span refinements)
+    still falls by auto_min_drop, stop for good after auto_patience refinements in a row where it
+    does not."""
     min_opacity: float = 0.005
     """Gaussians at or below this opacity are dead and get relocated."""
     growth_rate: float = 0.05
@@ -123,13 +143,22 @@ class MCMCStrategy(Strategy):
     """cap_max 'auto': refinement windows per slow average (:func:`keeps_growing`)."""
     auto_patience: int = 2
     """cap_max 'auto': growth stops for good after this many refinements in a row below auto_min_drop."""
+    count_window: int = 4
+    """cap_max 'validated': refinements per window; windows alternate, hold first. At 5% growth a
+    grow window of 4 adds 22%, so a stop one window after the count needed stays within 25% of it."""
+    count_min_gain: float = 0.05
+    """cap_max 'validated': the held-out PSNR (dB) a grow window must add beyond the mean gain of
+    the hold windows on either side for growth to go on."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.cap_max is None:
             raise StrategyError("MCMCStrategy needs cap_max: its 5% growth per refinement is bounded only by it")
-        if isinstance(self.cap_max, str) and self.cap_max != AUTO:
-            raise StrategyError(f"cap_max must be a count >= 0 or '{AUTO}', got {self.cap_max!r}")
+        if isinstance(self.cap_max, str) and self.cap_max not in (AUTO, VALIDATED):
+            raise StrategyError(f"cap_max must be a count >= 0, '{VALIDATED}' or '{AUTO}', got {self.cap_max!r}")
+        if self.count_window < 1 or not (math.isfinite(self.count_min_gain) and self.count_min_gain >= 0.0):
+            raise StrategyError(f"count_window must be >= 1 and count_min_gain >= 0, got {self.count_window}, "
+                                f"{self.count_min_gain}")
         if (not (math.isfinite(self.auto_min_drop) and self.auto_min_drop >= 0.0) or self.auto_patience < 1
                 or self.auto_span < 1):
             raise StrategyError(f"auto_min_drop must be >= 0, auto_span and auto_patience >= 1, got "
@@ -151,6 +180,8 @@ class MCMCStrategy(Strategy):
         state["binoms"] = binomial_table(N_MAX)
         if self.cap_max == AUTO:
             state.update(auto_state())
+        if self.cap_max == VALIDATED:
+            state.update(validated_state())
         return state
 
     def regularization_loss(self, params: Params) -> Tensor:
@@ -170,6 +201,8 @@ class MCMCStrategy(Strategy):
         if self.cap_max == AUTO and step < self.refine_stop_iter and state[AUTO_CAP] is None:
             self.track_loss(state, ctx.loss)
         if self.refine_start_iter < step < self.refine_stop_iter and step % self.refine_every == 0:
+            if self.cap_max == VALIDATED and state[COUNT_CAP] is None:
+                self.read_held_out(ctx)
             counts.update(self.refine(params, optimizers, state, ctx.rng("MCMC relocation")))
         counts["perturbed"] = self.noise.perturb(ctx, type(self).__name__)
         return counts
@@ -187,10 +220,54 @@ class MCMCStrategy(Strategy):
                                 f"loss=<the step's loss, a 0-d tensor> to step_post_backward")
         auto_add_loss(state, loss)
 
+    def refinement_index(self, step: int) -> int:
+        """0 for the run's first refinement step (the first multiple of refine_every after
+        refine_start_iter), 1 for the next, ..."""
+        return step // self.refine_every - self.refine_start_iter // self.refine_every - 1
+
+    def read_held_out(self, ctx: StepContext) -> None:
+        """cap_max 'validated', at a refinement: read the held-out PSNR at a window start, decide
+        on the grow window the reading closes (:func:`count_rule.growth_contrast`), and set
+        whether this refinement grows."""
+        state, k, window = ctx.state, self.refinement_index(ctx.step), self.count_window
+        state[COUNT_GROWS] = count_rule.window_grows(k, window)
+        if not count_rule.reading_due(k, window):
+            return
+        if ctx.held_out_psnr is None:
+            raise StrategyError(f"{type(self).__name__} with cap_max '{VALIDATED}' scores views held out of "
+                                f"training: pass held_out_psnr=<a function that renders them and returns their "
+                                f"PSNR> to step_post_backward")
+        state[COUNT_READINGS] = state[COUNT_READINGS] + [float(ctx.held_out_psnr())]
+        contrast = count_rule.growth_contrast(state[COUNT_READINGS])
+        if contrast is None:
+            return
+        n = num_gaussians(ctx.params)
+        state[COUNT_CONTRASTS] = state[COUNT_CONTRASTS] + [(n, contrast)]
+        if not count_rule.growth_paid(contrast, self.count_min_gain):
+            state[COUNT_CAP], state[COUNT_GROWS] = n, False
+            grown = (1.0 + self.growth_rate) ** window - 1.0
+            state[COUNT_NOTE] = (f"growth stopped at {n:,} Gaussians (step {ctx.step}): the last growth window "
+                                 f"(up to {100 * grown:.0f}% more Gaussians) added {contrast:+.3f} dB of held-out "
+                                 f"PSNR beyond what training alone added around it, under the "
+                                 f"{self.count_min_gain:g} dB it must add")
+
+    def holds_out_views(self, state: dict[str, Any], step: int) -> bool:
+        """cap_max 'validated': views stay held out until growth stops or the refinements end."""
+        return self.cap_max == VALIDATED and state[COUNT_CAP] is None and step < self.refine_stop_iter
+
+    def count_decision(self, state: dict[str, Any]) -> str:
+        """cap_max 'validated': the line that says why growth stopped ('' while it has not)."""
+        return state.get(COUNT_NOTE, "") if self.cap_max == VALIDATED else ""
+
     def growth_cap(self, state: dict[str, Any], n: int) -> int:
-        """The cap of this refinement's growth: ``cap_max``, or for 'auto' the count at which the
-        loss stopped falling (no cap while it still falls; :func:`auto_close_window`, called once
-        per refinement)."""
+        """The cap of this refinement's growth: ``cap_max``; for 'validated' the count at which
+        growth stopped, ``n`` (no growth) in a hold window and no cap in a grow window; for 'auto'
+        the count at which the loss stopped falling (no cap while it still falls;
+        :func:`auto_close_window`, called once per refinement)."""
+        if self.cap_max == VALIDATED:
+            if state[COUNT_CAP] is not None:
+                return state[COUNT_CAP]
+            return NO_CAP if state[COUNT_GROWS] else n
         if self.cap_max != AUTO:
             return self.cap_max
         return auto_close_window(state, n, self.auto_min_drop, self.auto_span, self.auto_patience)
@@ -200,7 +277,10 @@ class MCMCStrategy(Strategy):
         return max(0, min(self.growth_cap(state, n), int((1.0 + self.growth_rate) * n)) - n)
 
     def exploration_summary(self, state: dict[str, Any]) -> dict[str, int]:
-        """With cap_max 'auto': ``auto_cap``, the count at which growth stopped (0 while it grows)."""
+        """With cap_max 'auto' or 'validated': ``auto_cap``, the count at which growth stopped (0
+        while it grows)."""
+        if self.cap_max == VALIDATED:
+            return {"auto_cap": int(state[COUNT_CAP] or 0)}
         if self.cap_max != AUTO:
             return {}
         return {"auto_cap": int(state[AUTO_CAP] or 0)}
