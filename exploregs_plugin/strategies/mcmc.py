@@ -120,7 +120,8 @@ class MCMCStrategy(Strategy):
     """Largest number of Gaussians (required for MCMC; the paper uses 1-3M on GPU), or
     'validated': a few training views are held out while growth alternates with windows without
     it, and growth stops at the first growth window that added less than count_min_gain dB to
-    their PSNR beyond what training alone added around it (the views then return to training);
+    their PSNR beyond what training alone added around it (the views then return to training;
+    on beer one reading scatters by 0.26 dB, so that decision is noise's: docs/strategies.md);
     or 'auto': grow while the slow average of the training loss (over auto_span refinements)
     still falls by auto_min_drop, stop for good after auto_patience refinements in a row where it
     does not."""
