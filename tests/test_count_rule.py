@@ -220,3 +220,28 @@ def test_too_few_training_views_to_hold_out_is_one_clear_line(tmp_path, tiny_sce
         config.pipeline.datamanager, test_every=2, use_dataset_split=False)))  # 5 training views of 10
     with pytest.raises(ValueError, match="at least 8 training views"):
         config.setup()
+
+
+def test_the_datamanager_passes_over_held_views_and_keeps_them_in_its_state(tiny_dm):
+    """Held views are never drawn, the order of the others is the seeded one with them left out,
+    the held list travels in the state, and a bad list is refused."""
+    from exploregs_plugin.data import DataManagerConfig
+
+    plain = DataManagerConfig(data="builtin:tiny").setup()
+    expected = [i for i in plain.next_train_indices(40) if i not in (1, 5)]
+    tiny_dm.hold_out([5, 1])
+    assert tiny_dm.held_out == [1, 5]
+    drawn = tiny_dm.next_train_indices(len(expected))
+    assert drawn == expected  # the same permutations, the held ones passed over
+    state = tiny_dm.state_dict()
+    again = DataManagerConfig(data="builtin:tiny").setup()
+    again.load_state_dict(state)
+    assert again.held_out == [1, 5] and again.next_train_indices(12) == tiny_dm.next_train_indices(12)
+    tiny_dm.return_held()
+    assert {1, 5} <= set(tiny_dm.next_train_indices(16))  # two epochs: every view again
+    for bad in ([8], [-1], list(range(8))):
+        with pytest.raises(ValueError, match="hold_out"):
+            tiny_dm.hold_out(bad)
+    del state["held_out"]  # a checkpoint from before held-out views holds none
+    again.load_state_dict(state)
+    assert again.held_out == []
