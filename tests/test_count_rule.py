@@ -245,3 +245,12 @@ def test_the_datamanager_passes_over_held_views_and_keeps_them_in_its_state(tiny
     del state["held_out"]  # a checkpoint from before held-out views holds none
     again.load_state_dict(state)
     assert again.held_out == []
+
+
+def test_mcmc_explore_decides_its_count_the_same_way():
+    from exploregs_plugin.strategies import MCMCExploreStrategy
+
+    strategy = MCMCExploreStrategy(cap_max="validated", count_window=3, count_min_gain=0.05, explore_share=0.5,
+                                   explore_split=1.0, explore_box=0.0, explore_guided=0.0, **WINDOW)
+    counts, reads, state = _run(strategy, lambda step, n: 25.0 - 0.001 * step, steps=200)
+    assert reads == [10, 40, 70, 100] and state["count_cap"] == 115 and max(counts.values()) == 115
