@@ -15,14 +15,16 @@ are left out and named.
 
 from __future__ import annotations
 
-import json
 import re
 import sys
 import tempfile
 from pathlib import Path
 
+from exploregs_plugin.bench.far_region import RESULT_NAME as FAR_REGION_NAME
+from exploregs_plugin.bench.runner import read_json
 from exploregs_plugin.io.checkpoint import load_run_checkpoint
 from exploregs_plugin.io.ply import export_ply
+from exploregs_plugin.training_loop import METRICS_NAME
 
 NEAR_DB = 0.1
 """A cap is as good as the best when its PSNR is within this of the best's."""
@@ -45,12 +47,10 @@ def ply_megabytes(run_dir: Path) -> float:
 
 def run_row(run_dir: Path) -> dict | None:
     """One finished run's figures (one seed), or None while it has no metrics."""
-    metrics_path = run_dir / "metrics.json"
-    if not metrics_path.is_file():
+    m = read_json(run_dir / METRICS_NAME)
+    if m is None:
         return None
-    m = json.loads(metrics_path.read_text())
-    far_path = run_dir / "far_region.json"
-    far = json.loads(far_path.read_text()).get("psnr") if far_path.is_file() else None
+    far = (read_json(run_dir / FAR_REGION_NAME) or {}).get("psnr")
     return {"gaussians": int(m["num_gaussians"]), "psnr": float(m["psnr"]), "ssim": float(m["ssim"]),
             "far": far, "train_s": float(m["train_seconds"]), "ply_mb": ply_megabytes(run_dir),
             "decision": m.get("count_decision", "")}
