@@ -567,6 +567,25 @@ def test_seed_split_adds_splits_and_prunes_the_rows_eg_train_does(layout, budget
         assert totals["seeds_pruned"] > 0, totals
 
 
+def test_verbose_prints_one_line_per_refinement_with_the_counts_since_the_last(capsys):
+    # the paper budget splits at every step: one line per step would drown gsplat's own lines
+    theirs = integ.GsplatSeedSplitStrategy(**LOCKSTEP, seed=3, verbose=True)
+    ours = SeedSplitStrategy(**LOCKSTEP).setup(_schedule())
+    totals = lockstep(theirs, ours, steps=range(10))
+    lines = [ln for ln in capsys.readouterr().out.splitlines() if "(since the last line)" in ln]
+    steps = [int(ln.split(":")[0].split()[1]) for ln in lines]
+    assert steps == [3, 6, 9], lines  # refine_every 3; step 0 changed nothing
+    printed = collections.Counter()
+    for line in lines:
+        for part in line.split(": ", 1)[1].split(" (since")[0].split(", "):
+            key, value = part.rsplit(" ", 1)
+            printed[key] += int(value)
+    # every count of steps 0-9 appears once, in the line of the refinement that followed it
+    assert printed["random_split"] == totals["random_split"] > 0
+    assert printed["seeded"] == totals["seeded"] > 0
+    assert "perturbed" not in printed
+
+
 @pytest.mark.parametrize("adapter, ours", PAIRS[:2])
 def test_seeding_alone_and_splitting_alone_are_eg_trains(adapter, ours):
     totals = lockstep(adapter(**LOCKSTEP, seed=8), ours(**LOCKSTEP).setup(_schedule()))

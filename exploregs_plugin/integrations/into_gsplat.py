@@ -183,15 +183,30 @@ def _means_lr(optimizers: Optimizers, lr: float | None) -> float:
     return float(optimizer.param_groups[0]["lr"]) if optimizer is not None else 0.0
 
 
-def _print_counts(verbose: bool, step: int, counts: Mapping[str, Any], params: Params) -> None:
-    """gsplat-style progress line for steps that changed the set (the noise moves every step,
-    so ``perturbed`` alone prints nothing)."""
+PRINTED_COUNTS = "printed_counts"
+"""Key of gsplat's state that sums the operators' counts between two progress lines: a dict, not
+a tensor, so gsplat's ops (which re-index every tensor of the state) leave it alone."""
+
+
+def _print_counts(verbose: bool, step: int, every: int, counts: Mapping[str, Any], params: Params,
+                  state: dict[str, Any]) -> None:
+    """gsplat-style progress line, once every ``every`` steps (gsplat's refinement steps) with the
+    counts summed since the last line: the paper budget splits at every step, and a line per step
+    would drown gsplat's own (the noise moves every step, so ``perturbed`` alone prints nothing).
+    The sums stay tensors on the device until a line is printed."""
     if not verbose:  # a count may be a tensor on the device: read only to print it
         return
-    changed = {key: int(value) for key, value in counts.items() if key != "perturbed" and int(value)}
+    summed = state.setdefault(PRINTED_COUNTS, {})
+    for key, value in counts.items():
+        if key != "perturbed":
+            summed[key] = summed.get(key, 0) + value
+    if step % max(1, every):
+        return
+    changed = {key: int(value) for key, value in summed.items() if int(value)}
+    summed.clear()
     if changed:
         done = ", ".join(f"{key} {value}" for key, value in changed.items())
-        print(f"Step {step}: {done}. Now having {num_gaussians(params)} GSs.")
+        print(f"Step {step}: {done} (since the last line). Now having {num_gaussians(params)} GSs.")
 
 
 @functools.lru_cache(maxsize=16)
@@ -335,7 +350,7 @@ class GsplatExplorationStrategy(gs.DefaultStrategy):
             ctx = StepContext(p, o, op_state, step, views, _means_lr(o, lr), generator)
             for _, op in operators:
                 add_counts(counts, op.explore(self, ctx))
-        _print_counts(self.verbose, step, counts, params)
+        _print_counts(self.verbose, step, self.refine_every, counts, params, state)
         return counts
 
     def size_prune_factor(self, operators: list[tuple[str, Operator]], step: int) -> float:
@@ -456,6 +471,6 @@ class GsplatMCMCRayStrategy(gs.MCMCStrategy):
                              need_camera=_needs_camera([("noise", self.noise)]))
         with our_layout(params, optimizers) as (p, o):
             counts = mcmc.step_post_backward(p, o, state, step, views, lr=float(lr), generator=generator)
-        _print_counts(self.verbose, step, counts, params)
+        _print_counts(self.verbose, step, self.refine_every, counts, params, state)
         return counts
 
