@@ -9,7 +9,8 @@ time curve, and the time to quality: the training seconds each run needs to reac
 simple_trainer default's and eg-train's final PSNRs.
 
 Training seconds, the clock each trainer stops while it evaluates:
-- eg-train: ``metrics.json`` ``history`` (the training clock at each evaluation);
+- eg-train: ``metrics.json`` ``history`` (the training clock at each evaluation), read once with
+  the bench's ``read_json``;
 - simple_trainer has no such clock. At each step of ``--save_steps`` it writes
   ``stats/train_stepK_rank0.json`` with ``ellipse_time`` (wall seconds since its loop began), then
   its checkpoint, then (the same step is in ``--eval_steps``) it evaluates and writes
@@ -25,9 +26,12 @@ import json
 import os
 import re
 import sys
+from pathlib import Path
 from typing import Any
 
+from exploregs_plugin.bench.runner import read_json
 from exploregs_plugin.bench.time_quality import seconds_to_reach
+from exploregs_plugin.training_loop import METRICS_NAME
 
 
 def simple_trainer_history(run_dir: str) -> list[dict[str, Any]]:
@@ -54,15 +58,6 @@ def simple_trainer_history(run_dir: str) -> list[dict[str, Any]]:
                        "psnr": float(val["psnr"]), "ssim": float(val["ssim"]), "num_gaussians": int(val["num_GS"])})
         not_training += max(0.0, os.path.getmtime(val_path) - os.path.getmtime(trains[step]))
     return points
-
-
-def eg_train_history(run_dir: str) -> list[dict[str, Any]]:
-    """eg-train's evaluations (``metrics.json`` ``history``); empty when the run did not finish."""
-    path = os.path.join(run_dir, "metrics.json")
-    if not os.path.exists(path):
-        return []
-    with open(path) as f:
-        return list(json.load(f).get("history", []))
 
 
 def seconds_by_interpolation(history: list[dict[str, Any]], level: float) -> float | None:
@@ -121,13 +116,11 @@ def main(work: str, out: str, steps: int, parts: list[str], c_args: str, c2_args
               f"{last['step']}, its saves and evaluations taken out), process wall {time_of(work, 'b_' + name)}, "
               f"peak {train['mem']:.2f} GiB (LPIPS not reported: random AlexNet)")
     for part, folder, args in (("c", "eg-train", c_args), ("c2", "eg-train-2", c2_args)):
-        path = os.path.join(work, folder, "metrics.json")
-        if not os.path.exists(path):
-            print(f"({part}) eg-train {args}: no metrics.json ({time_of(work, 'c_' + folder)})")
+        r = read_json(Path(work) / folder / METRICS_NAME)  # None: the run did not finish
+        if r is None:
+            print(f"({part}) eg-train {args}: no {METRICS_NAME} ({time_of(work, 'c_' + folder)})")
             continue
-        with open(path) as f:
-            r = json.load(f)
-        curves[f"eg-train {args}"] = eg_train_history(os.path.join(work, folder))
+        curves[f"eg-train {args}"] = list(r.get("history", []))
         print(f"({part}) eg-train {args}: test PSNR {r['psnr']:.3f} dB, SSIM {r['ssim']:.4f}, "
               f"{r['num_gaussians']:,} Gaussians, train_seconds {r['train_seconds']:.1f} s (steps only), "
               f"wall_seconds {r['wall_seconds']:.1f} s, process wall {time_of(work, 'c_' + folder)}")

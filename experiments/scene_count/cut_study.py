@@ -57,8 +57,7 @@ def main() -> None:
         seconds = time.perf_counter() - start
         scored = evaluate(run.pipeline.model, run.pipeline.datamanager)
         validation, test = halves(scored["per_image"])
-        rows.append({"fraction": fraction, "gaussians": done.after, "validation": validation, "test": test,
-                     "all": scored["psnr"], "seconds": seconds, "views": len(scored["per_image"])})
+        rows.append({"fraction": fraction, "gaussians": done.after, "validation": validation, "test": test})
         print(f"x1/{fraction}: {done.after} Gaussians, validation {validation:.3f} dB, test {test:.3f} dB "
               f"({len(scored['per_image'])} views; cut and {a.finetune_steps} steps in {seconds:.0f} s)", flush=True)
     by_validation, by_test = pick(rows, "validation", a.tolerance), pick(rows, "test", a.tolerance)
