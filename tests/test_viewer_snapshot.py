@@ -63,10 +63,15 @@ def test_snapshot_consistent_while_the_set_changes() -> None:
     problems: list[str] = []
     seen: set[int] = set()
     done = threading.Event()
+    # on a loaded machine the reader thread may not run at all while the writer's loop does:
+    # the writer starts once the reader has asked for a snapshot (so one of its steps is
+    # copied), and stops once the reader has seen a second step, whatever the scheduling
+    asked, saw_change = threading.Event(), threading.Event()
 
     def reader() -> None:
         while not done.is_set():
             store.request()
+            asked.set()
             snap = store.latest()
             rows = {k: v.shape[0] for k, v in snap.params.items()}
             if len(set(rows.values())) != 1:
@@ -75,10 +80,13 @@ def test_snapshot_consistent_while_the_set_changes() -> None:
                 if not bool((v == snap.step).all()):
                     problems.append(f"step {snap.step}: {k} holds values of another step")
             seen.add(snap.step)
+            if len(seen) > 1:
+                saw_change.set()
 
     thread = threading.Thread(target=reader)
     thread.start()
     try:
+        asked.wait(timeout=30)
         for step in range(1, steps):
             with torch.no_grad():
                 for tensor in params.values():
@@ -86,6 +94,7 @@ def test_snapshot_consistent_while_the_set_changes() -> None:
             for key, value in gaussian_set(sizes[step], float(step)).items():
                 params[key] = value  # densification replaces the tensors one by one
             store.offer(params, step)  # step boundary
+        saw_change.wait(timeout=30)
     finally:
         done.set()
         thread.join()
