@@ -103,6 +103,12 @@ REMOVED_FIELDS: dict[str, dict[str, tuple[Any, str]]] = {
                                    "(eg-train exploregs-grad-branches --strategy NAME --grad-branches-every N)"),
         "grad_branches_views": (lambda old: True, "exploregs-grad-branches --grad-branches-views"),
     },
+    "exploregs_plugin.strategies.mcmc:MCMCStrategy": {
+        # the windowed growth contrast of cap_max 'validated' was replaced by the paired cut; its two
+        # settings meant nothing for any other cap, and a run that used them has its count already
+        "count_window": (lambda old: True, "cap_max 'validated' now decides by a paired cut (--strategy.count-cuts)"),
+        "count_min_gain": (lambda old: True, "cap_max 'validated' now decides by a paired cut (--strategy.count-tolerance)"),
+    },
     "exploregs_plugin.pipeline:PipelineConfig": {
         "depth_supervision": (lambda old: not old.active,
                               "degraded depth maps are the method exploregs-mono-depth (eg-train "

@@ -3,12 +3,12 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field, replace
-from functools import partial
 from typing import Any
 
 import torch
 from torch import Tensor, nn
 
+from exploregs_plugin import count_trial
 from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.device import make_generator, restore_generator, to_device
 from exploregs_plugin.distributed import World
@@ -226,8 +226,10 @@ class Pipeline:
             generator=self.generator,
             # the data loss, a tensor as summed (MCMC's cap_max auto reads it once per refinement)
             loss=totals["loss"] - totals["reg"] if "reg" in totals else totals["loss"],
-            held_out_psnr=partial(self.held_out_psnr, step) if self.datamanager.held_out else None,
         )
+        trial = self.strategy.count_trial_due(self.strategy_state, step, self.model.num_gaussians)
+        if trial is not None:  # MCMC's cap_max 'validated', at its last refinement
+            count_trial.decide(self, step, trial)
         notes = self._return_held_views(step)
         return {
             "loss": totals["loss"],
@@ -250,17 +252,17 @@ class Pipeline:
                              f"a number)")
         self.datamanager.hold_out(held)
 
-    def held_out_psnr(self, step: int) -> float:
-        """PSNR (dB) of the held-out training views, their squared errors pooled, rendered without
+    def held_out_psnrs(self, step: int) -> list[float]:
+        """PSNR (dB) of each held-out training view (in the datamanager's order), rendered without
         gradients at the step's SH degree on the dataset's background: one read of the device."""
-        squared, count = torch.zeros((), dtype=torch.float64, device=self.device), 0
+        squared = []
         with torch.no_grad():
             for index in self.datamanager.held_out:
                 camera, target, _ = self.datamanager.train_item(index, self.device)
                 image = self.model.render(camera, self.sh_degree_at(step), self.background)[0]
-                squared = squared + ((image.double() - target.double()) ** 2).sum()
-                count += target.numel()
-        return pooled_psnr(float(squared), count)
+                squared.append((((image.double() - target.double()) ** 2).sum(), target.numel()))
+        values = torch.stack([s for s, _ in squared]).tolist() if squared else []
+        return [pooled_psnr(value, count) for value, (_, count) in zip(values, squared)]
 
     def _return_held_views(self, step: int) -> list[str]:
         """Once the strategy no longer holds views out, they return to training; the line that
@@ -270,8 +272,8 @@ class Pipeline:
         held = len(self.datamanager.held_out)
         self.datamanager.return_held()
         reason = self.strategy.count_decision(self.strategy_state) or (
-            f"growth ran to the end of the refinements ({self.model.num_gaussians:,} Gaussians at step "
-            f"{step + 1}) with every growth window paying back")
+            f"the refinements ended before a count was decided ({self.model.num_gaussians:,} Gaussians at step "
+            f"{step + 1})")
         return [f"{reason}; the {held} held-out views return to training"]
 
     def _train_view(self, step: int, index: int, background: Tensor, first: bool,

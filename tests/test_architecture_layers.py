@@ -18,7 +18,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("bench", "analysis", "integrations"),
     ("runs",),
     ("trainer", "training_loop", "pipeline", "method_configs", "evaluation", "run_logger", "collapse", "loss_terms",
-     "nonfinite", "stopping", "watches", "run_folder", "thread_follower", "rank_evaluation"),
+     "nonfinite", "stopping", "watches", "run_folder", "thread_follower", "rank_evaluation", "count_trial"),
     ("model", "data", "strategies", "viewer"),
     ("rasterizer", "io", "config_io", "perceptual"),
     ("cameras", "schedule", "callbacks", "device", "distributed", "kernels", "threads", ""),  # "" = the package's own __init__

@@ -1,6 +1,7 @@
-"""The count decided on held-out views (MCMC's ``cap_max 'validated'``): the rule's pure parts, the
-strategy's windows and stop, and a run on the tiny scene (views held out until the decision,
-deterministic, resumed with the same decision)."""
+"""The count decided on held-out views (MCMC's ``cap_max 'validated'``): the rule's pure parts (held-out
+views, candidate counts, the pick by paired deficit), the strategy's ceiling and trial, the trial's
+isolation, and a run on the tiny scene (views held out until the decision, deterministic, resumed
+with the same decision)."""
 
 from __future__ import annotations
 
@@ -11,16 +12,18 @@ from dataclasses import replace
 import pytest
 import torch
 
+from exploregs_plugin import count_trial
 from exploregs_plugin.callbacks import TrainingCallback
+from exploregs_plugin.config_io import config_from_dict
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.strategies import MCMCStrategy, StrategyError
-from exploregs_plugin.strategies.count_rule import (growth_contrast, growth_paid, held_out_count, held_out_indices,
-                                                    reading_due, window_grows)
+from exploregs_plugin.strategies import MCMCStrategy, StrategyError, row_ops
+from exploregs_plugin.strategies.count_rule import (candidate_counts, held_out_count, held_out_indices, paired_deficit,
+                                                    pick_count)
 from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers, synthetic_views
 from exploregs_plugin.trainer import Trainer
 
-WINDOW = dict(refine_start_iter=2, refine_stop_iter=1000, refine_every=10, reset_every=100)
+WINDOW = dict(refine_start_iter=2, refine_stop_iter=200, refine_every=10, reset_every=100, count_trial_steps=5)
 
 
 # ------------------------------------------------------------------------------ the rule
@@ -36,25 +39,41 @@ def test_held_out_views_are_spread_over_the_capture_and_few():
         assert max(gaps) - min(gaps) <= 1  # evenly spread
 
 
-def test_windows_alternate_hold_first_and_are_read_at_their_start():
-    assert [window_grows(k, 3) for k in range(9)] == [False] * 3 + [True] * 3 + [False] * 3
-    assert [reading_due(k, 3) for k in range(7)] == [True, False, False, True, False, False, True]
+def test_candidates_are_the_cuts_of_the_count_largest_first_without_repeats():
+    assert candidate_counts(1000, (1.0, 0.7, 0.5, 0.35, 0.25)) == [1000, 700, 500, 350, 250]
+    assert candidate_counts(1000, (0.5, 0.25)) == [1000, 500, 250]  # the whole set is always tried
+    assert candidate_counts(3, (1.0, 0.7, 0.5, 0.35, 0.25)) == [3, 2, 1]  # floors, at least 1, no repeats
 
 
-def test_the_contrast_is_a_grow_windows_gain_beyond_the_mean_of_the_holds_around_it():
-    # gains: hold 2.0, grow 1.5, hold 0.5 -> 1.5 - (2.0 + 0.5) / 2 = 0.25
-    assert growth_contrast([10.0, 12.0, 13.5, 14.0]) == pytest.approx(0.25)
-    # due only when a hold window after a grow window closes: m = 3, 5, 7, ...
-    assert [growth_contrast([0.0] * k) for k in (1, 2, 3, 5)] == [None] * 4
-    assert growth_contrast([10.0, 12.0, 13.5, 14.0, 15.0]) is None
-    # m = 5: grow window 3 (14.0 -> 14.2) between holds 13.5 -> 14.0 and 14.2 -> 14.3
-    assert growth_contrast([10.0, 12.0, 13.5, 14.0, 14.2, 14.3]) == pytest.approx(0.2 - 0.5 * (0.5 + 0.1))
-    # training alone rising linearly: growth that adds nothing has contrast 0 whatever the slope
-    for slope in (0.0, 0.3, 2.0):
-        assert growth_contrast([20.0 + slope * j for j in range(8)]) == pytest.approx(0.0, abs=1e-12)
-    assert growth_paid(0.05, 0.05) and not growth_paid(0.049, 0.05)
-    assert not growth_paid(float("nan"), 0.0) and not growth_paid(float("inf") * 0, 0.05)
-    assert math.isnan(growth_contrast([10.0, float("nan"), 11.0, 12.0]))
+def test_the_paired_deficit_is_the_mean_per_view_loss_plus_its_standard_error():
+    best = [25.0, 26.0, 24.0, 27.0]
+    assert paired_deficit(best, best) == 0.0
+    assert paired_deficit(best, [p - 0.2 for p in best]) == pytest.approx(0.2)  # no spread: no error
+    # deficits 0.0, 0.4, 0.0, 0.4: mean 0.2, sd 0.2309, se 0.1155
+    assert paired_deficit(best, [25.0, 25.6, 24.0, 26.6]) == pytest.approx(0.2 + 0.4 / math.sqrt(12.0))
+    assert paired_deficit([20.0], [19.5]) == pytest.approx(0.5)  # one view: the deficit alone
+    assert math.isnan(paired_deficit(best, [25.0, float("nan"), 24.0, 27.0]))
+    with pytest.raises(ValueError, match="same views"):
+        paired_deficit(best, best[:3])
+
+
+def test_the_pick_is_the_fewest_gaussians_that_the_views_agree_cost_little():
+    counts = [1000, 700, 500, 250]
+    whole = [25.0, 26.0, 24.0, 27.0]
+    steady = [p - 0.05 for p in whole]  # 0.05 dB lower on every view
+    split = [25.0, 25.8, 24.0, 26.8]  # mean 0.1 lower, but only on two views: 0.1 + se 0.058
+    poor = [p - 0.5 for p in whole]
+    assert counts[pick_count(counts, [whole, steady, steady, poor], 0.1)] == 500
+    assert counts[pick_count(counts, [whole, steady, split, poor], 0.1)] == 700  # se keeps 500 out
+    assert counts[pick_count(counts, [whole, poor, poor, poor], 0.1)] == 1000
+    assert counts[pick_count(counts, [whole, poor, poor, poor], 0.6)] == 250
+    # the best need not be the largest; a non-finite candidate is never kept; none finite: the largest
+    assert counts[pick_count(counts, [poor, whole, poor, poor], 0.1)] == 700
+    assert counts[pick_count(counts, [whole, whole, [float("nan")] * 4, whole], 0.1)] == 250
+    assert counts[pick_count(counts, [whole, whole, whole, [float("inf")] * 4], 0.1)] == 500
+    assert counts[pick_count(counts, [[float("nan")] * 4] * 4, 0.1)] == 1000
+    with pytest.raises(ValueError, match="one score list per candidate"):
+        pick_count(counts, [whole], 0.1)
 
 
 # ------------------------------------------------------------------------------ the strategy
@@ -68,74 +87,91 @@ def _set(n: int, seed: int = 0):
     return params, optimizers
 
 
-def _run(strategy, psnr_of, steps=400):
-    """``steps`` synthetic steps of ``strategy``; the held-out PSNR is ``psnr_of(step, count)``.
-    Returns (count after each step, steps at which the PSNR was read, the state)."""
+def _run(strategy, steps=300, decide=None):
+    """``steps`` synthetic steps of ``strategy`` from a set of 100. At a trial the counts are
+    handed to ``decide(counts)``, which returns the held-out PSNRs per candidate, and the set is
+    cut to the kept count (as the pipeline does). Returns (count after each step, the trials' steps
+    and counts, whether views were held out before each step, the state)."""
     params, optimizers = _set(100)
     state = strategy.initialize_state()
-    counts, reads = {}, []
-
-    def score(step):
-        reads.append(step)
-        return psnr_of(step, params["means"].shape[0])
-
+    counts, trials, held = {}, [], {}
     for step in range(3, steps):
+        held[step] = strategy.holds_out_views(state, step)
         views = synthetic_views(torch.zeros(params["means"].shape[0], 2),
                                 torch.ones(params["means"].shape[0], dtype=torch.bool), 32, 32,
                                 torch.tensor([0.0, 0.0, -3.0]))
-        held = strategy.holds_out_views(state, step)
         strategy.step_post_backward(params, optimizers, state, step, views, lr=1.6e-4,
-                                    generator=torch.Generator().manual_seed(step),
-                                    held_out_psnr=(lambda s=step: score(s)) if held else None)
+                                    generator=torch.Generator().manual_seed(step))
+        trial = strategy.count_trial_due(state, step, params["means"].shape[0])
+        if trial is not None:
+            trials.append((step, trial))
+            kept = strategy.decide_count(state, step, trial.counts, decide(trial.counts))
+            keep = torch.zeros(params["means"].shape[0], dtype=torch.bool)
+            keep[:kept] = True
+            row_ops.remove(params, optimizers, state["stats"], ~keep)
         counts[step] = params["means"].shape[0]
-    return counts, reads, state
+    return counts, trials, held, state
 
 
-def test_growth_happens_only_in_grow_windows_and_stops_where_it_stops_paying():
-    """Refinements every 10 steps from step 10 (index 0), windows of 2: holds at indices 0-1,
-    4-5, ..., growth at 2-3, 6-7, ... The held-out PSNR rises with training (0.002 dB a step) and
-    with 4 ln(count) up to 130 Gaussians, flat beyond: the windows that grow from 100 to 110, 110
-    to 120 and 120 to 132 pay (0.38, 0.35 and 0.32 dB beyond training); the one from 132 to 144
-    adds nothing beyond training and stops growth at its end, 144: one window past the count the
-    scene needs, 11% above it."""
-    strategy = MCMCStrategy(cap_max="validated", count_window=2, count_min_gain=0.05, **WINDOW)
+def test_the_set_grows_to_the_ceiling_and_the_trial_comes_at_the_last_refinement():
+    """Refinements every 10 steps from step 10 to 190; 5% growth from 100 to the ceiling, 2 x 100.
+    The views are held out until the trial at step 190, the last refinement. The held-out PSNR
+    (3 views) rises with the count up to 130 Gaussians and is flat beyond, so the pick is 140
+    (0.7 x 200: no worse than the whole set on any view); 100 is 0.38 dB short on every view."""
+    strategy = MCMCStrategy(cap_max="validated", count_ceiling=2.0, count_cuts=(1.0, 0.7, 0.5), count_tolerance=0.1,
+                            **WINDOW)
 
-    def psnr(step, n):
-        return 20.0 + 0.002 * step + 4.0 * math.log(min(n, 130) / 100.0)
+    def scores(counts):
+        return [[20.0 + v + math.log2(min(n, 130) / 130.0) for v in (0.0, 1.0, 2.0)] for n in counts]
 
-    counts, reads, state = _run(strategy, psnr)
-    assert reads == list(range(10, 300, 20))[: len(reads)] and reads[0] == 10
-    grown = [s for s in counts if s > 3 and counts[s] > counts[s - 1]]
-    assert grown == [30, 40, 70, 80, 110, 120, 150, 160]  # the grow windows' refinements only
-    assert [counts[s] for s in grown] == [105, 110, 115, 120, 126, 132, 138, 144]
-    cap = state["count_cap"]
-    assert cap == 144 and all(counts[s] == cap for s in range(160, 400))
-    contrasts = state["count_contrasts"]
-    assert [n for n, _ in contrasts] == [110, 120, 132, 144]
-    assert all(c >= 0.05 for _, c in contrasts[:-1]) and contrasts[-1][1] < 0.05
-    assert not strategy.holds_out_views(state, 200)
-    assert strategy.exploration_summary(state) == {"auto_cap": 144}
-    assert "growth stopped at 144 Gaussians" in strategy.count_decision(state)
+    counts, trials, held, state = _run(strategy, decide=scores)
+    assert max(counts.values()) == 200 and state["count_start"] == 100
+    assert [s for s, _ in trials] == [190] and trials[0][1].counts == [200, 140, 100] and trials[0][1].steps == 5
+    assert all(held[s] for s in range(3, 191)) and not any(held[s] for s in range(191, 300))
+    assert state["count_cap"] == 140 and all(counts[s] == 140 for s in range(190, 300))
+    assert [c for c, _ in state["count_trial"]] == [200, 140, 100]
+    assert strategy.exploration_summary(state) == {"auto_cap": 140}
+    note = strategy.count_decision(state)
+    assert note.startswith("count chosen: 140 of 200 Gaussians (step 190)") and "3 held-out views" in note
 
 
-def test_a_count_that_never_pays_stops_after_one_grow_window():
-    strategy = MCMCStrategy(cap_max="validated", count_window=3, count_min_gain=0.05, **WINDOW)
-    counts, _, state = _run(strategy, lambda step, n: 25.0 - 0.001 * step, steps=200)
-    assert state["count_cap"] == 115 and max(counts.values()) == 115  # 100 -> 105 -> 110 -> 115, no more
-
-
-def test_the_rule_needs_the_held_out_score_and_a_sane_window():
+def test_views_are_held_out_until_the_decision_and_no_trial_comes_twice():
     strategy = MCMCStrategy(cap_max="validated", **WINDOW)
-    params, optimizers = _set(20)
-    views = synthetic_views(torch.zeros(20, 2), torch.ones(20, dtype=torch.bool), 32, 32, torch.tensor([0.0, 0.0, -3.0]))
-    with pytest.raises(StrategyError, match="held_out_psnr="):
-        strategy.step_post_backward(params, optimizers, strategy.initialize_state(), 10, views, lr=1e-4,
-                                    generator=torch.Generator().manual_seed(0))
-    for bad in (dict(count_window=0), dict(count_min_gain=-0.1), dict(count_min_gain=float("nan"))):
-        with pytest.raises(StrategyError, match="count_window"):
-            MCMCStrategy(cap_max="validated", **WINDOW, **bad)
+    state = strategy.initialize_state()
+    assert strategy.last_refinement() == 190
+    assert all(strategy.holds_out_views(state, s) for s in (0, 100, 190))
+    assert strategy.count_trial_due(state, 180, 100) is None and strategy.count_trial_due(state, 190, 100) is not None
+    strategy.decide_count(state, 190, [100, 70], [[20.0, 21.0], [19.0, 20.0]])
+    assert state["count_cap"] == 100 and strategy.count_trial_due(state, 190, 100) is None
+    assert not strategy.holds_out_views(state, 191)
+    fixed = MCMCStrategy(cap_max=500, **WINDOW)
+    assert not fixed.holds_out_views(fixed.initialize_state(), 0)
+    assert fixed.count_trial_due(fixed.initialize_state(), 190, 100) is None
+
+
+def test_the_rule_refuses_a_bad_ceiling_cut_tolerance_or_trial():
+    for bad, name in ((dict(count_ceiling=0.5), "count_ceiling"), (dict(count_ceiling=float("nan")), "count_ceiling"),
+                      (dict(count_cuts=()), "count_cuts"), (dict(count_cuts=(1.0, 0.0)), "count_cuts"),
+                      (dict(count_cuts=(1.5,)), "count_cuts"), (dict(count_tolerance=-0.1), "count_tolerance"),
+                      (dict(count_trial_steps=0), "count_trial_steps")):
+        with pytest.raises(StrategyError, match=name):
+            MCMCStrategy(cap_max="validated", **{**WINDOW, **bad})
     with pytest.raises(StrategyError, match="validated"):
-        MCMCStrategy(cap_max="validate", **WINDOW)
+        MCMCStrategy(cap_max="validate", **{k: v for k, v in WINDOW.items() if k != "count_trial_steps"})
+
+
+def test_the_trial_takes_one_percent_of_the_run_unless_set():
+    schedule = ScheduleConfig().resolve(30_000)
+    assert MCMCStrategy(cap_max="validated").setup(schedule).count_trial_steps == 300
+    assert MCMCStrategy(cap_max="validated", count_trial_steps=7).setup(schedule).count_trial_steps == 7
+    assert MCMCStrategy(cap_max="validated").setup(ScheduleConfig().resolve(50)).count_trial_steps == 1
+
+
+def test_a_config_saved_with_the_windowed_rule_still_loads():
+    saved = {"_type": "exploregs_plugin.strategies.mcmc:MCMCStrategy", "cap_max": 30000, "count_window": 4,
+             "count_min_gain": 0.05}
+    strategy = config_from_dict(saved)
+    assert isinstance(strategy, MCMCStrategy) and strategy.cap_max == 30000
 
 
 # ------------------------------------------------------------------------------ a run
@@ -151,67 +187,120 @@ class _Record(TrainingCallback):
 
 def _config(run_dir, **strategy_fields):
     config = get_method("exploregs-mcmc").config
-    strategy = replace(config.pipeline.strategy, cap_max="validated", count_window=2, **strategy_fields)
+    strategy = replace(config.pipeline.strategy, cap_max="validated", **strategy_fields)
     return replace(config, data="builtin:tiny", max_steps=300, run_dir=run_dir, quiet=True, tensorboard=False,
                    eval_count=1, save_eval_images=False, checkpoint_every=100,
                    schedule=ScheduleConfig(min_refine_every=10), pipeline=replace(config.pipeline, strategy=strategy))
 
 
+def _same(a, b) -> bool:
+    """Nested dicts, lists and tensors with the same bits."""
+    if isinstance(a, torch.Tensor):
+        return isinstance(b, torch.Tensor) and a.dtype == b.dtype and torch.equal(a, b)
+    if isinstance(a, dict):
+        return isinstance(b, dict) and a.keys() == b.keys() and all(_same(a[k], b[k]) for k in a)
+    if isinstance(a, (list, tuple)):
+        return type(a) is type(b) and len(a) == len(b) and all(_same(x, y) for x, y in zip(a, b))
+    return a == b
+
+
+def _same_params(a, b):
+    for name, p in a.pipeline.params.items():
+        assert torch.equal(p, b.pipeline.params[name]), name
+
+
 def test_a_run_holds_views_out_until_the_decision_and_resumes_with_it(tmp_path, tiny_scene_dir):
-    """The tiny scene (8 training views; 2 held out), refinements every 10 steps until step 250,
-    windows of 2. A gain no window can reach (1000 dB) stops growth at the first decision, after
-    hold, grow, hold (index 6, step 70): the count of one grow window. The held-out views are not
-    drawn before then and are drawn after; a second run gives the same bits, and a run resumed from
-    step 100 (after the decision) keeps it."""
+    """The tiny scene (8 training views; 2 held out), refinements every 10 steps until step 250, so
+    the trial comes at step 240 (3 fine-tuning steps per candidate, 1% of 300). A tolerance no cut
+    can miss (1000 dB) keeps the smallest candidate, a quarter of the count at step 240. The
+    held-out views are not drawn before the decision and are drawn after; a second run gives the
+    same bits, and a run resumed from step 250 (after the decision) keeps it."""
     record = _Record()
-    trainer = _config(tmp_path / "run", count_min_gain=1000.0).setup(callbacks=[record])
+    trainer = _config(tmp_path / "run", count_tolerance=1000.0).setup(callbacks=[record])
     n0 = trainer.pipeline.model.num_gaussians
     held = trainer.pipeline.datamanager.held_out
     assert held == [2, 6]
     m = trainer.train()
     returned = min(s for s, h in record.held.items() if not h)
-    assert returned == 71  # the refinement at step 70 decided; the views return from step 71's draw on
+    assert returned == 241  # the trial at step 240 decided; the views return from step 241's draw on
     assert not {i for s in range(1, returned + 1) for i in record.views[s]} & set(held)
     assert set(held) <= {i for s in range(returned + 1, 301) for i in record.views[s]}
-    cap = m["exploration"]["auto_cap"]
-    assert cap == record.counts[70] == m["num_gaussians"] > n0
-    assert cap == int(1.05 * int(1.05 * n0))  # two growths (steps 30 and 40), none after
-    assert m["count_decision"].startswith(f"growth stopped at {cap:,} Gaussians (step 70)")
     state = trainer.pipeline.strategy_state
-    assert len(state["count_readings"]) == 4 and all(math.isfinite(p) for p in state["count_readings"])
+    tried = [c for c, _ in state["count_trial"]]
+    assert state["count_start"] == n0 and tried[0] == record.counts[240] == 3 * n0  # grown to the ceiling
+    assert tried == candidate_counts(tried[0], (1.0, 0.7, 0.5, 0.35, 0.25))
+    assert all(math.isfinite(p) for _, p in state["count_trial"])
+    cap = m["exploration"]["auto_cap"]
+    assert cap == tried[-1] == record.counts[241] == m["num_gaussians"]  # the callback's step s follows step s - 1
+    assert m["count_decision"].startswith(f"count chosen: {cap:,} of {tried[0]:,} Gaussians (step 240)")
 
-    again = _config(tmp_path / "again", count_min_gain=1000.0).setup()
+    again = _config(tmp_path / "again", count_tolerance=1000.0).setup()
     again.train()
-    for name, p in trainer.pipeline.params.items():
-        assert torch.equal(p, again.pipeline.params[name]), name
+    _same_params(trainer, again)
 
-    resumed_dir = tmp_path / "resumed"
-    shutil.copytree(tmp_path / "run", resumed_dir)
-    for late in sorted((resumed_dir / "checkpoints").glob("*.pt"))[1:]:
-        late.unlink()  # keep step-0000100.pt
-    resumed = Trainer.from_run(resumed_dir, max_steps=None, quiet=True)
+    late = replace(_config(tmp_path / "late", count_tolerance=1000.0), checkpoint_every=250, keep_checkpoints=5).setup()
+    late.train()
+    resumed_late = tmp_path / "resumed-late"
+    shutil.copytree(tmp_path / "late", resumed_late)
+    for extra in sorted((resumed_late / "checkpoints").glob("*.pt"))[1:]:
+        extra.unlink()  # keep step-0000250.pt, after the decision
+    resumed = Trainer.from_run(resumed_late, max_steps=None, quiet=True)
+    assert resumed.start_step == 250
     assert resumed.pipeline.datamanager.held_out == [] and resumed.pipeline.strategy_state["count_cap"] == cap
     resumed.train()
-    for name, p in trainer.pipeline.params.items():
-        assert torch.equal(p, resumed.pipeline.params[name]), name
+    _same_params(trainer, resumed)
 
 
 def test_a_run_resumed_before_the_decision_holds_the_same_views_and_decides_alike(tmp_path, tiny_scene_dir):
-    config = _config(tmp_path / "run", count_min_gain=1000.0)
-    config = replace(config, checkpoint_every=50, keep_checkpoints=10)
+    config = replace(_config(tmp_path / "run"), checkpoint_every=200, keep_checkpoints=10)
     trainer = config.setup()
     m = trainer.train()
     resumed_dir = tmp_path / "resumed"
     shutil.copytree(tmp_path / "run", resumed_dir)
     for late in sorted((resumed_dir / "checkpoints").glob("*.pt"))[1:]:
-        late.unlink()  # keep step-0000050.pt: two readings, before the decision at 70
+        late.unlink()  # keep step-0000200.pt: before the trial at 240
     resumed = Trainer.from_run(resumed_dir, max_steps=None, quiet=True)
-    assert resumed.start_step == 50 and resumed.pipeline.datamanager.held_out == [2, 6]
+    assert resumed.start_step == 200 and resumed.pipeline.datamanager.held_out == [2, 6]
     assert resumed.pipeline.strategy_state["count_cap"] is None
     r = resumed.train()
-    assert r["exploration"]["auto_cap"] == m["exploration"]["auto_cap"]
-    for name, p in trainer.pipeline.params.items():
-        assert torch.equal(p, resumed.pipeline.params[name]), name
+    assert r["exploration"]["auto_cap"] == m["exploration"]["auto_cap"] and r["count_decision"] == m["count_decision"]
+    _same_params(trainer, resumed)
+
+
+def test_the_trial_leaves_the_pipeline_as_it_was_and_pairs_its_candidates(tmp_path, tiny_scene_dir):
+    """After a paired cut the parameters, Adam's moments, the strategy's state, the generator and
+    the view order are those before it; two candidates of one count score the same bits (the same
+    start, views and steps), and the whole set scores as the pipeline's own held-out PSNRs after
+    the same steps."""
+    trainer = _config(tmp_path / "run").setup()
+    pipeline = trainer.pipeline
+    for step in range(1, 121):  # refinements at 10, 20, ...: grown and trained, views still held out
+        pipeline.train_step(step)
+    assert pipeline.datamanager.held_out == [2, 6] and pipeline.model.num_gaussians > 400
+    before = {k: v.clone() for k, v in pipeline.params.items()}
+    adam = {k: {s: t.clone() for s, t in o.state[o.param_groups[0]["params"][0]].items()}
+            for k, o in pipeline.optimizers.items()}
+    generator, order = pipeline.generator.get_state(), pipeline.datamanager.state_dict()
+    strategy_state = {k: (v.clone() if isinstance(v, torch.Tensor) else v) for k, v in pipeline.strategy_state.items()
+                      if k != "stats"}
+    n = pipeline.model.num_gaussians
+    scores, weights = count_trial.paired_cut(pipeline, 120, [n, n // 2, n // 2], 3)
+    assert weights.shape == (n,) and len(scores) == 3 and all(len(s) == 2 for s in scores)
+    assert scores[1] == scores[2]  # paired: one count, the same bits
+    for k, v in before.items():
+        assert torch.equal(pipeline.params[k], v), k
+    for k, o in pipeline.optimizers.items():
+        for s, t in o.state[o.param_groups[0]["params"][0]].items():
+            assert torch.equal(t, adam[k][s]), (k, s)
+    assert torch.equal(pipeline.generator.get_state(), generator) and _same(pipeline.datamanager.state_dict(), order)
+    assert _same({k: v for k, v in pipeline.strategy_state.items() if k != "stats"}, strategy_state)
+    assert pipeline.strategy is trainer.pipeline.strategy and type(pipeline.strategy).__name__ == "MCMCStrategy"
+    # the whole set, fine-tuned 3 steps with nothing else changed, is what the trial scored for it
+    pipeline.strategy = count_trial.HoldingStrategy().setup(pipeline.schedule)
+    pipeline.strategy_state = pipeline.strategy.initialize_state(pipeline.scene_extent)
+    for _ in range(3):
+        pipeline.train_step(120)
+    assert pipeline.held_out_psnrs(120) == scores[0]
 
 
 def test_too_few_training_views_to_hold_out_is_one_clear_line(tmp_path, tiny_scene_dir):
@@ -250,7 +339,41 @@ def test_the_datamanager_passes_over_held_views_and_keeps_them_in_its_state(tiny
 def test_mcmc_explore_decides_its_count_the_same_way():
     from exploregs_plugin.strategies import MCMCExploreStrategy
 
-    strategy = MCMCExploreStrategy(cap_max="validated", count_window=3, count_min_gain=0.05, explore_share=0.5,
-                                   explore_split=1.0, explore_box=0.0, explore_guided=0.0, **WINDOW)
-    counts, reads, state = _run(strategy, lambda step, n: 25.0 - 0.001 * step, steps=200)
-    assert reads == [10, 40, 70, 100] and state["count_cap"] == 115 and max(counts.values()) == 115
+    strategy = MCMCExploreStrategy(cap_max="validated", count_ceiling=1.5, explore_share=0.5, explore_split=1.0,
+                                   explore_box=0.0, explore_guided=0.0, **WINDOW)
+    counts, trials, _, state = _run(strategy, decide=lambda counts: [[20.0, 21.0] for _ in counts])
+    assert max(counts.values()) == 150 and [s for s, _ in trials] == [190]
+    assert state["count_cap"] == min(trials[0][1].counts)  # every cut as good: the smallest
+    assert all(counts[s] == state["count_cap"] for s in range(190, 300))
+
+
+def test_the_decision_and_the_run_are_the_same_bits_on_one_and_two_threads(tmp_path, tiny_scene_dir):
+    runs = []
+    for threads in (1, 2):
+        trainer = replace(_config(tmp_path / f"threads-{threads}"), num_threads=threads).setup()
+        runs.append((trainer.train(), trainer))
+    (first, a), (second, b) = runs
+    assert first["count_decision"] == second["count_decision"] and first["count_decision"].startswith("count chosen")
+    _same_params(a, b)
+
+
+@pytest.mark.parametrize("method", ["exploregs-default", "exploregs-seedsplit"])
+def test_default_and_seed_split_decide_their_count_the_same_way(tmp_path, tiny_scene_dir, method):
+    """cap_max 'validated' on the growing methods: no ceiling (their thresholds bound growth), the
+    same held-out views and the same trial at their last refinement (step 140 of 300: refinement
+    stops at half the run), and a tolerance no cut can miss keeps the smallest candidate."""
+    config = get_method(method).config
+    strategy = replace(config.pipeline.strategy, cap_max="validated", count_tolerance=1000.0)
+    config = replace(config, data="builtin:tiny", max_steps=300, run_dir=tmp_path / "run", quiet=True,
+                     tensorboard=False, eval_count=1, save_eval_images=False, checkpoint_every=300,
+                     schedule=ScheduleConfig(min_refine_every=10), pipeline=replace(config.pipeline, strategy=strategy))
+    record = _Record()
+    trainer = config.setup(callbacks=[record])
+    assert trainer.pipeline.strategy.last_refinement() == 140 and trainer.pipeline.datamanager.held_out == [2, 6]
+    m = trainer.train()
+    assert min(s for s, h in record.held.items() if not h) == 141
+    assert not {i for s in range(1, 142) for i in record.views[s]} & {2, 6}
+    tried = [c for c, _ in trainer.pipeline.strategy_state["count_trial"]]
+    assert tried == candidate_counts(tried[0], (1.0, 0.7, 0.5, 0.35, 0.25))
+    assert m["exploration"]["auto_cap"] == tried[-1] == record.counts[141]
+    assert m["count_decision"].startswith(f"count chosen: {tried[-1]:,} of {tried[0]:,} Gaussians (step 140)")

@@ -10,7 +10,8 @@ from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.gaussians import render_params, rgb_to_sh0
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.runs import load_run
-from exploregs_plugin.runs.simplify import blend_weight_totals, most_significant, simplify
+from exploregs_plugin.model.significance import blend_weight_totals, most_significant
+from exploregs_plugin.runs.simplify import simplify
 
 
 def _camera(width=48, height=40, focal=50.0) -> Camera:

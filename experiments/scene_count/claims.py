@@ -1,5 +1,5 @@
-"""The scene-count sweep's tables and claims (issue 55), from the runs of mcmc_caps.yml and
-validated.yml in one bench folder:
+"""The scene-count sweep's tables and claims (issue 55), from the runs of mcmc_caps.yml,
+validated.yml and validated_growing.yml in one bench folder:
 
     python experiments/scene_count/claims.py outputs/bench-count
 
@@ -9,7 +9,8 @@ Gaussians, test PSNR, SSIM, far-region PSNR (the bench's ``far_region.json``, wr
 PLY (written to a temporary folder with the project's exporter). Then the claims: the best fixed
 cap, the smallest fixed cap within 0.1 dB of it (the count the scene needs), whether more was
 ever worse, and for each rule whether its count is within 25% of that count and its PSNR within
-0.1 dB of the best. Entries with several seeds show their mean and each seed's PSNR. Runs that are not finished
+0.1 dB of the best, and for each growing method with the rule its count and PSNR against the
+same method without it. Entries with several seeds show their mean and each seed's PSNR. Runs that are not finished
 are left out and named.
 """
 
@@ -34,6 +35,8 @@ FIXED = re.compile(r"^mcmc(?:-x([0-9.]+))?$")
 """Entry names of the fixed caps: ``mcmc`` (1 x Default's count) and ``mcmc-xF``."""
 RULES = ("mcmc-validated", "mcmc-auto")
 """Entries whose count a rule decided."""
+RULED_GROWTH = (("default", "default-validated"), ("seedsplit", "seedsplit-validated"))
+"""The growing methods without and with the count rule (validated_growing.yml)."""
 
 
 def ply_megabytes(run_dir: Path) -> float:
@@ -73,18 +76,24 @@ def scene_claims(scene_dir: Path) -> list[str]:
     fixed = {name: float(FIXED.match(name).group(1) or 1.0) for name in rows if FIXED.match(name)}
     lines += ["| entry | cap | Gaussians | PSNR (mean) | each seed | SSIM | far | train s | PLY MB |",
               "|---|---|---|---|---|---|---|---|---|"]
-    order = sorted(fixed, key=fixed.get) + [n for n in RULES if n in rows] + [n for n in ("default",) if n in rows]
+    order = sorted(fixed, key=fixed.get) + [n for n in RULES if n in rows]
+    order += [n for pair in RULED_GROWTH for n in pair if n in rows]
     for name in order:
         r = rows[name]
-        cap = f"{fixed[name]:g} x Default" if name in fixed else ("rule" if name in RULES else "none")
+        cap = f"{fixed[name]:g} x Default" if name in fixed else (
+            "rule" if name in RULES or name.endswith("-validated") else "none")
         far = "" if r["far"] is None else f"{r['far']:.2f}"
         each = " / ".join(f"{p:.2f}" for p in r["seeds"])
         lines.append(f"| {name} | {cap} | {r['gaussians']:,} | {r['psnr']:.2f} | {each} | {r['ssim']:.4f} | {far} | "
                      f"{r['train_s']:.0f} | {r['ply_mb']:.2f} |")
     if missing:
         lines += ["", f"Not finished: {', '.join(missing)}."]
+    growth = [f"- {ruled}: {rows[ruled]['gaussians']:,} Gaussians against {rows[plain]['gaussians']:,} without the "
+              f"rule ({rows[ruled]['gaussians'] / rows[plain]['gaussians'] - 1.0:+.0%}), "
+              f"{rows[ruled]['psnr'] - rows[plain]['psnr']:+.2f} dB"
+              for plain, ruled in RULED_GROWTH if plain in rows and ruled in rows]
     if len(fixed) < 2:
-        return lines + [""]
+        return lines + [""] + growth + ([""] if growth else [])
     best = max(fixed, key=lambda n: rows[n]["psnr"])
     near = [n for n in fixed if rows[n]["psnr"] >= rows[best]["psnr"] - NEAR_DB]
     needed = min(near, key=lambda n: rows[n]["gaussians"])
@@ -108,7 +117,7 @@ def scene_claims(scene_dir: Path) -> list[str]:
         lines.append(f"- {rule}: {r['gaussians']:,} Gaussians ({off:+.0%} against {n_needed:,}: "
                      f"{'met' if count_ok else 'missed'}), {gap:+.2f} dB against the best "
                      f"({'met' if psnr_ok else 'missed'})")
-    return lines + [""]
+    return lines + growth + [""]
 
 
 def main(argv: list[str]) -> int:

@@ -20,6 +20,7 @@ a count whose test PSNR is within the tolerance of the best.
 from __future__ import annotations
 
 import argparse
+import json
 import time
 from pathlib import Path
 
@@ -47,6 +48,8 @@ def main() -> None:
     ap.add_argument("--fractions", type=int, nargs="+", default=[1, 2, 4, 8])
     ap.add_argument("--finetune-steps", type=int, default=1000)
     ap.add_argument("--tolerance", type=float, default=0.1)
+    ap.add_argument("--per-view", type=Path, default=None,
+                    help="also write each candidate's per-view PSNR of all the test views (in order) to this JSON")
     a = ap.parse_args()
     rows = []
     for fraction in a.fractions:
@@ -57,9 +60,12 @@ def main() -> None:
         seconds = time.perf_counter() - start
         scored = evaluate(run.pipeline.model, run.pipeline.datamanager)
         validation, test = halves(scored["per_image"])
-        rows.append({"fraction": fraction, "gaussians": done.after, "validation": validation, "test": test})
+        rows.append({"fraction": fraction, "gaussians": done.after, "validation": validation, "test": test,
+                     "per_view": [e["psnr"] for e in scored["per_image"]]})
         print(f"x1/{fraction}: {done.after} Gaussians, validation {validation:.3f} dB, test {test:.3f} dB "
               f"({len(scored['per_image'])} views; cut and {a.finetune_steps} steps in {seconds:.0f} s)", flush=True)
+    if a.per_view is not None:
+        a.per_view.write_text(json.dumps({"run": str(a.run), "finetune_steps": a.finetune_steps, "rows": rows}, indent=1))
     by_validation, by_test = pick(rows, "validation", a.tolerance), pick(rows, "test", a.tolerance)
     best_test = max(r["test"] for r in rows)
     print(f"\n{a.run}: candidates fine-tuned {a.finetune_steps} steps from the final snapshot, tolerance {a.tolerance} dB")

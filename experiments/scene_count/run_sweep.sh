@@ -1,12 +1,12 @@
 #!/bin/bash
 # Issue 55's sweep, resumable: beer, fox and mouse (put mouse in shared/scenes/mouse; its source is
-# in docs/results.md), then the count rule on beer, the far-region PSNR, a second seed of beer's
+# in docs/results.md), then the count rule (MCMC, then Default and Seed+Split), the far-region PSNR, a second seed of beer's
 # caps, and the claims.
 # Run from the repository root; output in outputs/bench-count (bench.log there).
 set -e
 out=outputs/bench-count
 mkdir -p "$out"
-for spec in mcmc_caps mcmc_caps_fox mcmc_caps_mouse validated; do
+for spec in mcmc_caps mcmc_caps_fox mcmc_caps_mouse validated validated_growing; do
   eg-bench --spec "experiments/scene_count/$spec.yml" --out "$out" --jobs 2 >> "$out/bench.log" 2>&1
   eg-bench --spec "experiments/scene_count/$spec.yml" --out "$out" --report-only >> "$out/bench.log" 2>&1
 done

@@ -11,9 +11,10 @@ Call shape (the same as gsplat's, so strategies can be reused across trainers)::
     loss.backward(); optimizer.step() for each; zero_grad()
     counts = strategy.step_post_backward(params, optimizers, state, step, views,
                                          lr=means_lr, generator=gen,    # dict[str, int]
-                                         loss=step_loss,                # 0-d tensor, optional
-                                         held_out_psnr=score)           # () -> float, optional
+                                         loss=step_loss)                # 0-d tensor, optional
     strategy.holds_out_views(state, step)   # keep views out of training (cap_max 'validated')?
+    trial = strategy.count_trial_due(state, step, n)    # a CountTrial to run now, or None
+    kept = strategy.decide_count(state, step, trial.counts, per_view_psnrs)   # after it
     # at each evaluation:
     strategy.exploration_summary(state)                                  # dict[str, int]
 
@@ -29,12 +30,14 @@ from __future__ import annotations
 import dataclasses
 import math
 from dataclasses import dataclass
-from typing import Any, Callable, ClassVar, TypeVar
+from typing import Any, ClassVar, Literal, TypeVar
 
 import torch
 from torch import Tensor
 
 from ..schedule import Schedule
+from . import count_rule
+from .count_rule import COUNT_CAP, COUNT_NOTE, COUNT_TRIAL, VALIDATED
 from .errors import StrategyError
 from .observation import ViewObservation, require_views
 from .row_ops import Optimizers, Params, num_gaussians
@@ -63,22 +66,32 @@ class StepContext:
     the regularisers), as the pipeline computed it: possibly on the device, so a strategy that
     reads it adds it to its state as a tensor and converts it only when it decides (MCMC's
     ``cap_max auto``, at its refinement steps). None when the caller gave none."""
-    held_out_psnr: Callable[[], float] | None = None
-    """Renders the views held out of training (:meth:`Strategy.holds_out_views`) with the current
-    parameters and returns their PSNR in dB (one read of the device); None when the caller holds
-    none out. MCMC's ``cap_max validated`` calls it once per window of refinements."""
 
     def rng(self, who: str) -> torch.Generator:
         """The caller's generator; a clear error when randomness is needed and none was given."""
         return require_generator(self.generator, who)
 
 
+@dataclass(frozen=True)
+class CountTrial:
+    """Counts to try the set cut to (each the most significant rows, every one fine-tuned
+    ``steps`` steps from the same snapshot, then scored on each held-out view)."""
+
+    counts: list[int]
+    steps: int
+
+
 @dataclass
 class Strategy:
     """Base class: shared fields (Gaussian cap, schedule) and the contract's default hooks."""
 
-    cap_max: int | None = None
-    """Upper bound on the number of Gaussians; growth stops there. None: no cap."""
+    cap_max: int | Literal["validated"] | None = None
+    """Upper bound on the number of Gaussians; growth stops there. None: no cap. 'validated': a few
+    training views are held out, and at the last refinement the trainer tries the set cut to
+    count_cuts of its count (the most significant Gaussians), each candidate fine-tuned
+    count_trial_steps steps from the same snapshot; the smallest whose held-out PSNR is within
+    count_tolerance dB of the best candidate's (per view, with its standard error) is kept and
+    the views return to training (eg-train's pipeline runs the trial; docs/strategies.md)."""
     refine_start_iter: int | None = None
     """Refinement runs on steps strictly after this one. None: the run's schedule (refine_start)."""
     refine_stop_iter: int | None = None
@@ -87,6 +100,15 @@ class Strategy:
     """Refinement interval in steps. None: the run's schedule."""
     reset_every: int | None = None
     """Opacity reset interval in steps. None: the run's schedule."""
+    count_cuts: tuple[float, ...] = (1.0, 0.7, 0.5, 0.35, 0.25)
+    """cap_max 'validated': the candidates, as fractions of the count at the last refinement
+    (steps of about sqrt(2), so that a pick lies within 20% of any count between them)."""
+    count_trial_steps: int | None = None
+    """cap_max 'validated': fine-tuning steps per candidate before it is scored. None: 1% of the
+    run's steps (300 of 30k)."""
+    count_tolerance: float = 0.1
+    """cap_max 'validated': the largest held-out PSNR deficit (dB, the per-view mean plus its
+    standard error) at which a smaller candidate still counts as good as the best."""
 
     requires: ClassVar[frozenset[str]] = frozenset()
     """What the strategy class needs beyond the 2D-mean gradient and radii, which every
@@ -104,6 +126,9 @@ class Strategy:
         strategy adds its operators')."""
         return type(self).requires
 
+    CAP_WORDS: ClassVar[tuple[str, ...]] = (VALIDATED,)
+    """The words cap_max takes besides a count."""
+
     SCHEDULE_FIELDS: ClassVar[tuple[str, ...]] = (
         "refine_start_iter",
         "refine_stop_iter",
@@ -114,6 +139,15 @@ class Strategy:
     def __post_init__(self) -> None:
         if isinstance(self.cap_max, int) and self.cap_max < 0:
             raise StrategyError(f"{type(self).__name__}.cap_max must be >= 0 or None, got {self.cap_max}")
+        if isinstance(self.cap_max, str) and self.cap_max not in self.CAP_WORDS:
+            words = " or ".join(f"'{w}'" for w in self.CAP_WORDS)
+            raise StrategyError(f"cap_max must be a count >= 0, {words}, got {self.cap_max!r}")
+        if not self.count_cuts or not all(0.0 < c <= 1.0 for c in self.count_cuts):
+            raise StrategyError(f"count_cuts must be fractions in (0, 1], got {self.count_cuts}")
+        if not (math.isfinite(self.count_tolerance) and self.count_tolerance >= 0.0):
+            raise StrategyError(f"count_tolerance must be >= 0, got {self.count_tolerance}")
+        if self.count_trial_steps is not None and self.count_trial_steps < 1:
+            raise StrategyError(f"count_trial_steps must be >= 1, got {self.count_trial_steps}")
         for name in ("refine_every", "reset_every"):
             value = getattr(self, name)
             if value is not None and value <= 0:
@@ -127,6 +161,7 @@ class Strategy:
             "refine_stop_iter": schedule.refine_stop,
             "refine_every": schedule.refine_every,
             "reset_every": schedule.reset_every,
+            "count_trial_steps": max(1, round(count_rule.TRIAL_SHARE * schedule.max_steps)),
         }
 
     def setup(self: StrategyT, schedule: Schedule) -> StrategyT:
@@ -170,7 +205,10 @@ class Strategy:
         if not (math.isfinite(scene_scale) and scene_scale > 0.0):
             raise StrategyError(f"initialize_state: scene_scale must be positive and finite, got {scene_scale}")
         center = torch.zeros(3) if scene_center is None else torch.as_tensor(scene_center, dtype=torch.float32).reshape(3)
-        return {"scene_scale": float(scene_scale), "scene_center": center.clone(), "stats": {}}
+        state: dict[str, Any] = {"scene_scale": float(scene_scale), "scene_center": center.clone(), "stats": {}}
+        if self.cap_max == VALIDATED:
+            state.update(count_rule.validated_state())
+        return state
 
     def check_sanity(self, params: Params, optimizers: Optimizers) -> None:
         """Check the parameter/optimizer convention; raise :class:`StrategyError` if broken."""
@@ -208,7 +246,6 @@ class Strategy:
         lr: float = 0.0,
         generator: torch.Generator | None = None,
         loss: Tensor | None = None,
-        held_out_psnr: Callable[[], float] | None = None,
     ) -> dict[str, int]:
         """Called after the optimizer step; returns counts of what it did (dict[str, int]; a count
         may be a 0-dim integer tensor on the device, which the trainer reads only where it logs,
@@ -216,12 +253,10 @@ class Strategy:
 
         Checks that the schedule is resolved and ``views`` is a list of observations, and hands
         one :class:`StepContext` to :meth:`post_backward`, which subclasses implement. ``loss`` is
-        the step's training loss as a 0-d tensor (:attr:`StepContext.loss`), ``held_out_psnr`` the
-        score of the views held out of training (:attr:`StepContext.held_out_psnr`)."""
+        the step's training loss as a 0-d tensor (:attr:`StepContext.loss`)."""
         self.require_schedule()
         views = require_views(views, f"{type(self).__name__}.step_post_backward")
-        return self.post_backward(StepContext(params, optimizers, state, step, views, lr, generator, loss,
-                                              held_out_psnr))
+        return self.post_backward(StepContext(params, optimizers, state, step, views, lr, generator, loss))
 
     def post_backward(self, ctx: StepContext) -> dict[str, int]:
         """The strategy's work after each optimizer step. Default: nothing."""
@@ -233,20 +268,59 @@ class Strategy:
 
     def exploration_summary(self, state: dict[str, Any]) -> dict[str, int]:
         """Current totals of what the strategy explored (not events), logged at each evaluation
-        and written to metrics.json, e.g. Seeding's ``seeds_alive``. Default: none."""
+        and written to metrics.json, e.g. Seeding's ``seeds_alive``. Here: with cap_max
+        'validated', ``auto_cap``, the count kept (0 while it is undecided)."""
+        if self.cap_max == VALIDATED:
+            return {"auto_cap": int(state[COUNT_CAP] or 0)}
         return {}
 
+    def last_refinement(self) -> int:
+        """The step of the run's last refinement (the last multiple of refine_every before
+        refine_stop_iter), or -1 when the window holds none."""
+        last = (self.refine_stop_iter - 1) // self.refine_every * self.refine_every
+        return last if last > self.refine_start_iter else -1
+
     def holds_out_views(self, state: dict[str, Any], step: int) -> bool:
-        """Whether the caller keeps a few training views out of training before ``step`` and scores
-        them for :attr:`StepContext.held_out_psnr` (MCMC's ``cap_max validated``, while it
-        decides the count). Asked at the start of the run and after every step; once False, the
-        views return to training for good. Default: never."""
-        return False
+        """Whether the caller keeps a few training views out of training before ``step``, to score
+        the candidates of :meth:`count_trial_due` on them. With cap_max 'validated' until the count
+        is decided, at the last refinement (or, in a window without refinements, until it
+        closes); asked at the start of the run and after every step; once False, the views
+        return to training for good."""
+        return (self.cap_max == VALIDATED and state[COUNT_CAP] is None
+                and step <= max(self.last_refinement(), self.refine_stop_iter - 1))
+
+    def count_trial_due(self, state: dict[str, Any], step: int, n: int) -> CountTrial | None:
+        """The count trial the caller should run after this step, or None; ``n`` is the current
+        count. eg-train's pipeline runs it (:mod:`exploregs_plugin.count_trial`) and hands the
+        scores to :meth:`decide_count`. With cap_max 'validated', at the last refinement while
+        undecided: :func:`count_rule.candidate_counts` of ``n``."""
+        if self.cap_max != VALIDATED or state[COUNT_CAP] is not None or step != self.last_refinement():
+            return None
+        return CountTrial(count_rule.candidate_counts(n, self.count_cuts), int(self.count_trial_steps or 1))
+
+    def decide_count(self, state: dict[str, Any], step: int, counts: list[int],
+                     per_view: list[list[float]]) -> int:
+        """The count to keep, from the trial of :meth:`count_trial_due`'s ``counts``
+        (``per_view[i]``: candidate i's PSNR on each held-out view): the one
+        :func:`count_rule.pick_count` picks, with why; the caller cuts the set to it."""
+        if self.cap_max != VALIDATED:
+            raise StrategyError(f"{type(self).__name__} decides no count (cap_max {self.cap_max!r})")
+        chosen = counts[count_rule.pick_count(counts, per_view, self.count_tolerance)]
+        means = [count_rule.mean_psnr(scores) for scores in per_view]
+        state[COUNT_CAP] = chosen
+        state[COUNT_TRIAL] = [(int(c), float(m)) for c, m in zip(counts, means)]
+        tried = ", ".join(f"{c:,}: {m:.2f}" for c, m in zip(counts, means))
+        views = len(per_view[0]) if per_view else 0
+        state[COUNT_NOTE] = (f"count chosen: {chosen:,} of {max(counts):,} Gaussians (step {step}), the smallest "
+                             f"cut within {self.count_tolerance:g} dB of the best on {views} held-out views, per "
+                             f"view with its standard error, each cut fine-tuned {self.count_trial_steps} steps "
+                             f"(held-out PSNR, dB: {tried})")
+        return chosen
 
     def count_decision(self, state: dict[str, Any]) -> str:
-        """One line that says at what count growth stopped and why, once a rule has stopped it
-        ('' before, and for a strategy without such a rule)."""
-        return ""
+        """One line that says what count was kept and why, once a rule has decided ('' before, and
+        for a strategy without such a rule)."""
+        return state.get(COUNT_NOTE, "") if self.cap_max == VALIDATED else ""
 
 
 def _field_at(config: Any, dotted: str) -> Any:

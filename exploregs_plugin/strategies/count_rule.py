@@ -1,24 +1,40 @@
 """The count a scene needs, decided on views the optimiser does not fit (``cap_max 'validated'``).
 
 While the rule decides, a few training views are held out: never trained on, rendered only to
-score the model. Growth runs in windows of ``window`` refinements that alternate, hold first:
-hold (no growth), grow, hold, grow, ... The held-out PSNR p_i is read at the start of window i,
-so window i gains g_i = p_(i+1) - p_i. A hold window's gain is what training alone adds at that
-time; a grow window's is training plus the new Gaussians. The contrast of grow window i is
+score the model. The set grows to a ceiling, trains, and at the end of growth the trainer tries
+it cut to a few smaller counts (the most significant Gaussians of each, :mod:`exploregs_plugin.count_trial`),
+each candidate fine-tuned alike from the same snapshot on the same views: a paired comparison, in
+which what differs between two candidates is the count alone. The rule picks the smallest
+candidate whose held-out PSNR is not worse than the best candidate's by more than a tolerance,
+read per held-out view: with d_v = p_best(v) - p_c(v) on view v of k,
 
-    c_i = g_i - (g_(i-1) + g_(i+1)) / 2,
+    mean(d) + sd(d) / sqrt(k) <= tolerance,
 
-its gain beyond the mean of the hold windows on either side (training's own gain falls slowly
-over the run, so the mean of the windows before and after is the estimate at the grow window's
-time). Growth goes on while c_i >= min_gain dB and stops for good at the first window that did
-not pay (or whose readings are not finite): the count then is the scene's. The rule reads the
-held-out views once per window, at most a few renders every few hundred steps, and nothing
-random: the same decision on any thread count.
+the paired deficit plus its standard error. The standard error makes a handful of views
+conservative: a smaller count is taken only where the views agree that it costs little, not
+where a mean over them happens to be small. The views then return to training, and the set is
+cut to the pick. Nothing here is random, so the decision is the same on any thread count.
 """
 
 from __future__ import annotations
 
 import math
+from typing import Sequence
+
+VALIDATED = "validated"
+"""``cap_max = 'validated'``: the count is decided on held-out views by the paired cut."""
+COUNT_START, COUNT_CAP, COUNT_TRIAL, COUNT_NOTE = ("count_start", "count_cap", "count_trial", "count_note")
+"""State of the validated count: the count at the first refinement (MCMC's ceiling's base; None
+before it), the count kept (None while it is undecided), each candidate's (count, mean held-out
+PSNR) from the trial, and the one line that says what was kept and why ('' before)."""
+TRIAL_SHARE = 0.01
+"""A candidate's fine-tuning steps as a share of the run's steps (300 of 30k)."""
+
+
+def validated_state() -> dict:
+    """The validated count's state at the start of a run (kept in the strategy state: checkpointed)."""
+    return {COUNT_START: None, COUNT_CAP: None, COUNT_TRIAL: [], COUNT_NOTE: ""}
+
 
 MIN_VIEWS = 8
 """Training views a run needs before the rule holds some out (it keeps at least 6 to train on)."""
@@ -38,28 +54,44 @@ def held_out_indices(n_train: int) -> list[int]:
     return [int((i + 0.5) * n_train / k) for i in range(k)]
 
 
-def window_grows(refinement: int, window: int) -> bool:
-    """Whether refinement ``refinement`` (0 = the first of the run) lies in a grow window."""
-    return (refinement // window) % 2 == 1
+def candidate_counts(n: int, cuts: Sequence[float]) -> list[int]:
+    """The counts to try for a set of ``n``: ``floor(n c)`` for each cut c in (0, 1], at least 1,
+    without repeats, largest first (the whole set, c = 1, is always one of them)."""
+    counts = {n} | {max(1, int(math.floor(n * c))) for c in cuts}
+    return sorted(counts, reverse=True)
 
 
-def reading_due(refinement: int, window: int) -> bool:
-    """Whether the held-out PSNR is read at this refinement: the start of every window."""
-    return refinement % window == 0
+def paired_deficit(best: Sequence[float], other: Sequence[float]) -> float:
+    """mean(d) + sd(d) / sqrt(k) of the per-view deficits d_v = best_v - other_v (dB) over k views:
+    the deficit of ``other`` with its standard error (sd with k - 1; 0 for one view). Not finite
+    when a PSNR is not."""
+    k = len(best)
+    if k == 0 or len(other) != k:
+        raise ValueError(f"a paired deficit needs the same views on both sides, got {k} and {len(other)}")
+    d = [b - o for b, o in zip(best, other)]
+    mean = sum(d) / k
+    if k == 1:
+        return mean
+    var = sum((x - mean) ** 2 for x in d) / (k - 1)
+    return mean + math.sqrt(max(var, 0.0) / k)
 
 
-def growth_contrast(readings: list[float]) -> float | None:
-    """The contrast c of the grow window that the newest reading closes the hold window after,
-    or None when the newest reading closes no such window. ``readings`` are p_0 .. p_m, one per
-    window start; grow windows are the odd ones, so c is due at every odd m >= 3 (window m - 2).
-    Not finite when a reading is not."""
-    m = len(readings) - 1
-    if m < 3 or m % 2 == 0:
-        return None
-    before, grown, after = (readings[j + 1] - readings[j] for j in (m - 3, m - 2, m - 1))
-    return grown - 0.5 * (before + after)
+def pick_count(counts: Sequence[int], per_view: Sequence[Sequence[float]], tolerance: float) -> int:
+    """The index of the candidate to keep: of ``counts`` (any order) scored ``per_view[i]`` (the
+    held-out views' PSNRs, the same views in the same order for every candidate), the fewest
+    Gaussians whose :func:`paired_deficit` against the best candidate (highest mean PSNR) is at
+    most ``tolerance`` dB. A candidate with a non-finite PSNR is never kept; if none is finite the
+    largest set is."""
+    if len(counts) != len(per_view) or not counts:
+        raise ValueError(f"one score list per candidate, got {len(counts)} counts and {len(per_view)} lists")
+    finite = [i for i, scores in enumerate(per_view) if scores and all(math.isfinite(p) for p in scores)]
+    if not finite:
+        return max(range(len(counts)), key=lambda i: counts[i])
+    best = max(finite, key=lambda i: (sum(per_view[i]) / len(per_view[i]), counts[i]))
+    kept = [i for i in finite if i == best or paired_deficit(per_view[best], per_view[i]) <= tolerance]
+    return min(kept, key=lambda i: (counts[i], i))
 
 
-def growth_paid(contrast: float, min_gain: float) -> bool:
-    """Whether a grow window paid back: its contrast is finite and at least ``min_gain`` dB."""
-    return math.isfinite(contrast) and contrast >= min_gain
+def mean_psnr(scores: Sequence[float]) -> float:
+    """The mean of per-view PSNRs (dB): the figure the decision line prints for each candidate."""
+    return sum(scores) / len(scores) if scores else float("nan")

@@ -4,9 +4,10 @@ Every ``refine_every`` steps inside the refinement window: dead Gaussians (opaci
 ``min_opacity``) are relocated onto live ones drawn in proportion to opacity, with the paper's
 opacity/scale update (:mod:`.relocation`); then the set grows by ``growth_rate`` (5%) of its size,
 by sampling new copies the same way, up to ``cap_max``. With ``cap_max = 'validated'`` views
-held out of training decide (:mod:`.count_rule`): growth alternates with windows without it, and
-stops at the first growth window that added less to the held-out PSNR than training alone did
-around it. With ``cap_max = 'auto'`` the training loss decides instead (:func:`keeps_growing`): the set grows while the mean training loss over the
+held out of training decide (:mod:`.count_rule`): the set grows to ``count_ceiling`` times its
+starting count, and at the last refinement the trainer tries it cut to smaller counts, each
+fine-tuned alike, and keeps the smallest that scores as well as the best on the held-out views.
+With ``cap_max = 'auto'`` the training loss decides instead (:func:`keeps_growing`): the set grows while the mean training loss over the
 last ``auto_span`` refinement intervals still falls by at least ``auto_min_drop`` of the mean over
 the ``auto_span`` intervals before them, and stops for good, at its count then, after
 ``auto_patience`` refinements in a row where it does not. After every step the positions get the
@@ -19,14 +20,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import Any, Literal
+from typing import Any, ClassVar, Literal
 
 import torch
 from torch import Tensor
 
 from ..schedule import Schedule
-from . import count_rule, row_ops
+from . import row_ops
 from .base import StepContext, Strategy, StrategyError
+from .count_rule import COUNT_CAP, COUNT_START, VALIDATED
 from .row_ops import Optimizers, Params, num_gaussians
 from .position_noise import PositionNoise
 from .relocation import N_MAX, binomial_table
@@ -42,21 +44,6 @@ AUTO_LOSS, AUTO_STEPS, AUTO_MEANS, AUTO_BELOW, AUTO_CAP = (
 loss's device, or None), its steps, the means of the last 2 x span closed windows (floats), the
 refinements in a row below the drop, and the cap once growth has stopped (None while it grows)."""
 NO_CAP = 1 << 62
-
-VALIDATED = "validated"
-"""``cap_max = 'validated'``: the count is decided on held-out views (:mod:`.count_rule`)."""
-COUNT_READINGS, COUNT_GROWS, COUNT_CAP, COUNT_CONTRASTS, COUNT_NOTE = (
-    "count_readings", "count_grows", "count_cap", "count_contrasts", "count_note")
-"""State of the validated count: the held-out PSNR at each window start (floats), whether the
-current refinement lies in a grow window, the cap once growth has stopped (None while it
-decides), each grow window's (count at its end, contrast in dB), and the one line that says why
-growth stopped ('' before)."""
-
-
-def validated_state() -> dict[str, Any]:
-    """The validated count's state at the start of a run (kept in the strategy state: checkpointed)."""
-    return {COUNT_READINGS: [], COUNT_GROWS: False, COUNT_CAP: None, COUNT_CONTRASTS: [], COUNT_NOTE: ""}
-
 
 def keeps_growing(means: list[float], below: int, min_drop: float, span: int, patience: int
                   ) -> tuple[bool, int]:
@@ -118,13 +105,14 @@ class MCMCStrategy(Strategy):
 
     cap_max: int | Literal["auto", "validated"] | None = 30_000
     """Largest number of Gaussians (required for MCMC; the paper uses 1-3M on GPU), or
-    'validated': a few training views are held out while growth alternates with windows without
-    it, and growth stops at the first growth window that added less than count_min_gain dB to
-    their PSNR beyond what training alone added around it (the views then return to training;
-    on beer one reading scatters by 0.26 dB, so that decision is noise's: docs/strategies.md);
-    or 'auto': grow while the slow average of the training loss (over auto_span refinements)
-    still falls by auto_min_drop, stop for good after auto_patience refinements in a row where it
-    does not."""
+    'validated': a few training views are held out, the set grows to count_ceiling times its
+    starting count, and at the last refinement the trainer tries it cut to count_cuts of its
+    count (the most significant Gaussians), each candidate fine-tuned count_trial_steps steps
+    from the same snapshot; the smallest whose held-out PSNR is within count_tolerance dB of the
+    best candidate's (per view, with its standard error) is kept and the views return to
+    training (eg-train's pipeline runs the trial); or 'auto': grow while the slow average of the
+    training loss (over auto_span refinements) still falls by auto_min_drop, stop for good after
+    auto_patience refinements in a row where it does not."""
     min_opacity: float = 0.005
     """Gaussians at or below this opacity are dead and get relocated."""
     growth_rate: float = 0.05
@@ -144,22 +132,18 @@ class MCMCStrategy(Strategy):
     """cap_max 'auto': refinement windows per slow average (:func:`keeps_growing`)."""
     auto_patience: int = 2
     """cap_max 'auto': growth stops for good after this many refinements in a row below auto_min_drop."""
-    count_window: int = 4
-    """cap_max 'validated': refinements per window; windows alternate, hold first. At 5% growth a
-    grow window of 4 adds 22%, so a stop one window after the count needed stays within 25% of it."""
-    count_min_gain: float = 0.05
-    """cap_max 'validated': the held-out PSNR (dB) a grow window must add beyond the mean gain of
-    the hold windows on either side for growth to go on."""
+    CAP_WORDS: ClassVar[tuple[str, ...]] = (AUTO, VALIDATED)
 
+    count_ceiling: float = 3.0
+    """cap_max 'validated': while the count is undecided the set grows to this many times its
+    count at the first refinement (the SfM points, or the random start). fox's best fixed cap was
+    3.2 times its start, mouse's 1.7, beer's 1.1 (docs/results.md)."""
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.cap_max is None:
             raise StrategyError("MCMCStrategy needs cap_max: its 5% growth per refinement is bounded only by it")
-        if isinstance(self.cap_max, str) and self.cap_max not in (AUTO, VALIDATED):
-            raise StrategyError(f"cap_max must be a count >= 0, '{VALIDATED}' or '{AUTO}', got {self.cap_max!r}")
-        if self.count_window < 1 or not (math.isfinite(self.count_min_gain) and self.count_min_gain >= 0.0):
-            raise StrategyError(f"count_window must be >= 1 and count_min_gain >= 0, got {self.count_window}, "
-                                f"{self.count_min_gain}")
+        if not (math.isfinite(self.count_ceiling) and self.count_ceiling >= 1.0):
+            raise StrategyError(f"count_ceiling must be >= 1, got {self.count_ceiling}")
         if (not (math.isfinite(self.auto_min_drop) and self.auto_min_drop >= 0.0) or self.auto_patience < 1
                 or self.auto_span < 1):
             raise StrategyError(f"auto_min_drop must be >= 0, auto_span and auto_patience >= 1, got "
@@ -181,8 +165,6 @@ class MCMCStrategy(Strategy):
         state["binoms"] = binomial_table(N_MAX)
         if self.cap_max == AUTO:
             state.update(auto_state())
-        if self.cap_max == VALIDATED:
-            state.update(validated_state())
         return state
 
     def regularization_loss(self, params: Params) -> Tensor:
@@ -202,8 +184,6 @@ class MCMCStrategy(Strategy):
         if self.cap_max == AUTO and step < self.refine_stop_iter and state[AUTO_CAP] is None:
             self.track_loss(state, ctx.loss)
         if self.refine_start_iter < step < self.refine_stop_iter and step % self.refine_every == 0:
-            if self.cap_max == VALIDATED and state[COUNT_CAP] is None:
-                self.read_held_out(ctx)
             counts.update(self.refine(params, optimizers, state, ctx.rng("MCMC relocation")))
         counts["perturbed"] = self.noise.perturb(ctx, type(self).__name__)
         return counts
@@ -226,49 +206,17 @@ class MCMCStrategy(Strategy):
         refine_start_iter), 1 for the next, ..."""
         return step // self.refine_every - self.refine_start_iter // self.refine_every - 1
 
-    def read_held_out(self, ctx: StepContext) -> None:
-        """cap_max 'validated', at a refinement: read the held-out PSNR at a window start, decide
-        on the grow window the reading closes (:func:`count_rule.growth_contrast`), and set
-        whether this refinement grows."""
-        state, k, window = ctx.state, self.refinement_index(ctx.step), self.count_window
-        state[COUNT_GROWS] = count_rule.window_grows(k, window)
-        if not count_rule.reading_due(k, window):
-            return
-        if ctx.held_out_psnr is None:
-            raise StrategyError(f"{type(self).__name__} with cap_max '{VALIDATED}' scores views held out of "
-                                f"training: pass held_out_psnr=<a function that renders them and returns their "
-                                f"PSNR> to step_post_backward")
-        state[COUNT_READINGS] = state[COUNT_READINGS] + [float(ctx.held_out_psnr())]
-        contrast = count_rule.growth_contrast(state[COUNT_READINGS])
-        if contrast is None:
-            return
-        n = num_gaussians(ctx.params)
-        state[COUNT_CONTRASTS] = state[COUNT_CONTRASTS] + [(n, contrast)]
-        if not count_rule.growth_paid(contrast, self.count_min_gain):
-            state[COUNT_CAP], state[COUNT_GROWS] = n, False
-            grown = (1.0 + self.growth_rate) ** window - 1.0
-            state[COUNT_NOTE] = (f"growth stopped at {n:,} Gaussians (step {ctx.step}): the last growth window "
-                                 f"(up to {100 * grown:.0f}% more Gaussians) added {contrast:+.3f} dB of held-out "
-                                 f"PSNR beyond what training alone added around it, under the "
-                                 f"{self.count_min_gain:g} dB it must add")
-
-    def holds_out_views(self, state: dict[str, Any], step: int) -> bool:
-        """cap_max 'validated': views stay held out until growth stops or the refinements end."""
-        return self.cap_max == VALIDATED and state[COUNT_CAP] is None and step < self.refine_stop_iter
-
-    def count_decision(self, state: dict[str, Any]) -> str:
-        """cap_max 'validated': the line that says why growth stopped ('' while it has not)."""
-        return state.get(COUNT_NOTE, "") if self.cap_max == VALIDATED else ""
-
     def growth_cap(self, state: dict[str, Any], n: int) -> int:
-        """The cap of this refinement's growth: ``cap_max``; for 'validated' the count at which
-        growth stopped, ``n`` (no growth) in a hold window and no cap in a grow window; for 'auto'
-        the count at which the loss stopped falling (no cap while it still falls;
+        """The cap of this refinement's growth: ``cap_max``; for 'validated' the count kept, or,
+        while undecided, count_ceiling times the count at the first refinement; for 'auto' the
+        count at which the loss stopped falling (no cap while it still falls;
         :func:`auto_close_window`, called once per refinement)."""
         if self.cap_max == VALIDATED:
             if state[COUNT_CAP] is not None:
                 return state[COUNT_CAP]
-            return NO_CAP if state[COUNT_GROWS] else n
+            if state[COUNT_START] is None:
+                state[COUNT_START] = n
+            return int(math.floor(self.count_ceiling * state[COUNT_START]))
         if self.cap_max != AUTO:
             return self.cap_max
         return auto_close_window(state, n, self.auto_min_drop, self.auto_span, self.auto_patience)
@@ -280,10 +228,8 @@ class MCMCStrategy(Strategy):
     def exploration_summary(self, state: dict[str, Any]) -> dict[str, int]:
         """With cap_max 'auto' or 'validated': ``auto_cap``, the count at which growth stopped (0
         while it grows)."""
-        if self.cap_max == VALIDATED:
-            return {"auto_cap": int(state[COUNT_CAP] or 0)}
         if self.cap_max != AUTO:
-            return {}
+            return super().exploration_summary(state)
         return {"auto_cap": int(state[AUTO_CAP] or 0)}
 
     def dead_mask(self, params: Params) -> Tensor:
