@@ -129,7 +129,8 @@ def test_the_set_grows_to_the_ceiling_and_the_trial_comes_at_the_last_refinement
     assert [s for s, _ in trials] == [190] and trials[0][1].counts == [200, 140, 100] and trials[0][1].steps == 5
     assert all(held[s] for s in range(3, 191)) and not any(held[s] for s in range(191, 300))
     assert state["count_cap"] == 140 and all(counts[s] == 140 for s in range(190, 300))
-    assert [c for c, _ in state["count_trial"]] == [200, 140, 100]
+    assert [c for c, _, _ in state["count_trial"]] == [200, 140, 100]
+    assert state["count_trial"][1][2] == scores([140])[0] and state["count_trial"][1][1] == pytest.approx(21.0)
     assert strategy.exploration_summary(state) == {"auto_cap": 140}
     note = strategy.count_decision(state)
     assert note.startswith("count chosen: 140 of 200 Gaussians (step 190)") and "3 held-out views" in note
@@ -226,10 +227,10 @@ def test_a_run_holds_views_out_until_the_decision_and_resumes_with_it(tmp_path, 
     assert not {i for s in range(1, returned + 1) for i in record.views[s]} & set(held)
     assert set(held) <= {i for s in range(returned + 1, 301) for i in record.views[s]}
     state = trainer.pipeline.strategy_state
-    tried = [c for c, _ in state["count_trial"]]
+    tried = [c for c, _, _ in state["count_trial"]]
     assert state["count_start"] == n0 and tried[0] == record.counts[240] == 3 * n0  # grown to the ceiling
     assert tried == candidate_counts(tried[0], (1.0, 0.7, 0.5, 0.35, 0.25))
-    assert all(math.isfinite(p) for _, p in state["count_trial"])
+    assert all(math.isfinite(p) and len(views) == 2 for _, p, views in state["count_trial"])
     cap = m["exploration"]["auto_cap"]
     assert cap == tried[-1] == record.counts[241] == m["num_gaussians"]  # the callback's step s follows step s - 1
     assert m["count_decision"].startswith(f"count chosen: {cap:,} of {tried[0]:,} Gaussians (step 240)")
@@ -373,7 +374,7 @@ def test_default_and_seed_split_decide_their_count_the_same_way(tmp_path, tiny_s
     m = trainer.train()
     assert min(s for s, h in record.held.items() if not h) == 141
     assert not {i for s in range(1, 142) for i in record.views[s]} & {2, 6}
-    tried = [c for c, _ in trainer.pipeline.strategy_state["count_trial"]]
+    tried = [c for c, _, _ in trainer.pipeline.strategy_state["count_trial"]]
     assert tried == candidate_counts(tried[0], (1.0, 0.7, 0.5, 0.35, 0.25))
     assert m["exploration"]["auto_cap"] == tried[-1] == record.counts[141]
     assert m["count_decision"].startswith(f"count chosen: {tried[-1]:,} of {tried[0]:,} Gaussians (step 140)")

@@ -1,7 +1,7 @@
 #!/bin/bash
 # Issue 55's sweep, resumable: beer, fox and mouse (put mouse in shared/scenes/mouse; its source is
-# in docs/results.md), then the count rule (MCMC, then Default and Seed+Split), the far-region PSNR, a second seed of beer's
-# caps, and the claims.
+# in docs/results.md), then the count rule (MCMC, then Default and Seed+Split), the far-region PSNR and the claims.
+# (No second seed: the issue asks for one where two caps end within 0.2 dB, and none do.)
 # Run from the repository root; output in outputs/bench-count (bench.log there).
 set -e
 out=outputs/bench-count
@@ -10,6 +10,4 @@ for spec in mcmc_caps mcmc_caps_fox mcmc_caps_mouse validated validated_growing;
   eg-bench --spec "experiments/scene_count/$spec.yml" --out "$out" --jobs 2 >> "$out/bench.log" 2>&1
   eg-bench --spec "experiments/scene_count/$spec.yml" --out "$out" --report-only >> "$out/bench.log" 2>&1
 done
-# beer's caps at seed 0 end 1.5 dB apart in no order of their counts: a second seed of each
-eg-bench --spec experiments/scene_count/mcmc_caps.yml --seeds 1 --out "$out" --jobs 2 >> "$out/bench.log" 2>&1
 python experiments/scene_count/claims.py "$out"

@@ -308,7 +308,8 @@ class Strategy:
         chosen = counts[count_rule.pick_count(counts, per_view, self.count_tolerance)]
         means = [count_rule.mean_psnr(scores) for scores in per_view]
         state[COUNT_CAP] = chosen
-        state[COUNT_TRIAL] = [(int(c), float(m)) for c, m in zip(counts, means)]
+        state[COUNT_TRIAL] = [(int(c), float(m), [float(p) for p in scores])
+                              for c, m, scores in zip(counts, means, per_view)]
         tried = ", ".join(f"{c:,}: {m:.2f}" for c, m in zip(counts, means))
         views = len(per_view[0]) if per_view else 0
         state[COUNT_NOTE] = (f"count chosen: {chosen:,} of {max(counts):,} Gaussians (step {step}), the smallest "

@@ -26,7 +26,7 @@ VALIDATED = "validated"
 COUNT_START, COUNT_CAP, COUNT_TRIAL, COUNT_NOTE = ("count_start", "count_cap", "count_trial", "count_note")
 """State of the validated count: the count at the first refinement (MCMC's ceiling's base; None
 before it), the count kept (None while it is undecided), each candidate's (count, mean held-out
-PSNR) from the trial, and the one line that says what was kept and why ('' before)."""
+PSNR, PSNR of each held-out view) from the trial, and the one line that says what was kept and why ('' before)."""
 TRIAL_SHARE = 0.01
 """A candidate's fine-tuning steps as a share of the run's steps (300 of 30k)."""
 

@@ -132,12 +132,13 @@ class MCMCStrategy(Strategy):
     """cap_max 'auto': refinement windows per slow average (:func:`keeps_growing`)."""
     auto_patience: int = 2
     """cap_max 'auto': growth stops for good after this many refinements in a row below auto_min_drop."""
-    CAP_WORDS: ClassVar[tuple[str, ...]] = (AUTO, VALIDATED)
-
     count_ceiling: float = 3.0
     """cap_max 'validated': while the count is undecided the set grows to this many times its
     count at the first refinement (the SfM points, or the random start). fox's best fixed cap was
     3.2 times its start, mouse's 1.7, beer's 1.1 (docs/results.md)."""
+
+    CAP_WORDS: ClassVar[tuple[str, ...]] = (AUTO, VALIDATED)
+
     def __post_init__(self) -> None:
         super().__post_init__()
         if self.cap_max is None:
@@ -200,11 +201,6 @@ class MCMCStrategy(Strategy):
             raise StrategyError(f"{type(self).__name__} with cap_max '{AUTO}' reads the training loss: pass "
                                 f"loss=<the step's loss, a 0-d tensor> to step_post_backward")
         auto_add_loss(state, loss)
-
-    def refinement_index(self, step: int) -> int:
-        """0 for the run's first refinement step (the first multiple of refine_every after
-        refine_start_iter), 1 for the next, ..."""
-        return step // self.refine_every - self.refine_start_iter // self.refine_every - 1
 
     def growth_cap(self, state: dict[str, Any], n: int) -> int:
         """The cap of this refinement's growth: ``cap_max``; for 'validated' the count kept, or,
