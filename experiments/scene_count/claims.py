@@ -1,5 +1,5 @@
 """The scene-count sweep's tables and claims (issue 55), from the runs of mcmc_caps.yml,
-validated.yml and validated_growing.yml in one bench folder:
+validated.yml, validated_growing.yml and validated_seedsplit.yml in one bench folder:
 
     python experiments/scene_count/claims.py outputs/bench-count
 
@@ -36,7 +36,7 @@ FIXED = re.compile(r"^mcmc(?:-x([0-9.]+))?$")
 RULES = ("mcmc-validated", "mcmc-auto")
 """Entries whose count a rule decided."""
 RULED_GROWTH = (("default", "default-validated"), ("seedsplit", "seedsplit-validated"))
-"""The growing methods without and with the count rule (validated_growing.yml)."""
+"""The growing methods without and with the count rule (validated_growing.yml, validated_seedsplit.yml)."""
 
 
 def ply_megabytes(run_dir: Path) -> float:

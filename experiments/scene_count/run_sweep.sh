@@ -6,7 +6,7 @@
 set -e
 out=outputs/bench-count
 mkdir -p "$out"
-for spec in mcmc_caps mcmc_caps_fox mcmc_caps_mouse validated validated_growing; do
+for spec in mcmc_caps mcmc_caps_fox mcmc_caps_mouse validated validated_growing validated_seedsplit; do
   eg-bench --spec "experiments/scene_count/$spec.yml" --out "$out" --jobs 2 >> "$out/bench.log" 2>&1
   eg-bench --spec "experiments/scene_count/$spec.yml" --out "$out" --report-only >> "$out/bench.log" 2>&1
 done
