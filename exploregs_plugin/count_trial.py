@@ -19,6 +19,7 @@ from typing import Any
 from torch import Tensor
 
 from exploregs_plugin.model.significance import blend_weight_totals, most_significant
+from exploregs_plugin.nonfinite import NonFiniteWatch
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.base import CountTrial, Strategy
 
@@ -51,7 +52,10 @@ def cut(pipeline: Pipeline, weights: Tensor, count: int, stats: dict[str, Tensor
 
 def paired_cut(pipeline: Pipeline, step: int, counts: list[int], steps: int) -> tuple[list[list[float]], Tensor]:
     """Each candidate's PSNR on every held-out view (in the datamanager's order), and the
-    significance the cuts used; the pipeline is left as it was."""
+    significance the cuts used; the pipeline is left as it was. Each candidate trains under its
+    own non-finite watch: one whose loss or parameters went non-finite scores NaN on every view
+    (so :func:`count_rule.pick_count` never keeps it), and the run's own watch, which the trainer
+    reads and raises on, never sees a candidate that is thrown away."""
     if pipeline.model.parts:
         raise ValueError("a count decided by a paired cut is for static scenes: a dynamic model's Gaussians move "
                          "with time")
@@ -61,18 +65,21 @@ def paired_cut(pipeline: Pipeline, step: int, counts: list[int], steps: int) -> 
     strategy = pipeline.strategy
     weights = significance(pipeline)
     stand_in = HoldingStrategy().setup(pipeline.schedule)
+    run_watch = pipeline.nonfinite
     scores: list[list[float]] = []
     try:
         for count in counts:
             pipeline.load_state_dict(copy.deepcopy(snapshot))  # the same start for every candidate
             pipeline.strategy = stand_in
             pipeline.strategy_state = stand_in.initialize_state(pipeline.scene_extent)
+            pipeline.nonfinite = NonFiniteWatch()
             cut(pipeline, weights, count, {})
             for _ in range(steps):
                 pipeline.train_step(step)
-            scores.append(pipeline.held_out_psnrs(step))
+            views = pipeline.held_out_psnrs(step)
+            scores.append(views if pipeline.nonfinite_error() is None else [float("nan")] * len(views))
     finally:
-        pipeline.strategy = strategy
+        pipeline.strategy, pipeline.nonfinite = strategy, run_watch
         pipeline.load_state_dict(snapshot)
     return scores, weights
 

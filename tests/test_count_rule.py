@@ -337,6 +337,33 @@ def test_the_datamanager_passes_over_held_views_and_keeps_them_in_its_state(tiny
     assert again.held_out == []
 
 
+def test_a_candidate_that_goes_non_finite_is_never_kept_and_does_not_stop_the_run(tmp_path, tiny_scene_dir,
+                                                                                   monkeypatch):
+    """The smallest candidate's set is given a NaN position after its cut: it scores NaN on every
+    held-out view, the others score as before, and the run's own non-finite record (which the
+    trainer raises on) stays clean."""
+    trainer = _config(tmp_path / "run").setup()
+    pipeline = trainer.pipeline
+    for step in range(1, 61):
+        pipeline.train_step(step)
+    n = pipeline.model.num_gaussians
+    clean, _ = count_trial.paired_cut(pipeline, 60, [n, n // 2], 3)
+    real_cut = count_trial.cut
+
+    def poisoned(pipeline, weights, count, stats):
+        real_cut(pipeline, weights, count, stats)
+        if count == n // 2:
+            with torch.no_grad():
+                pipeline.params["means"][0] = float("nan")
+
+    monkeypatch.setattr(count_trial, "cut", poisoned)
+    scores, _ = count_trial.paired_cut(pipeline, 60, [n, n // 2], 3)
+    assert scores[0] == clean[0] and all(math.isfinite(p) for p in clean[1])
+    assert len(scores[1]) == 2 and all(math.isnan(p) for p in scores[1])
+    assert pipeline.nonfinite_error() is None and torch.isfinite(pipeline.params["means"]).all()
+    assert pick_count([n, n // 2], scores, 1000.0) == 0
+
+
 def test_mcmc_explore_decides_its_count_the_same_way():
     from exploregs_plugin.strategies import MCMCExploreStrategy
 
