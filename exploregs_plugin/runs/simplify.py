@@ -13,7 +13,8 @@ from dataclasses import dataclass
 
 import torch
 
-from exploregs_plugin.model.significance import blend_weight_totals, most_significant
+from exploregs_plugin import count_trial
+from exploregs_plugin.model.significance import most_significant
 from exploregs_plugin.pipeline import Pipeline
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.base import Strategy
@@ -52,14 +53,12 @@ def finetune(pipeline: Pipeline, step: int, steps: int) -> None:
 def simplify(pipeline: Pipeline, step: int, max_gaussians: int, finetune_steps: int = 0) -> Simplified:
     """Keep the ``max_gaussians`` most significant Gaussians of a loaded run's ``pipeline`` (its
     Adam moments follow the rows), then fine-tune ``finetune_steps`` steps; in place."""
-    model, dm = pipeline.model, pipeline.datamanager
-    if model.parts:
+    if pipeline.model.parts:
         raise ValueError("--max-gaussians is for static scenes: a dynamic run's Gaussians move with time, "
                          "and one view's weights do not say what every time needs")
     params = pipeline.params
     before = int(params["means"].shape[0])
-    significance = blend_weight_totals({k: v.detach() for k, v in params.items()}, dm.train_cameras,
-                                       model.config.raster, pipeline.background)
+    significance = count_trial.significance(pipeline)  # the training views, as the count rule's cut
     keep = most_significant(significance, max_gaussians)
     total = float(significance.sum())
     share = float(significance[keep].sum()) / total if total > 0.0 else 1.0

@@ -87,7 +87,7 @@ def pick_count(counts: Sequence[int], per_view: Sequence[Sequence[float]], toler
     finite = [i for i, scores in enumerate(per_view) if scores and all(math.isfinite(p) for p in scores)]
     if not finite:
         return max(range(len(counts)), key=lambda i: counts[i])
-    best = max(finite, key=lambda i: (sum(per_view[i]) / len(per_view[i]), counts[i]))
+    best = max(finite, key=lambda i: (mean_psnr(per_view[i]), counts[i]))
     kept = [i for i in finite if i == best or paired_deficit(per_view[best], per_view[i]) <= tolerance]
     return min(kept, key=lambda i: (counts[i], i))
 
