@@ -17,7 +17,7 @@ from exploregs_plugin.callbacks import TrainingCallback
 from exploregs_plugin.config_io import config_from_dict
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.strategies import MCMCStrategy, StrategyError, row_ops
+from exploregs_plugin.strategies import DefaultStrategy, MCMCStrategy, StrategyError, row_ops
 from exploregs_plugin.strategies.count_rule import (candidate_counts, held_out_count, held_out_indices, paired_deficit,
                                                     pick_count)
 from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers, synthetic_views
@@ -134,6 +134,29 @@ def test_the_set_grows_to_the_ceiling_and_the_trial_comes_at_the_last_refinement
     assert strategy.exploration_summary(state) == {"auto_cap": 140}
     note = strategy.count_decision(state)
     assert note.startswith("count chosen: 140 of 200 Gaussians (step 190)") and "3 held-out views" in note
+    assert "may need" not in note  # 140 lies between the candidates' ends
+
+
+@pytest.mark.parametrize("strategy, widen", [(MCMCStrategy(cap_max="validated", **WINDOW), "--strategy.count-ceiling"),
+                                             (DefaultStrategy(cap_max="validated", **WINDOW), "--strategy.grow-grad2d")])
+def test_a_pick_at_an_end_of_the_candidates_says_the_count_may_lie_beyond(strategy, widen):
+    """Kept the smallest cut (every cut scored as well as the best): the scene may need fewer, and
+    the line names the field that tries fewer; kept the whole set (every cut cost more than the
+    tolerance): it may need more, and the line names what grows the set further."""
+    flat = [[20.0, 21.0, 22.0]] * 3
+    state = strategy.initialize_state()
+    assert strategy.decide_count(state, 190, [200, 140, 100], flat) == 100
+    note = strategy.count_decision(state)
+    assert "the smallest cut tried: the scene may need fewer" in note and "--strategy.count-cuts" in note
+    state = strategy.initialize_state()
+    falling = [[20.0, 21.0, 22.0], [19.0, 20.0, 21.0], [18.0, 19.0, 20.0]]
+    assert strategy.decide_count(state, 190, [200, 140, 100], falling) == 200
+    note = strategy.count_decision(state)
+    assert "the whole set: the scene may need more" in note and widen in note and "count-cuts" not in note
+    state = strategy.initialize_state()  # no finite score: the whole set, and not "may need more"
+    assert strategy.decide_count(state, 190, [200, 140, 100], [[float("nan")] * 3] * 3) == 200
+    note = strategy.count_decision(state)
+    assert "no candidate scored a finite PSNR" in note and "may need" not in note
 
 
 def test_views_are_held_out_until_the_decision_and_no_trial_comes_twice():

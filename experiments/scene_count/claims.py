@@ -1,5 +1,6 @@
 """The scene-count sweep's tables and claims (issue 55), from the runs of mcmc_caps.yml,
-validated.yml, validated_growing.yml and validated_seedsplit.yml in one bench folder:
+validated.yml, validated_growing.yml, validated_seedsplit.yml and second_seed_*.yml in one bench
+folder:
 
     python experiments/scene_count/claims.py outputs/bench-count
 

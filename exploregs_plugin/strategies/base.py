@@ -129,6 +129,9 @@ class Strategy:
     CAP_WORDS: ClassVar[tuple[str, ...]] = (VALIDATED,)
     """The words cap_max takes besides a count."""
 
+    MORE_GAUSSIANS: ClassVar[str] = "more growth"
+    """What lets the count rule try more Gaussians, for the decision line when it keeps the whole set."""
+
     SCHEDULE_FIELDS: ClassVar[tuple[str, ...]] = (
         "refine_start_iter",
         "refine_stop_iter",
@@ -315,8 +318,23 @@ class Strategy:
         state[COUNT_NOTE] = (f"count chosen: {chosen:,} of {max(counts):,} Gaussians (step {step}), the smallest "
                              f"cut within {self.count_tolerance:g} dB of the best on {views} held-out views, per "
                              f"view with its standard error, each cut fine-tuned {self.count_trial_steps} steps "
-                             f"(held-out PSNR, dB: {tried})")
+                             f"(held-out PSNR, dB: {tried}){self._count_edge(chosen, counts, per_view)}")
         return chosen
+
+    def _count_edge(self, chosen: int, counts: list[int], per_view: list[list[float]]) -> str:
+        """Where the pick is an end of the candidates, the scene's count may lie beyond them: say
+        so, and which field widens the trial (the pick of the smallest cut means every cut scored
+        as well as the best; of the whole set, that every cut cost more than the tolerance)."""
+        scored = sum(1 for scores in per_view if scores and all(math.isfinite(p) for p in scores))
+        if scored == 0:
+            return "; no candidate scored a finite PSNR, so the whole set is kept"
+        if len(counts) < 2:
+            return ""
+        if chosen == min(counts):
+            return "; the smallest cut tried: the scene may need fewer (a smaller last --strategy.count-cuts)"
+        if chosen == max(counts):
+            return f"; the whole set: the scene may need more ({self.MORE_GAUSSIANS})"
+        return ""
 
     def count_decision(self, state: dict[str, Any]) -> str:
         """One line that says what count was kept and why, once a rule has decided ('' before, and

@@ -18,7 +18,7 @@ implements them by running its operators in order; a subclass may also override 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, ClassVar
 
 import torch
 from torch import Tensor
@@ -148,6 +148,8 @@ def prune_mask(
 @dataclass
 class DefaultStrategy(Strategy):
     """3DGS adaptive density control: clone, split, prune, periodic opacity reset."""
+
+    MORE_GAUSSIANS: ClassVar[str] = "a lower --strategy.grow-grad2d"
 
     prune_opa: float = 0.005
     """Prune Gaussians whose opacity is below this value."""

@@ -138,6 +138,7 @@ class MCMCStrategy(Strategy):
     3.2 times its start, mouse's 1.7, beer's 1.1 (docs/results.md)."""
 
     CAP_WORDS: ClassVar[tuple[str, ...]] = (AUTO, VALIDATED)
+    MORE_GAUSSIANS: ClassVar[str] = "a higher --strategy.count-ceiling"
 
     def __post_init__(self) -> None:
         super().__post_init__()
