@@ -325,8 +325,7 @@ class Strategy:
         """Where the pick is an end of the candidates, the scene's count may lie beyond them: say
         so, and which field widens the trial (the pick of the smallest cut means every cut scored
         as well as the best; of the whole set, that every cut cost more than the tolerance)."""
-        scored = sum(1 for scores in per_view if scores and all(math.isfinite(p) for p in scores))
-        if scored == 0:
+        if not count_rule.scored_candidates(per_view):
             return "; no candidate scored a finite PSNR, so the whole set is kept"
         if len(counts) < 2:
             return ""

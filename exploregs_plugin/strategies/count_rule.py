@@ -84,12 +84,18 @@ def pick_count(counts: Sequence[int], per_view: Sequence[Sequence[float]], toler
     largest set is."""
     if len(counts) != len(per_view) or not counts:
         raise ValueError(f"one score list per candidate, got {len(counts)} counts and {len(per_view)} lists")
-    finite = [i for i, scores in enumerate(per_view) if scores and all(math.isfinite(p) for p in scores)]
+    finite = scored_candidates(per_view)
     if not finite:
         return max(range(len(counts)), key=lambda i: counts[i])
     best = max(finite, key=lambda i: (mean_psnr(per_view[i]), counts[i]))
     kept = [i for i in finite if i == best or paired_deficit(per_view[best], per_view[i]) <= tolerance]
     return min(kept, key=lambda i: (counts[i], i))
+
+
+def scored_candidates(per_view: Sequence[Sequence[float]]) -> list[int]:
+    """The indices of the candidates with a finite PSNR on every held-out view (and at least one
+    view): the only ones :func:`pick_count` may keep."""
+    return [i for i, scores in enumerate(per_view) if scores and all(math.isfinite(p) for p in scores)]
 
 
 def mean_psnr(scores: Sequence[float]) -> float:
