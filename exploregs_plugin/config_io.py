@@ -121,6 +121,26 @@ the setting went). A saved config whose value was off loads (the field is droppe
 value is refused with one line that says where it went."""
 
 
+ADDED_FIELDS: dict[str, dict[str, Any]] = {
+    "exploregs_plugin.strategies.default:DefaultStrategy": {
+        "grow_grad2d_height": None,  # the threshold as given at every image height
+        "prune_weight_share": 0.0,  # no significance prune while growing
+    },
+}
+"""Fields a config class gained after runs were saved without them, by the class that has them
+(its subclasses' saved configs included): the value that does what the run did before the field
+existed. A saved config without the field loads with it, so an old run resumes as it trained."""
+
+
+def _with_added(cls: type, names: set[str], value: dict[str, Any]) -> dict[str, Any]:
+    """``value`` with the fields that ``cls`` gained since it was saved set to their old behaviour."""
+    for base in cls.__mro__:
+        for name, old in ADDED_FIELDS.get(f"{base.__module__}:{base.__qualname__}", {}).items():
+            if name in names and name not in value:
+                value = {**value, name: old}
+    return value
+
+
 def _without_removed(cls: type, names: set[str], spec: str, value: dict[str, Any]) -> dict[str, Any]:
     """``value`` without the removed fields of ``cls`` and its bases that ``cls`` does not have
     again (``names``: its fields)."""
@@ -219,7 +239,7 @@ def config_from_dict(value: Any) -> Any:
     if not dataclasses.is_dataclass(cls):
         raise ValueError(f"config type {spec!r} is not a dataclass")
     names = {f.name for f in dataclasses.fields(cls) if f.init}
-    value = _without_removed(cls, names, spec, _with_moved(cls, names, value))
+    value = _with_added(cls, names, _without_removed(cls, names, spec, _with_moved(cls, names, value)))
     unknown = set(value) - names - {_TYPE_KEY}
     if unknown:
         raise ValueError(f"config for {spec} has unknown fields: {sorted(unknown)}")

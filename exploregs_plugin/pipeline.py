@@ -18,7 +18,7 @@ from exploregs_plugin.model.losses import DepthSpace, pooled_psnr, psnr_on_devic
 from exploregs_plugin.nonfinite import NonFiniteError, NonFiniteWatch
 from exploregs_plugin.model.optim import OptimizerConfig, OptimizerSet, batch_betas, batch_lr_scale
 from exploregs_plugin.strategies.observation import ViewError, ViewObservation, observe_render
-from exploregs_plugin.rasterizer import BackendError, backend_problem
+from exploregs_plugin.rasterizer import BackendError, backend_problem, resolve_backend
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
 from exploregs_plugin.strategies.count_rule import MIN_VIEWS, held_out_indices
@@ -83,6 +83,22 @@ def renderer_for(model: GaussianModelConfig, requires: frozenset[str]) -> Gaussi
     return model
 
 
+def strategy_for_renderer(strategy: Any, model: GaussianModelConfig, device: torch.device) -> tuple[Any, list[str]]:
+    """The strategy to train with on the renderer that ``model`` resolves to on ``device``, and
+    the lines that say what changed: a strategy that reads the compositing-weight sums only for
+    an option (Default's significance prune) runs without it on a renderer that has no such sums
+    (gsplat's kernels), rather than falling back to a slower renderer."""
+    if VISIBILITY_STATS not in strategy.requirements() or model.raster.visibility_stats:
+        return strategy, []
+    if resolve_backend(model.raster, device) != "gsplat":
+        return strategy, []
+    without = getattr(strategy, "without_visibility", lambda: None)()
+    if without is None:
+        return strategy, []  # required by the class: the backend check below says why it cannot run
+    return without, [f"note: {type(strategy).__name__}'s significance prune is off: gsplat's kernels do not sum each "
+                     f"Gaussian's compositing weight (--model.raster.backend cpp or torch do)"]
+
+
 @dataclass
 class PipelineConfig:
     """Everything a training step needs: data, model, optimizer, densification strategy, loss."""
@@ -136,7 +152,10 @@ class Pipeline:
             raise ValueError(f"the schedule was resolved for {schedule.views_per_step} views per step but the "
                              f"batch has {self.batch_size}: resolve it with views_per_step={self.batch_size}")
         self.lr_scale = batch_lr_scale(self.batch_size, config.batch_rule)
-        self.requires = config.strategy.requirements()
+        strategy_config, notes = strategy_for_renderer(config.strategy, config.model, device)
+        for note in notes if world.is_main else ():
+            print(note, flush=True)
+        self.requires = strategy_config.requirements()
         model_config = renderer_for(config.model, self.requires)
         problem = backend_problem(model_config.raster, device)
         if problem is not None:
@@ -152,7 +171,7 @@ class Pipeline:
         self.model = model_config.setup(*to_device((dm.points, dm.points_rgb), device), seed=seed)
         self.optim = self._make_optimizer_set()
         self.loss_terms = config.loss_terms()
-        self.strategy = config.strategy.setup(schedule)
+        self.strategy = strategy_config.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
         # Scene centre = mean training-camera centre (seeding measures distances from it).
         centers = torch.stack([camera.camera_center for camera in dm.train_cameras])
@@ -221,16 +240,18 @@ class Pipeline:
         self.nonfinite.loss(step, totals)
         means_lr = self._optimizer_step(step)
         self.check_finite(step)
+        decided = self.strategy.count_decision(self.strategy_state)
         counts = self.strategy.step_post_backward(
             self.params, self.optimizers, self.strategy_state, step, views, lr=means_lr,
             generator=self.generator,
             # the data loss, a tensor as summed (MCMC's cap_max auto reads it once per refinement)
             loss=totals["loss"] - totals["reg"] if "reg" in totals else totals["loss"],
         )
+        notes = self._count_note(decided)
         trial = self.strategy.count_trial_due(self.strategy_state, step, self.model.num_gaussians)
         if trial is not None:  # MCMC's cap_max 'validated', at its last refinement
             count_trial.decide(self, step, trial)
-        notes = self._return_held_views(step)
+        notes += self._return_held_views(step)
         return {
             "loss": totals["loss"],
             "terms": {k: v for k, v in totals.items() if k not in ("loss", "psnr")},
@@ -240,6 +261,12 @@ class Pipeline:
             "means_lr": means_lr,
             "notes": notes,
         }
+
+    def _count_note(self, before: str) -> list[str]:
+        """The strategy's line on the count it kept, once, at the step it was written (a count
+        decided on held-out views is said when they return, by :meth:`_return_held_views`)."""
+        after = self.strategy.count_decision(self.strategy_state)
+        return [after] if after and after != before and not self.datamanager.held_out else []
 
     def _hold_out_views(self) -> None:
         """Keep :func:`held_out_indices` of the training views out of training while the strategy

@@ -33,7 +33,7 @@ def test_beer_colmap_simple_radial_undistorted_reprojects(exploregs_cache: Path)
     root = _scene("beer")
     scene = parse_dataset(str(root), ParseOptions(data_factor=FACTOR, cache_root=exploregs_cache))
     rec = pycolmap.Reconstruction(str(root / "sparse" / "0"))
-    assert len(scene.images) == 71 and scene.points.shape == (4414, 3)
+    assert len(scene.images) == 71 and scene.points.shape == (3896, 3)
     assert scene.scene_extent == pytest.approx(1.1)
     by_name = {im.name: im for im in rec.images.values()}
     errors = []

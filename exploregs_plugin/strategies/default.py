@@ -17,6 +17,7 @@ implements them by running its operators in order; a subclass may also override 
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -27,11 +28,20 @@ from . import row_ops
 from .observation import ViewObservation
 from .base import StepContext, Strategy, StrategyError, require_generator
 from .geometry import max_world_scale
+from .requirements import VISIBILITY_STATS
 from .row_ops import Optimizers, Params, Stats, num_gaussians
+from .significance_prune import (WEIGHT, WEIGHT_STATS, WEIGHT_VIEWS, accumulate_weights, least_significant,
+                                 window_follows_reset)
 
 
 GRAD_STATS = ("grad2d", "count")
 """Per-Gaussian statistics of the gradient criterion, cleared after every densification."""
+REFERENCE_HEIGHT = 720
+"""The image height (pixels) at which Default's threshold is 3DGS's 0.0002 (beer's capture; 3DGS's
+own scenes are 545 to 1080 pixels high)."""
+SIGNIFICANCE_PRUNED, SIGNIFICANCE_NOTE = "significance_pruned", "significance_note"
+"""State of the significance prune: the rows it has removed in all, and the line that says the
+count it left at the end of growth, and why ('' before)."""
 
 
 # ---------------------------------------------------------------------------- pure functions
@@ -43,11 +53,12 @@ def accumulate_grad_stats(
     height: int,
     n_cameras: int = 1,
     downscale: int = 1,
+    reference_height: int | None = None,
 ) -> Tensor:
     """Add this step's NDC gradient norms to ``stats["grad2d"]`` and views to ``stats["count"]``.
 
     pixel_grads: [C, N, 2] dL/d(mean2d) in pixels; visible: [C, N] bool. The stats are created
-    (zeros [N]) on first use. Rows with a non-finite gradient are skipped (neither summed nor
+    (zeros [N]) on first use; ``reference_height``: see :func:`ndc_gradient_norms`. Rows with a non-finite gradient are skipped (neither summed nor
     counted); returns how many visible rows were skipped, a 0-dim long tensor on the gradients'
     device (read only where it is logged: nothing here waits for the device).
     """
@@ -60,7 +71,7 @@ def accumulate_grad_stats(
             f"strategy statistics have {stats['grad2d'].shape[0]} rows but the gradient has {n}: "
             f"the Gaussian set was changed without strategies.row_ops"
         )
-    norms = ndc_gradient_norms(pixel_grads, width, height, n_cameras, downscale)
+    norms = ndc_gradient_norms(pixel_grads, width, height, n_cameras, downscale, reference_height)
     finite = torch.isfinite(norms)
     take = visible & finite
     # Masked adds, camera by camera, instead of an index_add_ over torch.where(take): a nonzero
@@ -73,7 +84,7 @@ def accumulate_grad_stats(
 
 
 def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: int = 1,
-                       downscale: int = 1) -> Tensor:
+                       downscale: int = 1, reference_height: int | None = None) -> Tensor:
     """|dL/d(mean2d)| in NDC units, float32: [..., 2] pixel gradients -> [...].
 
     NDC spans [-1, 1] over W (H) pixels: d/d(ndc) = d/d(pixel) * W/2 (H/2). The n_cameras
@@ -102,6 +113,8 @@ def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: 
     scale = scale * float(n_cameras)
     if downscale != 1:
         scale = scale / float(downscale)
+    if reference_height is not None:
+        scale = scale * (float(height * downscale) / float(reference_height))
     return (pixel_grads.detach().to(torch.float32) * scale).norm(dim=-1)
 
 
@@ -163,6 +176,18 @@ class DefaultStrategy(Strategy):
     """Opacity reset value (opacities are clamped to at most this)."""
     split_scale_factor: float = 1.6
     """Split children get the parent's scales divided by this factor."""
+    grow_grad2d_height: int | None = None
+    """The training-image height (pixels) at which grow_grad2d holds: each view's statistic is
+    scaled by its height H over this one, so the threshold is grow_grad2d x this / H (3DGS's 0.0002
+    at 720 pixels high, REFERENCE_HEIGHT, is 0.0008 at 180). None: grow_grad2d as given at every
+    height (the default: at 720 it cost 0.23 dB and 0.02 LPIPS on beer at --data-factor 4,
+    docs/strategies.md)."""
+    prune_weight_share: float = 0.0
+    """At each refinement (and once more at the end of growth), prune the least significant
+    Gaussians that together painted at most this share of the compositing weight of the window's
+    training views (the renderer sums it as it draws them; docs/strategies.md). 0: off (the
+    default: every share measured cost more than 0.1 dB). Off too when cap_max is a count (the
+    user's count) and on a renderer without the sums (gsplat's)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -170,6 +195,42 @@ class DefaultStrategy(Strategy):
             raise StrategyError(f"reset_opacity must be in (0, 1), got {self.reset_opacity}")
         if self.split_scale_factor <= 0.0:
             raise StrategyError(f"split_scale_factor must be positive, got {self.split_scale_factor}")
+        if self.grow_grad2d_height is not None and self.grow_grad2d_height <= 0:
+            raise StrategyError(f"grow_grad2d_height must be positive or None, got {self.grow_grad2d_height}")
+        if not 0.0 <= self.prune_weight_share < 1.0:
+            raise StrategyError(f"prune_weight_share must be in [0, 1), got {self.prune_weight_share}")
+
+    # ------------------------------------------------------------------ significance prune
+    def prunes_by_significance(self) -> bool:
+        """Whether the significance prune runs: a share above 0 and no count set by the user."""
+        return self.prune_weight_share > 0.0 and not isinstance(self.cap_max, int)
+
+    def requirements(self) -> frozenset[str]:
+        required = super().requirements()
+        return required | {VISIBILITY_STATS} if self.prunes_by_significance() else required
+
+    def without_visibility(self) -> "DefaultStrategy | None":
+        """This strategy for a renderer that cannot sum the compositing weights: the significance
+        prune off (None where the strategy needs the sums for more than that: occlusion-aware splitting)."""
+        without = dataclasses.replace(self, prune_weight_share=0.0)
+        return None if VISIBILITY_STATS in without.requirements() else without
+
+    def initialize_state(self, scene_scale: float = 1.0, scene_center: Tensor | None = None) -> dict[str, Any]:
+        state = super().initialize_state(scene_scale, scene_center)
+        state.update({SIGNIFICANCE_PRUNED: 0, SIGNIFICANCE_NOTE: ""})
+        return state
+
+    def _significance_mask(self, state: dict[str, Any], step: int, window: int) -> Tensor | None:
+        """The rows the significance prune removes at ``step`` (the end of a window of ``window``
+        steps), or None where it does not judge."""
+        stats = state["stats"]
+        if (not self.prunes_by_significance() or WEIGHT not in stats
+                or window_follows_reset(step, window, self.reset_every)):
+            return None
+        return least_significant(stats[WEIGHT], stats[WEIGHT_VIEWS], self.prune_weight_share)
+
+    def count_decision(self, state: dict[str, Any]) -> str:
+        return super().count_decision(state) or state.get(SIGNIFICANCE_NOTE, "")
 
     # ------------------------------------------------------------------ hooks for subclasses
     def size_prune_factor(self, step: int) -> float:
@@ -179,10 +240,15 @@ class DefaultStrategy(Strategy):
     def extra_prune(self, params: Params, state: dict[str, Any], step: int) -> tuple[Tensor | None, dict[str, int]]:
         """More rows to prune at a refinement step, beside the opacity and size criteria.
 
-        Returns (mask [N] bool or None for none, counts to report). Default: none. Overrides
-        call super() first and OR their mask in.
+        Returns (mask [N] bool or None for none, counts to report). Default: the significance
+        prune's rows. Overrides call super() first and OR their mask in.
         """
-        return None, {}
+        mask = self._significance_mask(state, step, self.refine_every)
+        if mask is None:
+            return None, {"pruned_significance": 0}
+        n = int(mask.sum())
+        state[SIGNIFICANCE_PRUNED] = state.get(SIGNIFICANCE_PRUNED, 0) + n
+        return mask, {"pruned_significance": n}
 
     def observe(self, params: Params, state: dict[str, Any], view: ViewObservation) -> dict[str, int]:
         """Read one of this step's views before the Gaussian set changes (inside the window).
@@ -213,9 +279,11 @@ class DefaultStrategy(Strategy):
             if step > self.refine_start_iter and step % self.refine_every == 0:
                 counts["cloned"], counts["split"] = self._grow(params, optimizers, state, ctx.generator)
                 counts.update(self._prune(params, optimizers, state, step))
-                for key in GRAD_STATS:
+                for key in GRAD_STATS + WEIGHT_STATS:
                     if key in state["stats"]:
                         state["stats"][key].zero_()
+        elif step == self.refine_stop_iter and self.prunes_by_significance():
+            counts.update(self._last_significance_prune(params, optimizers, state, step))
         counts.update(self.explore(ctx))
         if in_window and step > 0 and step % self.reset_every == 0:
             row_ops.reset_opacity(params, optimizers, self.reset_opacity)
@@ -223,6 +291,23 @@ class DefaultStrategy(Strategy):
         return counts
 
     # ------------------------------------------------------------------ steps
+    def _last_significance_prune(self, params: Params, optimizers: Optimizers, state: dict[str, Any],
+                                 step: int) -> dict[str, int]:
+        """At the end of growth: judge the views since the last refinement once more (the rows its
+        growth made were not judged yet), and write the line that says the count and why."""
+        last = self.last_refinement()
+        mask = self._significance_mask(state, step, step - last if last > 0 else step)
+        n = row_ops.remove(params, optimizers, state["stats"], mask) if mask is not None and num_gaussians(params) else 0
+        state[SIGNIFICANCE_PRUNED] = state.get(SIGNIFICANCE_PRUNED, 0) + n
+        state[SIGNIFICANCE_NOTE] = (
+            f"count: {num_gaussians(params):,} Gaussians at the end of growth (step {step}): every refinement "
+            f"pruned the least significant Gaussians, those that together painted at most "
+            f"{self.prune_weight_share:.1%} of the training views' blend weight ({state[SIGNIFICANCE_PRUNED]:,} "
+            f"pruned so; --strategy.prune-weight-share 0 turns it off)")
+        for key in WEIGHT_STATS:
+            state["stats"].pop(key, None)
+        return {"pruned": n, "pruned_significance": n}
+
     def _update_stats(self, params: Params, state: dict[str, Any], view: ViewObservation) -> int | Tensor:
         n = num_gaussians(params)
         if n == 0:
@@ -236,9 +321,11 @@ class DefaultStrategy(Strategy):
                 f"the view's 2D-mean gradient has shape {tuple(grad.shape)} but there are {n} Gaussians: "
                 f"the observation must come from rendering the current Gaussian set"
             )
+        if self.prunes_by_significance() and view.visibility is not None:
+            accumulate_weights(state["stats"], view.visibility[:, 0], view.visible())
         return accumulate_grad_stats(
             state["stats"], grad.reshape(1, n, 2), view.visible().reshape(1, n), view.width, view.height, view.n_cameras,
-            view.downscale,
+            view.downscale, self.grow_grad2d_height,
         )
 
     def growth(self, params: Params, state: dict[str, Any]) -> tuple[Tensor, Tensor]:

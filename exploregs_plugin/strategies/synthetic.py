@@ -65,16 +65,21 @@ def adam_steps(
 
 
 def synthetic_views(
-    pixel_grads: Tensor, visible: Tensor, width: int, height: int, camera_center: Tensor | None = None
+    pixel_grads: Tensor, visible: Tensor, width: int, height: int, camera_center: Tensor | None = None,
+    weights: Tensor | None = None,
 ) -> list[ViewObservation]:
     """A step's views as the pipeline gives them to a strategy: one observation whose
     ``means2d.grad`` is ``pixel_grads``.
 
-    pixel_grads: [N, 2] dL/d(mean2d) in pixels; visible: [N] bool (radii are 3 where visible).
+    pixel_grads: [N, 2] dL/d(mean2d) in pixels; visible: [N] bool (radii are 3 where visible);
+    weights: [N] each Gaussian's compositing weight summed over the view's pixels (the view's
+    ``visibility`` [N, 2], alpha summed as the same), None for a view without them.
     """
     n = pixel_grads.shape[0]
     means2d = torch.zeros(n, 2, requires_grad=True)
     means2d.grad = pixel_grads.clone()
     radii = torch.where(visible, 3, 0).to(torch.int32).unsqueeze(-1).expand(n, 2).contiguous()
     center = torch.zeros(3) if camera_center is None else camera_center
-    return [ViewObservation(width=width, height=height, radii=radii, camera_center=center, means2d=means2d)]
+    visibility = None if weights is None else torch.stack([weights, weights], dim=-1).to(torch.float32)
+    return [ViewObservation(width=width, height=height, radii=radii, camera_center=center, means2d=means2d,
+                            visibility=visibility)]

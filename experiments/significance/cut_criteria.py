@@ -1,0 +1,64 @@
+"""Which Gaussians can a finished run lose? Cut criteria compared on one run, no fine-tuning.
+
+For a trained run: each Gaussian's compositing weight S = sum alpha T and its alpha sum A over every
+training view (one pass, SH degree 0), then the set cut by
+- ``share``: the least significant rows whose S adds up to at most q of the total (the significance
+  prune's rule, here with the weights of every training view),
+- ``hidden``: rows whose mean transmittance S / A is below t (drawn, but behind others),
+each scored on the test views (PSNR, LPIPS) against the whole set.
+
+    python experiments/significance/cut_criteria.py RUN_DIR
+"""
+
+from __future__ import annotations
+
+import copy
+import sys
+from dataclasses import replace
+
+import torch
+
+from exploregs_plugin.evaluation import evaluate
+from exploregs_plugin.model.gaussians import render_params
+from exploregs_plugin.rasterizer import RasterSettings
+from exploregs_plugin.runs.load import load_run
+from exploregs_plugin.strategies import row_ops
+from exploregs_plugin.strategies.significance_prune import least_significant
+
+
+@torch.no_grad()
+def weight_sums(pipeline) -> tuple[torch.Tensor, torch.Tensor]:
+    settings = replace(pipeline.model.config.raster or RasterSettings(), visibility_stats=True)
+    params = {k: v.detach() for k, v in pipeline.params.items()}
+    n = params["means"].shape[0]
+    totals = torch.zeros(n, 2, dtype=torch.float64)
+    for camera in pipeline.datamanager.train_cameras:
+        totals += render_params(params, camera, 0, pipeline.background, settings)[3]["visibility"].double()
+    return totals[:, 0], totals[:, 1]
+
+
+def scored(run, mask: torch.Tensor) -> tuple[int, float, float]:
+    pipeline = run.pipeline
+    saved = copy.deepcopy(pipeline.state_dict())
+    row_ops.remove(pipeline.params, pipeline.optimizers, {}, mask)
+    m = evaluate(pipeline.model, pipeline.datamanager)
+    pipeline.load_state_dict(saved)
+    return int((~mask).sum()), m["psnr"], m.get("lpips") or float("nan")
+
+
+def main(path: str) -> None:
+    run = load_run(path, "cpu")
+    s, a = weight_sums(run.pipeline)
+    drawn = (a > 0).float()
+    n = s.shape[0]
+    print(f"{path}: {n} Gaussians")
+    print("whole", scored(run, torch.zeros(n, dtype=torch.bool)))
+    for q in (0.001, 0.003, 0.01):
+        print(f"share {q}", scored(run, least_significant(s, drawn, q)))
+    t_mean = s / a.clamp_min(1e-12)
+    for t in (0.02, 0.05, 0.1, 0.2):
+        print(f"hidden {t}", scored(run, (a > 0) & (t_mean < t)))
+
+
+if __name__ == "__main__":
+    main(sys.argv[1])

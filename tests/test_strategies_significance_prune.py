@@ -1,0 +1,149 @@
+"""The significance prune (strategies/significance_prune.py) and the height-scaled threshold of Default."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from exploregs_plugin.config_io import config_from_dict, config_to_dict
+from exploregs_plugin.model import GaussianModelConfig
+from exploregs_plugin.pipeline import strategy_for_renderer
+from exploregs_plugin.rasterizer import RasterSettings
+from exploregs_plugin.strategies import DefaultStrategy, OcclusionSplittingStrategy, SeedSplitStrategy, StrategyError
+from exploregs_plugin.strategies.default import ndc_gradient_norms
+from exploregs_plugin.strategies.requirements import VISIBILITY_STATS
+from exploregs_plugin.strategies.significance_prune import (WEIGHT, WEIGHT_VIEWS, accumulate_weights,
+                                                            least_significant, window_follows_reset)
+from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_views
+
+W, H = 64, 48
+
+
+def test_least_significant_takes_the_smallest_weights_up_to_the_share_and_never_an_undrawn_row():
+    weights = torch.tensor([5.0, 1.0, 0.5, 3.0, 0.2, 0.0])
+    views = torch.tensor([1.0, 2.0, 1.0, 1.0, 1.0, 0.0])  # the last row: no view drew it
+    # total 9.7; ascending 0.2, 0.5, 1.0 add up to 1.7 <= 0.2 x 9.7 = 1.94; + 3.0 would not
+    assert least_significant(weights, views, 0.2).tolist() == [False, True, True, False, True, False]
+    assert not least_significant(weights, views, 0.0).any()
+    assert least_significant(weights, views, 0.01).tolist() == [False, False, False, False, False, False]
+
+
+def test_least_significant_keeps_at_least_the_unpruned_share_and_breaks_ties_by_index():
+    g = torch.Generator().manual_seed(3)
+    weights = torch.rand(500, generator=g) ** 4 * 100.0
+    views = torch.ones(500)
+    for share in (0.001, 0.05, 0.5, 0.9):
+        pruned = least_significant(weights, views, share)
+        assert weights[pruned].double().sum() <= share * weights.double().sum()
+        # every kept row paints at least as much as every pruned one
+        if pruned.any() and (~pruned).any():
+            assert weights[~pruned].min() >= weights[pruned].max()
+    ties = least_significant(torch.ones(4), torch.ones(4), 0.5)
+    assert ties.tolist() == [True, True, False, False]
+
+
+def test_least_significant_prunes_nothing_where_the_drawn_rows_paint_nothing():
+    assert not least_significant(torch.zeros(5), torch.ones(5), 0.5).any()
+    assert not least_significant(torch.zeros(0), torch.zeros(0), 0.5).any()
+
+
+def test_a_window_that_began_at_an_opacity_reset_is_not_judged():
+    # resets at 200, 400, ...; refinements every 100, the reset after that step's prune
+    assert not window_follows_reset(100, 100, 200)
+    assert not window_follows_reset(200, 100, 200)  # its reset comes after its own prune
+    assert window_follows_reset(300, 100, 200)  # views 201..300 all follow the reset at 200
+    assert not window_follows_reset(400, 100, 200)
+    assert window_follows_reset(750, 150, 200)  # 601..750 follow the reset at 600
+
+
+def test_accumulated_weights_skip_non_finite_values_and_count_the_drawing_views():
+    stats: dict[str, torch.Tensor] = {}
+    accumulate_weights(stats, torch.tensor([1.0, float("nan"), 2.0]), torch.tensor([True, True, False]))
+    accumulate_weights(stats, torch.tensor([0.5, 4.0, float("inf")]), torch.tensor([True, True, True]))
+    assert stats[WEIGHT].tolist() == [1.5, 4.0, 2.0]
+    assert stats[WEIGHT_VIEWS].tolist() == [2.0, 2.0, 1.0]
+
+
+def _strategy(**kw) -> DefaultStrategy:
+    base = dict(refine_start_iter=5, refine_stop_iter=100, refine_every=10, reset_every=1000,
+                grow_grad2d=1e9, prune_opa=0.0, prune_weight_share=0.1)
+    base.update(kw)
+    return DefaultStrategy(**base)
+
+
+def _run_window(strategy: DefaultStrategy, weights: torch.Tensor, last_step: int, first_step: int = 1):
+    g = torch.Generator().manual_seed(0)
+    n = weights.shape[0]
+    params = make_gaussians(n, g)
+    optimizers = make_optimizers(params)
+    state = strategy.initialize_state()
+    counts = {}
+    for step in range(first_step, last_step + 1):
+        views = synthetic_views(torch.zeros(n, 2), torch.ones(n, dtype=torch.bool), W, H, weights=weights)
+        counts = strategy.step_post_backward(params, optimizers, state, step, views, generator=g)
+    return params, state, counts
+
+
+def test_a_refinement_prunes_the_rows_that_painted_least_of_the_window():
+    weights = torch.tensor([10.0, 0.01, 5.0, 0.02, 8.0, 0.5])
+    params, state, counts = _run_window(_strategy(), weights, 10)
+    # total 23.53 a view; 0.01 + 0.02 + 0.5 = 0.53 <= 10% of it, + 5.0 would not be
+    assert counts["pruned_significance"] == 3 and counts["pruned"] == 3
+    assert params["means"].shape[0] == 3
+    assert state["significance_pruned"] == 3
+    assert float(state["stats"][WEIGHT].abs().sum()) == 0.0  # cleared for the next window
+
+
+def test_the_prune_is_off_for_a_users_count_and_at_share_zero():
+    weights = torch.tensor([10.0, 0.01, 5.0])
+    for strategy in (_strategy(cap_max=100), _strategy(prune_weight_share=0.0)):
+        params, _, counts = _run_window(strategy, weights, 10)
+        assert params["means"].shape[0] == 3 and counts["pruned_significance"] == 0
+        assert VISIBILITY_STATS not in strategy.requirements()
+    assert VISIBILITY_STATS in _strategy().requirements()
+    assert VISIBILITY_STATS not in DefaultStrategy().requirements()  # off by default
+    assert VISIBILITY_STATS in SeedSplitStrategy(prune_weight_share=0.05).requirements()
+
+
+def test_the_end_of_growth_judges_once_more_and_says_the_count():
+    weights = torch.tensor([10.0, 0.01, 5.0, 0.02])
+    strategy = _strategy(refine_stop_iter=15)
+    params, state, counts = _run_window(strategy, weights, 15, first_step=11)
+    assert counts["pruned_significance"] == 2 and params["means"].shape[0] == 2
+    note = strategy.count_decision(state)
+    assert note.startswith("count: 2 Gaussians at the end of growth (step 15)") and "10.0%" in note
+
+
+def test_a_renderer_without_the_sums_runs_the_strategy_without_the_prune():
+    gsplat = GaussianModelConfig(raster=RasterSettings(backend="gsplat"))
+    chosen, notes = strategy_for_renderer(DefaultStrategy(prune_weight_share=0.05), gsplat, torch.device("cuda"))
+    assert chosen.prune_weight_share == 0.0 and len(notes) == 1 and "gsplat" in notes[0]
+    occlusion = OcclusionSplittingStrategy(prune_weight_share=0.05)
+    assert strategy_for_renderer(occlusion, gsplat, torch.device("cuda")) == (occlusion, [])  # needs the sums anyway
+    kept, none = strategy_for_renderer(DefaultStrategy(prune_weight_share=0.05), GaussianModelConfig(),
+                                       torch.device("cpu"))
+    assert kept.prune_weight_share == 0.05 and none == []
+
+
+def test_fields_are_checked():
+    with pytest.raises(StrategyError, match="prune_weight_share"):
+        DefaultStrategy(prune_weight_share=1.0)
+    with pytest.raises(StrategyError, match="grow_grad2d_height"):
+        DefaultStrategy(grow_grad2d_height=0)
+
+
+def test_a_config_saved_before_the_fields_existed_loads_as_it_trained():
+    saved = config_to_dict(SeedSplitStrategy(grow_grad2d_height=720, prune_weight_share=0.01))
+    del saved["grow_grad2d_height"], saved["prune_weight_share"]
+    loaded = config_from_dict(saved)
+    assert loaded.grow_grad2d_height is None and loaded.prune_weight_share == 0.0
+
+
+def test_the_height_scaled_statistic_is_the_one_at_the_reference_height():
+    grads = torch.tensor([[[3e-5, 4e-5], [1e-5, 0.0]]])
+    plain = ndc_gradient_norms(grads, W, H)
+    assert torch.equal(ndc_gradient_norms(grads, W, H, reference_height=H), plain)
+    assert torch.allclose(ndc_gradient_norms(grads, W, H, reference_height=4 * H), plain / 4, rtol=1e-6)
+    # a coarse level of a view whose full size is 2H: the statistic of the full-size view
+    level = ndc_gradient_norms(grads, W // 2, H // 2, downscale=2, reference_height=H)
+    assert torch.allclose(level, ndc_gradient_norms(grads, W // 2, H // 2, downscale=2) * 1.0, rtol=1e-6)
