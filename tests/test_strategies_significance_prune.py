@@ -98,7 +98,7 @@ def test_the_prune_is_off_for_a_users_count_and_at_share_zero():
     weights = torch.tensor([10.0, 0.01, 5.0])
     for strategy in (_strategy(cap_max=100), _strategy(prune_weight_share=0.0)):
         params, _, counts = _run_window(strategy, weights, 10)
-        assert params["means"].shape[0] == 3 and counts["pruned_significance"] == 0
+        assert params["means"].shape[0] == 3 and "pruned_significance" not in counts
         assert VISIBILITY_STATS not in strategy.requirements()
     assert VISIBILITY_STATS in _strategy().requirements()
     assert VISIBILITY_STATS not in DefaultStrategy().requirements()  # off by default

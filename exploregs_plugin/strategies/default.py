@@ -58,9 +58,10 @@ def accumulate_grad_stats(
     """Add this step's NDC gradient norms to ``stats["grad2d"]`` and views to ``stats["count"]``.
 
     pixel_grads: [C, N, 2] dL/d(mean2d) in pixels; visible: [C, N] bool. The stats are created
-    (zeros [N]) on first use; ``reference_height``: see :func:`ndc_gradient_norms`. Rows with a non-finite gradient are skipped (neither summed nor
-    counted); returns how many visible rows were skipped, a 0-dim long tensor on the gradients'
-    device (read only where it is logged: nothing here waits for the device).
+    (zeros [N]) on first use; ``reference_height``: see :func:`ndc_gradient_norms`. Rows with a
+    non-finite gradient are skipped (neither summed nor counted); returns how many visible rows
+    were skipped, a 0-dim long tensor on the gradients' device (read only where it is logged:
+    nothing here waits for the device).
     """
     c, n, _ = pixel_grads.shape
     if "grad2d" not in stats:
@@ -243,6 +244,8 @@ class DefaultStrategy(Strategy):
         Returns (mask [N] bool or None for none, counts to report). Default: the significance
         prune's rows. Overrides call super() first and OR their mask in.
         """
+        if not self.prunes_by_significance():
+            return None, {}
         mask = self._significance_mask(state, step, self.refine_every)
         if mask is None:
             return None, {"pruned_significance": 0}
@@ -300,7 +303,7 @@ class DefaultStrategy(Strategy):
         n = row_ops.remove(params, optimizers, state["stats"], mask) if mask is not None and num_gaussians(params) else 0
         state[SIGNIFICANCE_PRUNED] = state.get(SIGNIFICANCE_PRUNED, 0) + n
         state[SIGNIFICANCE_NOTE] = (
-            f"count: {num_gaussians(params):,} Gaussians at the end of growth (step {step}): every refinement "
+            f"count: {num_gaussians(params):,} Gaussians at the end of growth (step {step}): the refinements "
             f"pruned the least significant Gaussians, those that together painted at most "
             f"{self.prune_weight_share:.1%} of the training views' blend weight ({state[SIGNIFICANCE_PRUNED]:,} "
             f"pruned so; --strategy.prune-weight-share 0 turns it off)")
