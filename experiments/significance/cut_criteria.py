@@ -14,26 +14,20 @@ from __future__ import annotations
 
 import copy
 import sys
-from dataclasses import replace
 
 import torch
 
 from exploregs_plugin.evaluation import evaluate
-from exploregs_plugin.model.gaussians import render_params
-from exploregs_plugin.rasterizer import RasterSettings
+from exploregs_plugin.model.significance import visibility_totals
 from exploregs_plugin.runs.load import load_run
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.significance_prune import least_significant
 
 
-@torch.no_grad()
 def weight_sums(pipeline) -> tuple[torch.Tensor, torch.Tensor]:
-    settings = replace(pipeline.model.config.raster or RasterSettings(), visibility_stats=True)
     params = {k: v.detach() for k, v in pipeline.params.items()}
-    n = params["means"].shape[0]
-    totals = torch.zeros(n, 2, dtype=torch.float64)
-    for camera in pipeline.datamanager.train_cameras:
-        totals += render_params(params, camera, 0, pipeline.background, settings)[3]["visibility"].double()
+    totals = visibility_totals(params, pipeline.datamanager.train_cameras, pipeline.model.config.raster,
+                               pipeline.background)
     return totals[:, 0], totals[:, 1]
 
 

@@ -29,18 +29,25 @@ from exploregs_plugin.rasterizer import RasterSettings
 
 
 @torch.no_grad()
-def blend_weight_totals(params: Mapping[str, Tensor], cameras: Iterable[Camera], settings: RasterSettings | None,
-                        background: Tensor | None = None) -> Tensor:
-    """[N] float64: S_j = sum over ``cameras`` and their pixels of alpha_j T_j (see the module).
+def visibility_totals(params: Mapping[str, Tensor], cameras: Iterable[Camera], settings: RasterSettings | None,
+                      background: Tensor | None = None) -> Tensor:
+    """[N, 2] float64: over ``cameras`` and their pixels, each Gaussian's summed alpha_j T_j (its
+    significance, see the module) and summed alpha_j (the same without the occlusion in front).
 
     Rendered at SH degree 0: the weights do not depend on colour, and degree 0 is the cheapest."""
     settings = replace(settings or RasterSettings(), visibility_stats=True)
     means = params["means"]
-    totals = torch.zeros(means.shape[0], dtype=torch.float64, device=means.device)
+    totals = torch.zeros(means.shape[0], 2, dtype=torch.float64, device=means.device)
     for camera in cameras:
         _, _, _, info = render_params(params, camera, 0, background, settings)
-        totals += info["visibility"][:, 0].to(torch.float64)
+        totals += info["visibility"].to(torch.float64)
     return totals
+
+
+def blend_weight_totals(params: Mapping[str, Tensor], cameras: Iterable[Camera], settings: RasterSettings | None,
+                        background: Tensor | None = None) -> Tensor:
+    """[N] float64: S_j = sum over ``cameras`` and their pixels of alpha_j T_j (see the module)."""
+    return visibility_totals(params, cameras, settings, background)[:, 0]
 
 
 def most_significant(significance: Tensor, count: int) -> Tensor:
