@@ -103,6 +103,26 @@ def test_training_loads_the_viewer_and_tensorboard_only_when_used():
     assert out.stdout.strip() == "[]"
 
 
+def test_the_commands_help_loads_no_reader_viewer_or_scene_generator():
+    # eg-train, eg-process and eg-export --help import what they print: pycolmap, viser and the
+    # built-in scenes' generator load when a capture is read or posed, a page written, a scene made
+    import subprocess
+    import sys
+
+    heavy = ("pycolmap", "viser", "exploregs_plugin.data.builtin.presets", "exploregs_plugin.data.process.run")
+    probe = ("import sys, exploregs_plugin.scripts.train, exploregs_plugin.scripts.process, "
+             f"exploregs_plugin.scripts.export; print(sorted(m for m in {heavy!r} if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[]"
+    # and they still load where used: the lazy names resolve
+    from exploregs_plugin import data
+    from exploregs_plugin.data import process
+
+    assert callable(data.parse_dataset) and "builtin:default" in {f"builtin:{k}" for k in data.PRESETS}
+    assert callable(process.process_capture) and callable(process.is_posed)
+
+
 def _module_imports(path: Path, modules: set[str], root: Path = PACKAGE.parent) -> set[str]:
     """The package's modules ``path`` imports: at module level, inside functions and under
     ``if TYPE_CHECKING:`` (a typing-only import still makes the two modules depend on each

@@ -438,10 +438,11 @@ def test_eg_process_takes_the_subfolders_photos_keeping_their_path(capture, tmp_
 def test_the_printed_train_command_pastes_with_a_space_in_the_path(tmp_path, monkeypatch, capsys):
     import shlex
 
+    from exploregs_plugin.data import process as stages
     from exploregs_plugin.scripts import process
 
     out = tmp_path / "my dataset's folder"
-    monkeypatch.setattr(process, "process_capture", lambda inputs, out, options: {})  # the line printed after
+    monkeypatch.setattr(stages, "process_capture", lambda inputs, out, options: {})  # the line printed after
     assert process.main(process.parse_args([str(tmp_path), "--out", str(out)])) == 0
     line = capsys.readouterr().out.strip()
     command = line.split("(train with: ", 1)[1].removesuffix(")")

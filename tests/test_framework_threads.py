@@ -10,13 +10,15 @@ import pytest
 
 from exploregs_plugin.threads import available_cpus, default_threads
 
-# What a console entry point does first (import its module, then run_cli), then what the OpenMP
-# runtime and torch ended up with. OMP_DISPLAY_ENV makes libgomp print the settings it read when
-# torch loaded it: GOMP_SPINCOUNT 0 is passive waiting as the runtime applies it.
+# What a console entry point does (the eg-train script imports its module first, then run_cli),
+# then what the OpenMP runtime and torch ended up with. OMP_DISPLAY_ENV makes each libgomp print
+# the settings it read when it was loaded: GOMP_SPINCOUNT 0 is passive waiting as the runtime
+# applies it. (torch's own libgomp loads with torch: importing torch before the package would
+# leave it spinning, and a second libgomp that loads later, pycolmap's, would hide that.)
 PROBE = """
-import os, torch
-from exploregs_plugin.scripts import run_cli
 from exploregs_plugin.scripts.train import main
+from exploregs_plugin.scripts import run_cli
+import os, torch
 run_cli("probe", lambda _: print("threads", torch.get_num_threads(), os.environ.get("OMP_WAIT_POLICY")), None)
 """
 
@@ -36,7 +38,8 @@ def test_commands_wait_passively_with_one_thread_per_allowed_cpu():
     one = {sorted(os.sched_getaffinity(0))[0]}
     line, runtime = probe(one)
     assert line == "threads 1 PASSIVE"
-    assert "GOMP_SPINCOUNT = '0'" in runtime  # the runtime read the policy: it was set before torch loaded it
+    spin = [ln.strip() for ln in runtime.splitlines() if "GOMP_SPINCOUNT" in ln]
+    assert spin and set(spin) == {"GOMP_SPINCOUNT = '0'"}, spin  # set before torch loaded its runtime
     # every CPU allowed: at most as many threads as CPUs (fewer while other processes keep some busy)
     line, _ = probe()
     assert line.endswith(" PASSIVE") and 1 <= int(line.split()[1]) <= len(os.sched_getaffinity(0))

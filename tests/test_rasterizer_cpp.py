@@ -6,6 +6,7 @@ trains to the same result; a machine that cannot build it gets one clear line.""
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -295,3 +296,27 @@ def test_a_built_extension_loads_past_a_leftover_build_lock(tmp_path):
     code = "from exploregs_plugin.kernels import cpp_problem; print('@', cpp_problem())"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=60)
     assert out.stdout.strip().splitlines()[-1] == "@ None", out.stderr
+
+
+def test_the_build_says_each_unit_as_it_finishes(tmp_path, monkeypatch):
+    """While the kernels build, a line per compiled unit (its object file appears) with the elapsed
+    time, and a line between units when one takes long; a unit left by an interrupted build is
+    not announced again."""
+    import io
+    import time
+
+    from exploregs_plugin.kernels import build
+
+    monkeypatch.setattr(build, "PROGRESS_SECONDS", 0.6)
+    (tmp_path / "sh_cpu.o").touch()  # left by an interrupted build
+    out = io.StringIO()
+    monkeypatch.setattr(build.sys, "stderr", out)
+    with build._BuildProgress(tmp_path, ["composite_cpu", "sh_cpu", "bindings"]) as progress:
+        time.sleep(1.4)  # nothing finishes: the "compiling..." line
+        (tmp_path / "bindings.o").touch()
+        time.sleep(1.0)
+    lines = out.getvalue().splitlines()
+    assert progress.done == {"sh_cpu", "bindings"}
+    assert any(ln.endswith("compiling... 1 of 3 units done") for ln in lines), lines
+    compiled = [ln for ln in lines if "compiled" in ln]
+    assert len(compiled) == 1 and re.fullmatch(r"  \[0:0\d\] compiled bindings \(2 of 3 units\)", compiled[0]), lines

@@ -6,14 +6,29 @@ Public entry points::
     dm = DataManagerConfig(data="builtin:tiny").setup()
 """
 
-from .builtin.presets import PRESETS, ScenePreset, ensure_builtin, make_scene
+import importlib
+from typing import Any
+
 from .cache import CACHE_ENV, cache_root
-from .colmap import read_colmap
 from .datamanager import DataManager, DataManagerConfig
-from .dataparser import parse_dataset
 from .errors import DataError
 from .parsed import REGION_LABELS, ImageRecord, Normalization, ParsedScene, ParseOptions
-from .transforms_json import read_transforms, write_transforms
+
+# The readers and the built-in scenes load on first use: they import pycolmap, PIL and the scene
+# generators, which a command's --help or a config never needs (docs/architecture.md).
+_LAZY = {
+    "PRESETS": ".builtin.presets", "ScenePreset": ".builtin.presets", "ensure_builtin": ".builtin.presets",
+    "make_scene": ".builtin.presets", "read_colmap": ".colmap", "parse_dataset": ".dataparser",
+    "read_transforms": ".transforms_json", "write_transforms": ".transforms_json",
+}
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        value = getattr(importlib.import_module(_LAZY[name], __name__), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 __all__ = [
     "CACHE_ENV",

@@ -19,11 +19,9 @@ from .backgrounds import NAMED, default_background, evident_background
 from .cache import cache_root
 from .errors import DataError
 from .images import box_downscaled, read_image_alpha, resized_size
-from .parsed import REGION_LABELS, ImageRecord, ParsedScene, ParseOptions
-from .dataparser import parse_dataset
+from .parsed import BLENDER_LAYOUT, REGION_LABELS, ImageRecord, ParsedScene, ParseOptions
 from .depth_maps import read_depth_map, warn_masked_depth
 from .random_init import box_points, cube_points, frustum_points
-from .transforms_json import BLENDER_LAYOUT
 
 Background = Literal["white", "black", "random"] | tuple[float, float, float] | None
 
@@ -158,6 +156,8 @@ class DataManager:
     def __init__(self, config: DataManagerConfig) -> None:
         self.config = config
         options = config.parse_options()
+        from .dataparser import parse_dataset  # the readers (pycolmap, the built-in scenes) load when used
+
         self.parsed: ParsedScene = parse_dataset(config.data, options, normalize=config.normalize)
         self.scene_name = self.parsed.name
         names = [im.name for im in self.parsed.images]

@@ -31,6 +31,9 @@ import numpy as np
 
 from .cache import cache_root
 
+BLENDER_LAYOUT = "blender"
+"""``ParsedScene.layout`` of a folder of ``transforms_{train,val,test}.json`` (NeRF-synthetic, D-NeRF)."""
+
 EXTENT_MARGIN = 1.1
 """3DGS enlarges the camera-centre radius by 10% to get the scene extent."""
 

@@ -38,16 +38,13 @@ from .camera_prep import check_camera, check_pose, prepare_image, source_image
 from .colmap import attach_extras
 from .errors import DataError
 from .images import IMAGE_SUFFIXES, image_size
-from .parsed import ParsedScene, ParseOptions
+from .parsed import BLENDER_LAYOUT, ParsedScene, ParseOptions
 
 GL_TO_CV = np.diag([1.0, -1.0, -1.0, 1.0])
 """Right-multiplying a camera-to-world matrix by this flips camera y and z (OpenGL <-> OpenCV)."""
 
 INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
                   "k1", "k2", "k3", "k4", "p1", "p2", "camera_model")
-
-BLENDER_LAYOUT = "blender"
-"""``ParsedScene.layout`` of a folder of ``transforms_{train,val,test}.json`` (NeRF-synthetic, D-NeRF)."""
 
 
 def _load_json(path: Path) -> dict[str, Any]:

@@ -2,7 +2,10 @@
 
 ``csrc/`` holds C++ kernels with OpenMP threads: the EWA projection (``project_cpu.cpp``), SH
 colours (``sh_cpu.cpp``), tile binning and compositing (``composite_cpu.cpp``) of the ``cpp``
-renderer backend, and the fused SSIM loss (``ssim_cpu.cpp``), each forward and backward. They
+renderer backend, and the fused SSIM loss (``ssim_cpu.cpp``), each forward and backward, and the
+Python module's table of them (``bindings.cpp``). The kernel units include only ATen's tensor
+headers and the binding only torch's pybind11 casters: torch/extension.h, which pulls in all of
+libtorch's C++ API, made each unit cost about five times the CPU time. They
 are compiled on first use with PyTorch's extension machinery (``torch.utils.cpp_extension.load``,
 ninja) into torch's extension cache (``$TORCH_EXTENSIONS_DIR``, default
 ``~/.cache/torch_extensions``), under a name that hashes the sources, the torch version and the
@@ -26,6 +29,7 @@ import platform
 import shutil
 import sys
 import sysconfig
+import threading
 import time
 from contextlib import redirect_stderr, redirect_stdout
 from pathlib import Path
@@ -34,7 +38,7 @@ from typing import Any
 import torch
 
 SOURCES = [Path(__file__).parent / "csrc" / name
-           for name in ("composite_cpu.cpp", "project_cpu.cpp", "sh_cpu.cpp", "ssim_cpu.cpp")]
+           for name in ("composite_cpu.cpp", "project_cpu.cpp", "sh_cpu.cpp", "ssim_cpu.cpp", "bindings.cpp")]
 # -ffp-contract=off: no fused multiply-adds, so a vectorised and a scalar iteration of the same
 # loop round alike (the forward and the backward's recomputation give the same T bit for bit).
 CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
@@ -96,8 +100,58 @@ def _import_built(name: str, folder: Path) -> Any:
     return module
 
 
-# A build lock older than this is left over from a killed process (a build takes about a minute).
+# A build lock older than this is left over from a killed process (a build takes well under a
+# minute of CPU time on a usual 2-core machine; a slow one may take a few).
 STALE_LOCK_SECONDS = 600
+PROGRESS_SECONDS = 15.0
+"""While the kernels build, a line at least this often (and one per finished unit), so that a
+slow machine does not look hung."""
+
+
+def _elapsed(seconds: float) -> str:
+    return f"{int(seconds) // 60}:{int(seconds) % 60:02d}"
+
+
+class _BuildProgress:
+    """Prints, from a thread, a line per compiled unit (its object file appears in the build
+    folder) and a line every PROGRESS_SECONDS between them, with the elapsed time."""
+
+    def __init__(self, folder: Path | None, units: list[str]) -> None:
+        self.folder, self.units = folder, units
+        self.out = sys.stderr  # taken before the build redirects sys.stderr into its log
+        self.started = time.monotonic()
+        self.done: set[str] = set()
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="kernel-build-progress", daemon=True)
+
+    def _finished_units(self) -> set[str]:
+        if self.folder is None:
+            return set()
+        return {u for u in self.units if (self.folder / f"{u}.o").exists()}
+
+    def _say(self, text: str) -> None:
+        print(f"  [{_elapsed(time.monotonic() - self.started)}] {text}", file=self.out, flush=True)
+
+    def _run(self) -> None:
+        last = time.monotonic()
+        while not self._stop.wait(0.5):
+            finished = self._finished_units() - self.done
+            for unit in sorted(finished):
+                self.done.add(unit)
+                self._say(f"compiled {unit} ({len(self.done)} of {len(self.units)} units)")
+                last = time.monotonic()
+            if time.monotonic() - last >= PROGRESS_SECONDS:
+                self._say(f"compiling... {len(self.done)} of {len(self.units)} units done")
+                last = time.monotonic()
+
+    def __enter__(self) -> "_BuildProgress":
+        self.done = self._finished_units()  # left by an interrupted build: ninja keeps them
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join()
 
 
 def _clear_stale_lock(folder: Path) -> None:
@@ -128,11 +182,14 @@ def _load() -> tuple[Any, str | None]:
 
     if folder is not None:
         _clear_stale_lock(folder)
-    print("building the compiled CPU kernels (once per machine and version; about a minute)...", file=sys.stderr,
-          flush=True)
+    units = [p.stem for p in SOURCES]
+    print(f"building the compiled CPU kernels: {len(units)} C++ units, once per machine and version "
+          f"(about 28 s of CPU time, measured on a 2-core machine; docs/training.md)", file=sys.stderr, flush=True)
     log = io.StringIO()
+    progress = _BuildProgress(folder, units)
     try:
-        with redirect_stdout(log), redirect_stderr(log):
+        # the progress thread prints to the real stderr, captured before the redirection
+        with progress, redirect_stdout(log), redirect_stderr(log):
             module = load(name=name, sources=[str(p) for p in SOURCES], extra_cflags=CFLAGS,
                           extra_ldflags=LDFLAGS, verbose=False)  # fmt: skip
     except Exception as err:  # a failed build is reported as one line, never a traceback
@@ -140,6 +197,8 @@ def _load() -> tuple[Any, str | None]:
         # the compiler's first "error:" line says more than torch's "Error building extension"
         reason = next((ln.strip() for ln in text if "error:" in ln), text[0] if text else repr(err))
         return None, f"the C++ kernels did not build: {reason[:300]}"
+    print(f"built the compiled CPU kernels in {_elapsed(time.monotonic() - progress.started)} "
+          f"(cached in {folder})", file=sys.stderr, flush=True)
     return module, None
 
 

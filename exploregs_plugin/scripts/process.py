@@ -21,7 +21,7 @@ from typing import Annotated
 
 import tyro
 
-from exploregs_plugin.data.process import ProcessConfig, process_capture
+from exploregs_plugin.data.process import ProcessConfig
 from exploregs_plugin.scripts import parse_cli, run_cli
 
 
@@ -41,6 +41,8 @@ class ProcessArgs:
 
 
 def main(args: ProcessArgs) -> int:
+    from exploregs_plugin.data.process import process_capture  # pycolmap loads here, not for --help
+
     process_capture(args.inputs, args.out, args.options)
     # quoted, so that the command pastes as it is when the path holds a space
     print(f"dataset: {args.out} (train with: eg-train exploregs-seedsplit --data {shlex.quote(str(args.out))})",

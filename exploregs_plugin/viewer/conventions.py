@@ -15,7 +15,6 @@ import math
 
 import numpy as np
 import torch
-import viser.transforms as vtf
 
 from exploregs_plugin.cameras import Camera
 
@@ -46,6 +45,8 @@ def viser_to_camera(
         raise ValueError(f"viser camera needs a non-zero wxyz [4] and a position [3], got {wxyz} and {position}")
     if not np.all(np.isfinite(position)):
         raise ValueError(f"viser camera position must be finite, got {position}")
+    import viser.transforms as vtf  # viser loads where a viewer or a page uses it, not for --help
+
     rot_c2w = vtf.SO3(wxyz / norm).as_matrix()  # [3, 3]
     viewmat = np.eye(4)
     viewmat[:3, :3] = rot_c2w.T
@@ -74,6 +75,8 @@ def camera_to_viser(camera: Camera) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"camera {camera.name!r} has a reflection in its viewmat, not a rotation")
     rot_c2w = rot_w2c.T
     position = -rot_c2w @ viewmat[:3, 3]
+    import viser.transforms as vtf
+
     return vtf.SO3.from_matrix(rot_c2w).wxyz, position
 
 

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import html
+import importlib.util
 import io
 import math
 import shutil
@@ -45,7 +46,6 @@ from pathlib import Path
 import msgspec.msgpack
 import numpy as np
 import torch
-import viser
 import zstandard
 from torch import Tensor
 
@@ -67,8 +67,9 @@ from exploregs_plugin.viewer.scene import measured_extent
 RECORDING_NAME = "scene.viser"
 INDEX_NAME = "index.html"
 README_NAME = "README.txt"
-CLIENT_BUILD = Path(viser.__file__).resolve().parent / "client" / "build"
-"""viser's built client (the folder its own server serves)."""
+CLIENT_BUILD = Path(importlib.util.find_spec("viser").origin).resolve().parent / "client" / "build"
+"""viser's built client (the folder its own server serves). Found without importing viser, which
+loads only when a page is written: eg-export --help does not pay for it."""
 
 SPLATS_NODE = "/gaussians"
 DEFAULT_FOV = math.radians(60.0)
@@ -247,6 +248,8 @@ def record_scene(
     factor = 2.0**exponent
     # viser prints its address and "Server stopped" on stdout even when not verbose; nobody is
     # meant to connect to this server, so that text is kept off the export's output.
+    import viser
+
     with contextlib.redirect_stdout(io.StringIO()):
         server = viser.ViserServer(host="127.0.0.1", port=0, verbose=False)
     try:
@@ -332,6 +335,8 @@ def _copy_client(out_dir: Path, title: str) -> None:
 
 
 def _readme(title: str, count: int) -> str:
+    import viser
+
     return (
         f"{title}: {count:,} Gaussians, shown by viser {viser.__version__}'s web client (no Python needed).\n"
         "\n"

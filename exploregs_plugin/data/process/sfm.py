@@ -17,8 +17,9 @@ from typing import Callable, Iterator, Literal, Sequence
 
 import pycolmap
 
+from .config import Mapper
+
 Matching = Literal["exhaustive", "sequential", "spatial", "retrieval"]
-Mapper = Literal["incremental", "global"]
 SEQUENTIAL_OVERLAP = 10
 """Sequential matching pairs each frame with the next 10 and with those 2^k frames ahead."""
 CROSS_VIDEO_KEYFRAMES = 30

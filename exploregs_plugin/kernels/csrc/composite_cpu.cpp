@@ -18,7 +18,14 @@
 // pair and added up in the order the pairs were made (tiles in row-major order), so the result
 // is the same bit for bit at any thread count.
 
-#include <torch/extension.h>
+// ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
+// five times the CPU time to compile (docs/training.md, "Building the kernels").
+#include <ATen/Dispatch.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
+#include <ATen/ops/zeros.h>
+#include <ATen/ops/zeros_like.h>
 
 #include <omp.h>
 
@@ -97,11 +104,11 @@ inline Lanes<double>::V vexp(Lanes<double>::V x) {
 }
 
 struct Bins {
-  torch::Tensor tile_offsets;  // [T + 1] int64: pairs of tile t are [off[t], off[t+1])
-  torch::Tensor pair_gauss;    // [P] int32: Gaussian row of each pair, front to back inside a tile
-  torch::Tensor pair_slot;     // [P] int64: the pair's slot in making order (Gaussians by depth, tiles row-major)
-  torch::Tensor gauss_first;   // [M] int64: first slot of each Gaussian
-  torch::Tensor gauss_count;   // [M] int64: its number of tiles
+  at::Tensor tile_offsets;  // [T + 1] int64: pairs of tile t are [off[t], off[t+1])
+  at::Tensor pair_gauss;    // [P] int32: Gaussian row of each pair, front to back inside a tile
+  at::Tensor pair_slot;     // [P] int64: the pair's slot in making order (Gaussians by depth, tiles row-major)
+  at::Tensor gauss_first;   // [M] int64: first slot of each Gaussian
+  at::Tensor gauss_count;   // [M] int64: its number of tiles
 };
 
 // Tile range of one Gaussian: the tiles whose pixels may have centres inside its support box,
@@ -124,18 +131,18 @@ inline void tile_rect(scalar_t mx, scalar_t my, scalar_t rx, scalar_t ry, int64_
 }
 
 template <typename scalar_t>
-Bins bin_impl(const torch::Tensor& means2d, const torch::Tensor& support, const torch::Tensor& order,
+Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Tensor& order,
               int64_t width, int64_t height, int64_t ts) {
   const int64_t m = means2d.size(0);
   const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts, n_tiles = tiles_x * tiles_y;
   const auto* mean = means2d.data_ptr<scalar_t>();
   const auto* sup = support.data_ptr<scalar_t>();
   const auto* ord = order.data_ptr<int64_t>();
-  auto i64 = torch::TensorOptions().dtype(torch::kInt64);
+  auto i64 = at::TensorOptions().dtype(at::kLong);
   Bins b;
-  b.tile_offsets = torch::zeros({n_tiles + 1}, i64);
-  b.gauss_first = torch::empty({m}, i64);
-  b.gauss_count = torch::empty({m}, i64);
+  b.tile_offsets = at::zeros({n_tiles + 1}, i64);
+  b.gauss_first = at::empty({m}, i64);
+  b.gauss_count = at::empty({m}, i64);
   auto* off = b.tile_offsets.data_ptr<int64_t>();
   auto* first = b.gauss_first.data_ptr<int64_t>();
   auto* count = b.gauss_count.data_ptr<int64_t>();
@@ -153,8 +160,8 @@ Bins bin_impl(const torch::Tensor& means2d, const torch::Tensor& support, const 
       for (int64_t tx = r[0]; tx <= r[2]; ++tx) off[ty * tiles_x + tx + 1] += 1;
   }
   for (int64_t t = 0; t < n_tiles; ++t) off[t + 1] += off[t];
-  b.pair_gauss = torch::empty({total}, torch::TensorOptions().dtype(torch::kInt32));
-  b.pair_slot = torch::empty({total}, i64);
+  b.pair_gauss = at::empty({total}, at::TensorOptions().dtype(at::kInt));
+  b.pair_slot = at::empty({total}, i64);
   auto* pg = b.pair_gauss.data_ptr<int32_t>();
   auto* ps = b.pair_slot.data_ptr<int64_t>();
   std::vector<int64_t> cursor(off, off + n_tiles);
@@ -464,8 +471,8 @@ Model<scalar_t> make_model(int64_t width, int64_t height, int64_t ts, int64_t nf
 // Largest tile side and feature count the kernels' fixed-size per-tile arrays hold.
 constexpr int64_t MAX_TILE = 64, MAX_FEATURES = 16;
 
-void check_inputs(const torch::Tensor& means2d, const torch::Tensor& conics, const torch::Tensor& opacities,
-                  const torch::Tensor& feats, const torch::Tensor& support, int64_t tile_size) {
+void check_inputs(const at::Tensor& means2d, const at::Tensor& conics, const at::Tensor& opacities,
+                  const at::Tensor& feats, const at::Tensor& support, int64_t tile_size) {
   TORCH_CHECK(tile_size >= 1 && tile_size <= MAX_TILE, "composite_cpu: tile_size must be in 1..64");
   TORCH_CHECK(feats.size(1) <= MAX_FEATURES, "composite_cpu: at most 16 features per Gaussian");
   for (const auto* t : {&means2d, &conics, &opacities, &feats, &support}) {
@@ -486,9 +493,9 @@ struct Inputs {
 };
 
 template <typename scalar_t>
-Inputs<scalar_t> inputs(const torch::Tensor& tile_offsets, const torch::Tensor& pair_gauss,
-                        const torch::Tensor& pair_slot, const torch::Tensor& means2d, const torch::Tensor& conics,
-                        const torch::Tensor& opacities, const torch::Tensor& support, const torch::Tensor& feats) {
+Inputs<scalar_t> inputs(const at::Tensor& tile_offsets, const at::Tensor& pair_gauss,
+                        const at::Tensor& pair_slot, const at::Tensor& means2d, const at::Tensor& conics,
+                        const at::Tensor& opacities, const at::Tensor& support, const at::Tensor& feats) {
   return {tile_offsets.data_ptr<int64_t>(), pair_gauss.data_ptr<int32_t>(), pair_slot.data_ptr<int64_t>(),
           means2d.data_ptr<scalar_t>(),     conics.data_ptr<scalar_t>(),    opacities.data_ptr<scalar_t>(),
           support.data_ptr<scalar_t>(),     feats.data_ptr<scalar_t>()};
@@ -546,7 +553,7 @@ void sum_pairs_impl(const scalar_t* r, const int64_t* first, const int64_t* coun
 }  // namespace
 
 // Binning: returns (tile_offsets [T+1], pair_gauss [P] int32, pair_slot [P], gauss_first [M], gauss_count [M]).
-std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor support, torch::Tensor order, int64_t width,
+std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor order, int64_t width,
                                      int64_t height, int64_t tile_size) {
   TORCH_CHECK(means2d.is_contiguous() && support.is_contiguous() && order.is_contiguous(), "bin_tiles: contiguous");
   Bins b;
@@ -557,15 +564,15 @@ std::vector<torch::Tensor> bin_tiles(torch::Tensor means2d, torch::Tensor suppor
 }
 
 // Forward: out [H, W, F+1] (features, then alpha) and, with stats, per-pair sums [P, 2] of w and alpha.
-std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
-                                             torch::Tensor feats, torch::Tensor support, torch::Tensor tile_offsets,
-                                             torch::Tensor pair_gauss, torch::Tensor pair_slot, int64_t width,
+std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
+                                             at::Tensor feats, at::Tensor support, at::Tensor tile_offsets,
+                                             at::Tensor pair_gauss, at::Tensor pair_slot, int64_t width,
                                              int64_t height, int64_t tile_size, double alpha_max, double alpha_min,
                                              double t_min, bool stats, int64_t threads) {
   check_inputs(means2d, conics, opacities, feats, support, tile_size);
   const int64_t nf = feats.size(1), n_tiles = tile_offsets.size(0) - 1, n_pairs = pair_gauss.size(0);
-  auto out = torch::zeros({height, width, nf + 1}, means2d.options());
-  auto pair_stats = torch::zeros({stats ? n_pairs : 0, 2}, means2d.options());
+  auto out = at::zeros({height, width, nf + 1}, means2d.options());
+  auto pair_stats = at::zeros({stats ? n_pairs : 0, 2}, means2d.options());
   const auto order = tile_order(tile_offsets.data_ptr<int64_t>(), n_tiles);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_forward", [&] {
     const auto md = make_model<scalar_t>(width, height, tile_size, nf, alpha_max, alpha_min, t_min);
@@ -576,15 +583,15 @@ std::vector<torch::Tensor> composite_forward(torch::Tensor means2d, torch::Tenso
 }
 
 // Backward: per-pair gradient sums [P, 6 + F] in making order (mx, my, a, b, c, o, features).
-torch::Tensor composite_backward(torch::Tensor means2d, torch::Tensor conics, torch::Tensor opacities,
-                                 torch::Tensor feats, torch::Tensor support, torch::Tensor tile_offsets,
-                                 torch::Tensor pair_gauss, torch::Tensor pair_slot, torch::Tensor out,
-                                 torch::Tensor grad_out, int64_t width, int64_t height, int64_t tile_size,
+at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
+                                 at::Tensor feats, at::Tensor support, at::Tensor tile_offsets,
+                                 at::Tensor pair_gauss, at::Tensor pair_slot, at::Tensor out,
+                                 at::Tensor grad_out, int64_t width, int64_t height, int64_t tile_size,
                                  double alpha_max, double alpha_min, double t_min, int64_t threads) {
   check_inputs(means2d, conics, opacities, feats, support, tile_size);
   TORCH_CHECK(out.is_contiguous() && grad_out.is_contiguous(), "composite_backward: contiguous");
   const int64_t nf = feats.size(1), n_tiles = tile_offsets.size(0) - 1, n_pairs = pair_gauss.size(0);
-  auto pair_grad = torch::zeros({n_pairs, 6 + nf}, means2d.options());
+  auto pair_grad = at::zeros({n_pairs, 6 + nf}, means2d.options());
   const auto order = tile_order(tile_offsets.data_ptr<int64_t>(), n_tiles);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_backward", [&] {
     const auto md = make_model<scalar_t>(width, height, tile_size, nf, alpha_max, alpha_min, t_min);
@@ -597,51 +604,14 @@ torch::Tensor composite_backward(torch::Tensor means2d, torch::Tensor conics, to
 
 // Per-Gaussian sums of per-pair rows [P, C] (making order): out[g] = sum of rows first[g] ..
 // first[g] + count[g] - 1, in that order (a fixed order: the same bits at any thread count).
-torch::Tensor sum_pairs(torch::Tensor rows, torch::Tensor gauss_first, torch::Tensor gauss_count, int64_t threads) {
+at::Tensor sum_pairs(at::Tensor rows, at::Tensor gauss_first, at::Tensor gauss_count, int64_t threads) {
   TORCH_CHECK(rows.is_contiguous(), "sum_pairs: contiguous");
   const int64_t m = gauss_first.size(0), c = rows.size(1);
-  auto res = torch::zeros({m, c}, rows.options());
+  auto res = at::zeros({m, c}, rows.options());
   const auto* first = gauss_first.data_ptr<int64_t>();
   const auto* count = gauss_count.data_ptr<int64_t>();
   AT_DISPATCH_FLOATING_TYPES(rows.scalar_type(), "sum_pairs", [&] {
     sum_pairs_impl<scalar_t>(rows.data_ptr<scalar_t>(), first, count, m, c, threads, res.data_ptr<scalar_t>());
   });
   return res;
-}
-
-// project_cpu.cpp
-std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
-                                           torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
-                                           int64_t width, int64_t height, double near, double far, double eps2d,
-                                           double sigma_radius, double guard_band, bool antialiased, double alpha_min,
-                                           int64_t threads);
-std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
-                                            torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
-                                            int64_t width, int64_t height, double near, double far, double eps2d,
-                                            double sigma_radius, double guard_band, bool antialiased,
-                                            torch::Tensor g_means2d, torch::Tensor g_conics, torch::Tensor g_opac,
-                                            torch::Tensor g_depths, int64_t threads);
-
-// sh_cpu.cpp
-torch::Tensor sh_forward(torch::Tensor coeffs, torch::Tensor means, torch::Tensor rows, torch::Tensor camera,
-                         int64_t degree, int64_t threads);
-std::vector<torch::Tensor> sh_backward(torch::Tensor coeffs, torch::Tensor means, torch::Tensor rows,
-                                       torch::Tensor camera, int64_t degree, torch::Tensor g_colors, int64_t threads);
-
-// ssim_cpu.cpp
-std::vector<torch::Tensor> ssim_forward(torch::Tensor img, torch::Tensor ref, double c1, double c2, int64_t threads);
-torch::Tensor ssim_backward(torch::Tensor img, torch::Tensor ref, torch::Tensor moments, torch::Tensor grad_map,
-                            double c1, double c2, int64_t threads);
-
-PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("ssim_forward", &ssim_forward, "SSIM map with an 11x11 Gaussian window (forward)");
-  m.def("ssim_backward", &ssim_backward, "SSIM map (backward)");
-  m.def("sh_forward", &sh_forward, "SH colours (forward)");
-  m.def("sh_backward", &sh_backward, "SH colours (backward)");
-  m.def("project_forward", &project_forward, "EWA projection (forward)");
-  m.def("project_backward", &project_backward, "EWA projection (backward)");
-  m.def("bin_tiles", &bin_tiles, "Tile-Gaussian pairs, front to back per tile");
-  m.def("composite_forward", &composite_forward, "Front-to-back compositing (forward)");
-  m.def("composite_backward", &composite_backward, "Front-to-back compositing (backward, per-pair sums)");
-  m.def("sum_pairs", &sum_pairs, "Per-Gaussian sums of per-pair rows in a fixed order");
 }

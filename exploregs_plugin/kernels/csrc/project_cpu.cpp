@@ -15,7 +15,14 @@
 // and the determinant floor where they are active, as autograd gives for the torch code.
 // Every Gaussian writes only its own rows, so the result does not depend on the thread count.
 
-#include <torch/extension.h>
+// ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
+// five times the CPU time to compile (docs/training.md, "Building the kernels").
+#include <ATen/Dispatch.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
+#include <ATen/ops/zeros.h>
+#include <ATen/ops/zeros_like.h>
 
 #include <omp.h>
 
@@ -262,11 +269,11 @@ void project_backward_impl(const Camera<scalar_t>& cam, int64_t n, const scalar_
 }
 
 template <typename scalar_t>
-Camera<scalar_t> make_camera(const torch::Tensor& viewmat, const torch::Tensor& K, int64_t width, int64_t height,
+Camera<scalar_t> make_camera(const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
                              double near, double far, double eps2d, double sigma_radius, double guard_band,
                              bool antialiased) {
-  auto vm = viewmat.to(torch::kFloat64).contiguous();
-  auto kk = K.to(torch::kFloat64).contiguous();
+  auto vm = viewmat.to(at::kDouble).contiguous();
+  auto kk = K.to(at::kDouble).contiguous();
   const double* v = vm.data_ptr<double>();
   const double* k = kk.data_ptr<double>();
   Camera<scalar_t> cam;
@@ -297,8 +304,8 @@ Camera<scalar_t> make_camera(const torch::Tensor& viewmat, const torch::Tensor& 
 }  // namespace
 
 // (means2d [N,2], conics [N,3], opacities [N], depths [N], radii [N,2] int32, support [N,2], visible [N] bool)
-std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
-                                           torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
+std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::Tensor scales,
+                                           at::Tensor opacities, at::Tensor viewmat, at::Tensor K,
                                            int64_t width, int64_t height, double near, double far, double eps2d,
                                            double sigma_radius, double guard_band, bool antialiased, double alpha_min,
                                            int64_t threads) {
@@ -308,9 +315,9 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor qu
   }
   const int64_t n = means.size(0);
   auto opts = means.options();
-  auto means2d = torch::empty({n, 2}, opts), conics = torch::empty({n, 3}, opts), opac = torch::empty({n}, opts);
-  auto depths = torch::empty({n}, opts), support = torch::empty({n, 2}, opts);
-  auto radii = torch::empty({n, 2}, opts.dtype(torch::kInt32)), visible = torch::empty({n}, opts.dtype(torch::kBool));
+  auto means2d = at::empty({n, 2}, opts), conics = at::empty({n, 3}, opts), opac = at::empty({n}, opts);
+  auto depths = at::empty({n}, opts), support = at::empty({n, 2}, opts);
+  auto radii = at::empty({n, 2}, opts.dtype(at::kInt)), visible = at::empty({n}, opts.dtype(at::kBool));
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
     const auto cam = make_camera<scalar_t>(viewmat, K, width, height, near, far, eps2d, sigma_radius, guard_band,
                                            antialiased);
@@ -325,15 +332,15 @@ std::vector<torch::Tensor> project_forward(torch::Tensor means, torch::Tensor qu
 }
 
 // (d means [N,3], d quats [N,4], d scales [N,3], d opacities [N])
-std::vector<torch::Tensor> project_backward(torch::Tensor means, torch::Tensor quats, torch::Tensor scales,
-                                            torch::Tensor opacities, torch::Tensor viewmat, torch::Tensor K,
+std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at::Tensor scales,
+                                            at::Tensor opacities, at::Tensor viewmat, at::Tensor K,
                                             int64_t width, int64_t height, double near, double far, double eps2d,
                                             double sigma_radius, double guard_band, bool antialiased,
-                                            torch::Tensor g_means2d, torch::Tensor g_conics, torch::Tensor g_opac,
-                                            torch::Tensor g_depths, int64_t threads) {
+                                            at::Tensor g_means2d, at::Tensor g_conics, at::Tensor g_opac,
+                                            at::Tensor g_depths, int64_t threads) {
   const int64_t n = means.size(0);
-  auto d_means = torch::empty_like(means), d_quats = torch::empty_like(quats), d_scales = torch::empty_like(scales);
-  auto d_opac = torch::empty_like(opacities);
+  auto d_means = at::empty_like(means), d_quats = at::empty_like(quats), d_scales = at::empty_like(scales);
+  auto d_opac = at::empty_like(opacities);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
     const auto cam = make_camera<scalar_t>(viewmat, K, width, height, near, far, eps2d, sigma_radius, guard_band,
                                            antialiased);

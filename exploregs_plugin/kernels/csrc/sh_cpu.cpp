@@ -3,7 +3,14 @@
 // (|m - camera|^2 floored at 1e-30), real SH up to degree 3 with the constants of sh.py.
 // Each visible Gaussian writes only its own rows: the result does not depend on the thread count.
 
-#include <torch/extension.h>
+// ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
+// five times the CPU time to compile (docs/training.md, "Building the kernels").
+#include <ATen/Dispatch.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
+#include <ATen/ops/zeros.h>
+#include <ATen/ops/zeros_like.h>
 
 #include <omp.h>
 
@@ -140,12 +147,12 @@ void sh_backward_impl(int64_t m, const int64_t* rows, const scalar_t* coeffs, co
 }  // namespace
 
 // colours [M, 3] of the rows `rows` [M] of coeffs [N, K, 3] and means [N, 3], seen from `camera` [3].
-torch::Tensor sh_forward(torch::Tensor coeffs, torch::Tensor means, torch::Tensor rows, torch::Tensor camera,
+at::Tensor sh_forward(at::Tensor coeffs, at::Tensor means, at::Tensor rows, at::Tensor camera,
                          int64_t degree, int64_t threads) {
   TORCH_CHECK(coeffs.is_contiguous() && means.is_contiguous() && rows.is_contiguous(), "sh_cpu: contiguous");
   TORCH_CHECK(degree >= 0 && degree <= 3 && coeffs.size(1) >= (degree + 1) * (degree + 1), "sh_cpu: degree");
   const int64_t m = rows.size(0);
-  auto colors = torch::empty({m, 3}, means.options());
+  auto colors = at::empty({m, 3}, means.options());
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_forward", [&] {
     auto cam = camera.to(means.scalar_type()).contiguous();
     sh_forward_impl<scalar_t>(m, rows.data_ptr<int64_t>(), coeffs.data_ptr<scalar_t>(), means.data_ptr<scalar_t>(),
@@ -156,10 +163,10 @@ torch::Tensor sh_forward(torch::Tensor coeffs, torch::Tensor means, torch::Tenso
 }
 
 // (d coeffs [N, K, 3], d means [N, 3]): zero for the rows not listed.
-std::vector<torch::Tensor> sh_backward(torch::Tensor coeffs, torch::Tensor means, torch::Tensor rows,
-                                       torch::Tensor camera, int64_t degree, torch::Tensor g_colors, int64_t threads) {
+std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Tensor rows,
+                                       at::Tensor camera, int64_t degree, at::Tensor g_colors, int64_t threads) {
   TORCH_CHECK(g_colors.is_contiguous(), "sh_cpu: contiguous");
-  auto d_coeffs = torch::zeros_like(coeffs), d_means = torch::zeros_like(means);
+  auto d_coeffs = at::zeros_like(coeffs), d_means = at::zeros_like(means);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_backward", [&] {
     auto cam = camera.to(means.scalar_type()).contiguous();
     sh_backward_impl<scalar_t>(rows.size(0), rows.data_ptr<int64_t>(), coeffs.data_ptr<scalar_t>(),

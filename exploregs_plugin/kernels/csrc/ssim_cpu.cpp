@@ -12,7 +12,14 @@
 // B1 >= C1 and B2 >= C2 - rounding > 0, so the divisions are safe. Each plane is filtered by one
 // thread in a fixed order: the same bits at any thread count.
 
-#include <torch/extension.h>
+// ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
+// five times the CPU time to compile (docs/training.md, "Building the kernels").
+#include <ATen/Dispatch.h>
+#include <ATen/core/Tensor.h>
+#include <ATen/ops/empty.h>
+#include <ATen/ops/empty_like.h>
+#include <ATen/ops/zeros.h>
+#include <ATen/ops/zeros_like.h>
 
 #include <omp.h>
 
@@ -119,12 +126,12 @@ void ssim_backward_impl(const scalar_t* x, const scalar_t* y, const scalar_t* mo
 
 // img, ref: [C, H, W] contiguous. Returns (ssim map [C, H, W], moments [5, C, H, W]: mu_x, mu_y,
 // e_xx, e_yy, e_xy, kept for the backward).
-std::vector<torch::Tensor> ssim_forward(torch::Tensor img, torch::Tensor ref, double c1, double c2, int64_t threads) {
+std::vector<at::Tensor> ssim_forward(at::Tensor img, at::Tensor ref, double c1, double c2, int64_t threads) {
   TORCH_CHECK(img.is_contiguous() && ref.is_contiguous() && img.sizes() == ref.sizes() && img.dim() == 3,
               "ssim_cpu: img and ref must be contiguous [C, H, W] of one shape");
   const int64_t c = img.size(0), h = img.size(1), w = img.size(2), hw = h * w;
-  auto moments = torch::empty({5, c, h, w}, img.options());
-  auto map = torch::empty({c, h, w}, img.options());
+  auto moments = at::empty({5, c, h, w}, img.options());
+  auto map = at::empty({c, h, w}, img.options());
   AT_DISPATCH_FLOATING_TYPES(img.scalar_type(), "ssim_forward", [&] {
     ssim_forward_impl<scalar_t>(img.data_ptr<scalar_t>(), ref.data_ptr<scalar_t>(), moments.data_ptr<scalar_t>(),
                                 map.data_ptr<scalar_t>(), c, h, w, scalar_t(c1), scalar_t(c2), threads);
@@ -133,13 +140,13 @@ std::vector<torch::Tensor> ssim_forward(torch::Tensor img, torch::Tensor ref, do
 }
 
 // dL/dimg [C, H, W] given dL/dS [C, H, W].
-torch::Tensor ssim_backward(torch::Tensor img, torch::Tensor ref, torch::Tensor moments, torch::Tensor grad_map,
+at::Tensor ssim_backward(at::Tensor img, at::Tensor ref, at::Tensor moments, at::Tensor grad_map,
                             double c1, double c2, int64_t threads) {
   TORCH_CHECK(grad_map.is_contiguous() && moments.is_contiguous(), "ssim_cpu: contiguous");
   const int64_t c = img.size(0), h = img.size(1), w = img.size(2), hw = h * w;
-  auto coef = torch::empty({3, c, h, w}, img.options());  // s dS/dmu_x, s dS/de_xx, s dS/de_xy
-  auto filtered = torch::empty({3, c, h, w}, img.options());
-  auto grad = torch::empty({c, h, w}, img.options());
+  auto coef = at::empty({3, c, h, w}, img.options());  // s dS/dmu_x, s dS/de_xx, s dS/de_xy
+  auto filtered = at::empty({3, c, h, w}, img.options());
+  auto grad = at::empty({c, h, w}, img.options());
   AT_DISPATCH_FLOATING_TYPES(img.scalar_type(), "ssim_backward", [&] {
     ssim_backward_impl<scalar_t>(img.data_ptr<scalar_t>(), ref.data_ptr<scalar_t>(), moments.data_ptr<scalar_t>(),
                                  grad_map.data_ptr<scalar_t>(), coef.data_ptr<scalar_t>(), filtered.data_ptr<scalar_t>(),

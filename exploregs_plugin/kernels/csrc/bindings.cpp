@@ -1,0 +1,62 @@
+// The Python module of the compiled CPU kernels: one table of the functions the other units define.
+// The binding alone needs pybind11 and torch's tensor casters (torch/csrc/utils/pybind.h), not the
+// whole of torch/extension.h, which every unit compiled in before and which cost about five times
+// the CPU time (docs/training.md, "Building the kernels").
+
+#include <ATen/core/Tensor.h>
+#include <torch/csrc/utils/pybind.h>
+
+#include <cstdint>
+#include <vector>
+
+// composite_cpu.cpp
+std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor order, int64_t width,
+                                  int64_t height, int64_t tile_size);
+std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
+                                          at::Tensor feats, at::Tensor support, at::Tensor tile_offsets,
+                                          at::Tensor pair_gauss, at::Tensor pair_slot, int64_t width,
+                                          int64_t height, int64_t tile_size, double alpha_max, double alpha_min,
+                                          double t_min, bool stats, int64_t threads);
+at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities, at::Tensor feats,
+                              at::Tensor support, at::Tensor tile_offsets, at::Tensor pair_gauss,
+                              at::Tensor pair_slot, at::Tensor out, at::Tensor grad_out, int64_t width,
+                              int64_t height, int64_t tile_size, double alpha_max, double alpha_min, double t_min,
+                              int64_t threads);
+at::Tensor sum_pairs(at::Tensor rows, at::Tensor gauss_first, at::Tensor gauss_count, int64_t threads);
+
+// project_cpu.cpp
+std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::Tensor scales,
+                                           at::Tensor opacities, at::Tensor viewmat, at::Tensor K,
+                                           int64_t width, int64_t height, double near, double far, double eps2d,
+                                           double sigma_radius, double guard_band, bool antialiased, double alpha_min,
+                                           int64_t threads);
+std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at::Tensor scales,
+                                            at::Tensor opacities, at::Tensor viewmat, at::Tensor K,
+                                            int64_t width, int64_t height, double near, double far, double eps2d,
+                                            double sigma_radius, double guard_band, bool antialiased,
+                                            at::Tensor g_means2d, at::Tensor g_conics, at::Tensor g_opac,
+                                            at::Tensor g_depths, int64_t threads);
+
+// sh_cpu.cpp
+at::Tensor sh_forward(at::Tensor coeffs, at::Tensor means, at::Tensor rows, at::Tensor camera,
+                         int64_t degree, int64_t threads);
+std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Tensor rows,
+                                       at::Tensor camera, int64_t degree, at::Tensor g_colors, int64_t threads);
+
+// ssim_cpu.cpp
+std::vector<at::Tensor> ssim_forward(at::Tensor img, at::Tensor ref, double c1, double c2, int64_t threads);
+at::Tensor ssim_backward(at::Tensor img, at::Tensor ref, at::Tensor moments, at::Tensor grad_map,
+                            double c1, double c2, int64_t threads);
+
+PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
+  m.def("ssim_forward", &ssim_forward, "SSIM map with an 11x11 Gaussian window (forward)");
+  m.def("ssim_backward", &ssim_backward, "SSIM map (backward)");
+  m.def("sh_forward", &sh_forward, "SH colours (forward)");
+  m.def("sh_backward", &sh_backward, "SH colours (backward)");
+  m.def("project_forward", &project_forward, "EWA projection (forward)");
+  m.def("project_backward", &project_backward, "EWA projection (backward)");
+  m.def("bin_tiles", &bin_tiles, "Tile-Gaussian pairs, front to back per tile");
+  m.def("composite_forward", &composite_forward, "Front-to-back compositing (forward)");
+  m.def("composite_backward", &composite_backward, "Front-to-back compositing (backward, per-pair sums)");
+  m.def("sum_pairs", &sum_pairs, "Per-Gaussian sums of per-pair rows in a fixed order");
+}
