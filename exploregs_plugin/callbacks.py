@@ -13,7 +13,7 @@ from typing import Any
 
 
 class TrainingCallback:
-    """Called by :meth:`exploregs_plugin.training_loop.Trainer.train`, in this order::
+    """Called by :meth:`exploregs_plugin.engine.training_loop.Trainer.train`, in this order::
 
         on_train_start(trainer)                  # before the first step (start_step on resume)
         for each step:

@@ -18,9 +18,9 @@ from typing import TypeVar
 from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.model.dynamic import DynamicGaussianModelConfig
-from exploregs_plugin.pipeline import PipelineConfig
+from exploregs_plugin.engine.pipeline import PipelineConfig
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.trainer import TrainerConfig
+from exploregs_plugin.engine.trainer import TrainerConfig
 
 METHOD_ENTRY_POINT_GROUP = "exploregs.methods"
 

@@ -63,7 +63,7 @@ def tiny_scene_dir(exploregs_cache: Path) -> Path:
 def tiny_run_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A finished 60-step Default run on ``builtin:tiny``, for tests that read a trained run (and
     load it afresh, so the run folder itself is never changed)."""
-    from exploregs_plugin.trainer import TrainerConfig
+    from exploregs_plugin.engine.trainer import TrainerConfig
 
     run_dir = tmp_path_factory.mktemp("tiny-run")
     TrainerConfig(data="builtin:tiny", max_steps=60, run_dir=run_dir, quiet=True, tensorboard=False,
@@ -100,7 +100,7 @@ def ctrl_c_after_step(monkeypatch: pytest.MonkeyPatch, sigint_as_in_a_terminal):
     import os
     import signal
 
-    from exploregs_plugin.pipeline import Pipeline
+    from exploregs_plugin.engine.pipeline import Pipeline
 
     real_step = Pipeline.train_step
 

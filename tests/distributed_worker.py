@@ -17,7 +17,7 @@ from pathlib import Path
 
 import torch
 
-from exploregs_plugin.distributed import DivergenceError, World, leave_world
+from exploregs_plugin.runtime.distributed import DivergenceError, World, leave_world
 from exploregs_plugin.scripts.train import parse_config
 
 

@@ -8,16 +8,17 @@ from pathlib import Path
 import pytest
 
 from exploregs_plugin.analysis.ablations import BRANCH_ABLATION, DEPTH_SUPERVISION, EXPERIMENTS, SPLIT_ABLATION
-from exploregs_plugin.bench.spec import BenchScene, BenchSpec, BenchSpecError, build_config, parse_overrides
+from exploregs_plugin.bench.spec import BenchEntry, BenchScene, BenchSpec, BenchSpecError, build_config, parse_overrides
 from exploregs_plugin.method_configs import get_method
-from exploregs_plugin.trainer import TrainerConfig
+from exploregs_plugin.engine.trainer import TrainerConfig
 
 
 def _by_name(entries):
     return {e.name: e for e in entries}
 
 
-def _config(entry, tmp_path: Path) -> TrainerConfig:
+def _config(run, tmp_path: Path) -> TrainerConfig:
+    entry = BenchEntry(run.name, run.method, run.overrides, run.description)  # as the ablation presets make it
     spec = BenchSpec(entries=(entry,), scenes=(BenchScene("tiny", "builtin:tiny"),), steps=5)
     return build_config(spec, spec.scenes[0], entry, 0, tmp_path)
 

@@ -158,7 +158,7 @@ class _Sink:
 
 
 def test_training_logger_logs_at_its_interval_and_leaves_training_untouched(tiny_dm):
-    from exploregs_plugin.pipeline import PipelineConfig
+    from exploregs_plugin.engine.pipeline import PipelineConfig
     from exploregs_plugin.schedule import ScheduleConfig
 
     schedule = ScheduleConfig().resolve(20)

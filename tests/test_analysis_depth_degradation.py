@@ -78,7 +78,7 @@ def test_non_finite_depth_is_masked_as_no_depth_and_counted(tiny_scene_dir, tmp_
 
 def test_mono_depth_pipeline_degrades_the_map_the_depth_term_reads():
     from exploregs_plugin.analysis.depth_degradation import DegradedDepthTerm, MonoDepthPipelineConfig
-    from exploregs_plugin.loss_terms import DepthTerm, PhotometricTerm, ViewLossInput
+    from exploregs_plugin.engine.loss_terms import DepthTerm, PhotometricTerm, ViewLossInput
     from exploregs_plugin.method_configs import get_method
 
     config = get_method("exploregs-mono-depth").config.pipeline

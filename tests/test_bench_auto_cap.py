@@ -8,7 +8,7 @@ from dataclasses import replace
 
 from exploregs_plugin.bench.components import auto_cap
 from exploregs_plugin.scripts.train import parse_config
-from exploregs_plugin.trainer import Trainer
+from exploregs_plugin.engine.trainer import Trainer
 
 TINY = ["exploregs-mcmc", "--data", "builtin:tiny", "--max-steps", "150", "--schedule.min-refine-every", "10",
         "--num-threads", "1"]

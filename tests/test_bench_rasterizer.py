@@ -9,7 +9,7 @@ import torch
 from exploregs_plugin.bench.components.rasterizer import make_scene, run_child
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.runs.load import load_run
-from exploregs_plugin.trainer import Trainer, TrainerConfig
+from exploregs_plugin.engine.trainer import Trainer, TrainerConfig
 
 
 @pytest.fixture(scope="module")

@@ -171,7 +171,7 @@ def test_parallel_runs_parse_overrides_in_the_main_thread_and_lose_no_output(ben
 def test_real_gpu_preset_at_tiny_scale_matches_counts_through_result_references(tmp_path, tiny_scene_dir):
     from exploregs_plugin.bench.presets import REAL_GPU_STEPS, real_gpu
     from exploregs_plugin.bench.spec import BenchSpecError, build_config
-    from exploregs_plugin.config_io import load_config
+    from exploregs_plugin.io.config_files import load_config
 
     root = tmp_path / "scenes"
     (root / "beer").mkdir(parents=True)

@@ -43,7 +43,7 @@ def test_attribution_quantises_one_value_at_a_time(run_dir, tmp_path):
     assert [r["quantised"] for r in rows] == ["means", "scales", "quats", "opacities", "sh0", "shN"]
     # a PLY keeps every value up to one float32 rounding of the frame map: every row scores as the run
     exact = attribution_rows(run, tmp_path, fmt="ply")
-    from exploregs_plugin.evaluation import evaluate
+    from exploregs_plugin.evaluation.metrics import evaluate
     psnr = evaluate(run.pipeline.model, run.pipeline.datamanager)["psnr"]
     assert all(abs(r["test_psnr"] - psnr) < 1e-3 for r in exact)
     assert "| shN |" in tables([], [], rows)

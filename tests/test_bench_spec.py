@@ -93,7 +93,7 @@ def test_invalid_overrides_name_the_entry_and_argument():
 
 
 def test_a_run_matches_its_config_whatever_its_folder_and_across_added_fields():
-    from exploregs_plugin.config_io import config_to_dict
+    from exploregs_plugin.io.config_files import config_to_dict
 
     spec = preset("quick")
 

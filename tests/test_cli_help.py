@@ -7,7 +7,7 @@ import re
 
 import pytest
 
-from exploregs_plugin.config_io import join_help_lines
+from exploregs_plugin.io.config_files import join_help_lines
 
 
 def _help(capsys, monkeypatch, run, width: int = 120) -> str:

@@ -14,7 +14,7 @@ from exploregs_plugin.scripts import run_cli
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory, exploregs_cache) -> Path:
-    from exploregs_plugin.trainer import TrainerConfig
+    from exploregs_plugin.engine.trainer import TrainerConfig
 
     run_dir = tmp_path_factory.mktemp("mistakes") / "run"
     TrainerConfig(data="builtin:tiny", max_steps=2, run_dir=run_dir, quiet=True, tensorboard=False, eval_count=1,
@@ -61,7 +61,7 @@ def test_ctrl_c_before_the_first_checkpoint_says_nothing_was_saved_and_how_to_st
     import time
 
     from exploregs_plugin.io.checkpoint import list_checkpoints
-    from exploregs_plugin.run_logger import RunLogger
+    from exploregs_plugin.engine.run_logger import RunLogger
     from exploregs_plugin.scripts import train
 
     run_dir = tmp_path / "run"

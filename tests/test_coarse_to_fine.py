@@ -14,7 +14,7 @@ from exploregs_plugin.rasterizer import rasterize
 from exploregs_plugin.schedule import SHORT_FRACTIONS, ScheduleConfig
 from exploregs_plugin.strategies.default import accumulate_grad_stats, ndc_gradient_norms
 from exploregs_plugin.strategies.observation import observe_render
-from exploregs_plugin.trainer import TrainerConfig
+from exploregs_plugin.engine.trainer import TrainerConfig
 
 
 # ---------------------------------------------------------------------------- schedule

@@ -12,16 +12,16 @@ from dataclasses import replace
 import pytest
 import torch
 
-from exploregs_plugin import count_trial
+from exploregs_plugin.engine import count_trial
 from exploregs_plugin.callbacks import TrainingCallback
-from exploregs_plugin.config_io import config_from_dict
+from exploregs_plugin.io.config_files import config_from_dict
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.strategies import DefaultStrategy, MCMCStrategy, StrategyError, row_ops
 from exploregs_plugin.strategies.count_rule import (candidate_counts, held_out_count, held_out_indices, paired_deficit,
                                                     pick_count)
 from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers, synthetic_views
-from exploregs_plugin.trainer import Trainer
+from exploregs_plugin.engine.trainer import Trainer
 
 WINDOW = dict(refine_start_iter=2, refine_stop_iter=200, refine_every=10, reset_every=100, count_trial_steps=5)
 

@@ -103,7 +103,7 @@ def test_gsplat_backend_agrees_with_the_torch_reference():
 
 
 def _train(tmp_path, name: str, device: str, backend: str = "torch", batch_size: int = 1, max_steps: int = 300) -> dict:
-    from exploregs_plugin.trainer import Trainer, TrainerConfig
+    from exploregs_plugin.engine.trainer import Trainer, TrainerConfig
 
     config = TrainerConfig(method_name="exploregs-default", data="builtin:default", max_steps=max_steps, device=device,
                            run_dir=tmp_path / name, quiet=True, tensorboard=False, eval_count=1,
@@ -131,7 +131,7 @@ def test_a_batched_run_on_cuda_matches_the_cpu_run(tmp_path):
 
 def test_checkpoint_from_cuda_resumes_on_cpu(tmp_path):
     from exploregs_plugin.runs import load_run
-    from exploregs_plugin.trainer import Trainer, TrainerConfig
+    from exploregs_plugin.engine.trainer import Trainer, TrainerConfig
 
     config = TrainerConfig(data="builtin:tiny", max_steps=20, device="cuda", run_dir=tmp_path / "run", quiet=True,
                            tensorboard=False, eval_count=1, checkpoint_every=10, save_eval_images=False)
@@ -158,7 +158,7 @@ def test_a_dynamic_run_on_cuda_matches_the_cpu_run_and_resumes_on_cpu(tmp_path):
                        tensorboard=False, eval_count=1, save_eval_images=False,
                        schedule=ScheduleConfig(min_refine_every=20, refine_every_frac=0.1))
 
-    from exploregs_plugin.trainer import Trainer
+    from exploregs_plugin.engine.trainer import Trainer
 
     cpu = Trainer(config("cpu", "cpu")).train()
     gpu_trainer = Trainer(config("cuda", "cuda"))

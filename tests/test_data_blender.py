@@ -18,7 +18,7 @@ from PIL import Image
 from exploregs_plugin.data import DataError, DataManagerConfig, ParseOptions, read_transforms, write_transforms
 from exploregs_plugin.data.backgrounds import border_shares, evident_background
 from exploregs_plugin.data.random_init import cube_bounds, cube_points
-from exploregs_plugin.pipeline import PipelineConfig
+from exploregs_plugin.engine.pipeline import PipelineConfig
 
 W, H = 10, 8
 ANGLE = 2 * math.atan(0.5)  # fx = (w / 2) / tan(angle / 2) = w
@@ -124,7 +124,7 @@ def test_named_and_explicit_backgrounds(tmp_path: Path, option, expected) -> Non
 def test_random_background_recomposites_each_training_view(tmp_path: Path) -> None:
     """--datamanager.background random: the pipeline puts every training view on a random colour
     (target = c a + b (1 - a)) and renders on the same colour; evaluation stays on white."""
-    from exploregs_plugin.pipeline import Pipeline, PipelineConfig
+    from exploregs_plugin.engine.pipeline import Pipeline, PipelineConfig
     from exploregs_plugin.schedule import ScheduleConfig
 
     root = blender_folder(tmp_path / "lego")
@@ -237,7 +237,7 @@ def test_times_reach_every_camera(tmp_path: Path) -> None:
 
 
 def test_dynamic_method_trains_and_evaluates_each_test_camera_at_its_time(tmp_path: Path) -> None:
-    from exploregs_plugin.evaluation import evaluate
+    from exploregs_plugin.evaluation.metrics import evaluate
     from exploregs_plugin.method_configs import get_method
     from exploregs_plugin.schedule import ScheduleConfig
 
@@ -267,7 +267,7 @@ def test_dynamic_method_trains_and_evaluates_each_test_camera_at_its_time(tmp_pa
 
 
 def test_static_method_says_once_that_time_is_ignored(tmp_path: Path, capsys) -> None:
-    from exploregs_plugin.pipeline import PipelineConfig
+    from exploregs_plugin.engine.pipeline import PipelineConfig
     from exploregs_plugin.schedule import ScheduleConfig
 
     root = blender_folder(tmp_path / "dnerf", timed=True)

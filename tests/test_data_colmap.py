@@ -309,7 +309,7 @@ def _tree(root: Path) -> dict[str, tuple[int, int, bytes]]:
 
 def test_a_training_run_leaves_the_dataset_folder_unchanged(scene_copy: Path, tmp_path: Path) -> None:
     """Undistortion and resizing caches go to the cache root, never into the user's dataset."""
-    from exploregs_plugin.trainer import TrainerConfig
+    from exploregs_plugin.engine.trainer import TrainerConfig
 
     _rewrite_model(scene_copy, _simple_radial(0.05))
     before, folder_stamp = _tree(scene_copy), scene_copy.stat().st_mtime_ns

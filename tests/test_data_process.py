@@ -741,13 +741,39 @@ def test_a_folded_model_is_remedied_from_the_neighbours_matches(processed, tmp_p
     assert not (copy / "database-window.db").exists()
 
 
-def test_a_model_no_remedy_mends_is_trained_without_its_suspect_images(processed, tmp_path, monkeypatch, capsys):
+def test_suspect_images_no_remedy_mends_are_registered_again_and_come_back(capture, processed, tmp_path,
+                                                                           monkeypatch, capsys):
+    """Every mapping folds a quarter of the cameras (mirrored): that quarter is left out of the kept
+    model, registered again into it from the database's matches, passes the checks, and comes back
+    posed where the true cameras are."""
     import pycolmap
 
     report, printed, calls, copy = _remap_with(processed, tmp_path, monkeypatch, 3, capsys)
     assert calls == ["database.db", "database-window.db", "database.db"]  # then the other mapper
     quarter = [f"{i:04d}.png" for i in range(N_VIEWS // 2, N_VIEWS // 2 + N_VIEWS // 4)]
+    assert report["came_back"] == quarter and report["left_out"] == [] and report["registered"] == N_VIEWS
+    kept = pycolmap.Reconstruction(str(copy / "sparse" / "0"))
+    assert all(im.has_pose for im in kept.images.values()) and kept.num_reg_images() == N_VIEWS
+    names = [f"{i:04d}.png" for i in range(N_VIEWS)]
+    right = agreement(colmap_cameras(copy), dict(zip(names, capture[2])))
+    assert right["within"] == N_VIEWS and right["max_angle_deg"] < 1.0, right
+    assert "6 suspect images registered again into the kept model: 6 came back" in printed.err
+    assert not [line for line in printed.out.splitlines() if line.startswith("warning:")]
+    assert f"{len(quarter)} suspect images registered again into the checked model and passed its checks" in printed.out
+    state = json.loads((copy / "process_state.json").read_text())["stages"]["mapping"]
+    assert state["came_back"] == quarter and state["left_out"] == []
+
+
+def test_a_model_no_remedy_mends_is_trained_without_the_images_that_do_not_come_back(processed, tmp_path,
+                                                                                    monkeypatch, capsys):
+    import pycolmap
+
+    monkeypatch.setattr(sfm, "register_into", lambda database, rec, names, threads: [])  # none registers again
+    report, printed, calls, copy = _remap_with(processed, tmp_path, monkeypatch, 3, capsys)
+    assert calls == ["database.db", "database-window.db", "database.db"]  # then the other mapper
+    quarter = [f"{i:04d}.png" for i in range(N_VIEWS // 2, N_VIEWS // 2 + N_VIEWS // 4)]
     assert report["left_out"] == quarter and report["registered"] == N_VIEWS - len(quarter)
+    assert report["came_back"] == [] and "0 came back (none), 6 stay out" in printed.err
     kept = pycolmap.Reconstruction(str(copy / "sparse" / "0"))
     assert sorted(im.name for im in kept.images.values() if im.has_pose) == sorted(
         set(f"{i:04d}.png" for i in range(N_VIEWS)) - set(quarter))

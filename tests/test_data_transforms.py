@@ -193,7 +193,7 @@ def test_rgba_alpha_reaches_training_and_random_background(tmp_path: Path) -> No
     import torch
 
     from exploregs_plugin.data import DataManagerConfig
-    from exploregs_plugin.pipeline import Pipeline, PipelineConfig
+    from exploregs_plugin.engine.pipeline import Pipeline, PipelineConfig
     from exploregs_plugin.schedule import ScheduleConfig
 
     root = _blender_folder(tmp_path / "blender")
@@ -233,7 +233,7 @@ def test_rgba_alpha_reaches_training_and_random_background(tmp_path: Path) -> No
 
 def test_random_background_refused_without_alpha(tiny_scene_dir: Path) -> None:
     from exploregs_plugin.data import DataManagerConfig
-    from exploregs_plugin.pipeline import PipelineConfig
+    from exploregs_plugin.engine.pipeline import PipelineConfig
     from exploregs_plugin.schedule import ScheduleConfig
 
     config = PipelineConfig(datamanager=DataManagerConfig(data="builtin:tiny"), random_background=True)

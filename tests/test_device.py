@@ -19,13 +19,13 @@ import torch
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.bench.components.raster_scenes import random_scene
-from exploregs_plugin.device import DeviceError, make_generator, resolve_device, restore_generator, to_device
-from exploregs_plugin.evaluation import evaluate
+from exploregs_plugin.runtime.device import DeviceError, make_generator, resolve_device, restore_generator, to_device
+from exploregs_plugin.evaluation.metrics import evaluate
 from exploregs_plugin.io.checkpoint import latest_checkpoint, load_checkpoint
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.rasterizer import BackendError, RasterSettings, backend_problem, rasterize, rasterize_branched
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.trainer import Trainer, TrainerConfig
+from exploregs_plugin.engine.trainer import Trainer, TrainerConfig
 
 NO_CUDA = not torch.cuda.is_available()
 
@@ -73,7 +73,7 @@ def test_gsplat_backend_problems_say_what_to_do():
     assert backend_problem(RasterSettings(), torch.device("cpu")) is None
     problem = backend_problem(gsplat, torch.device("cpu"))
     assert "--device cuda" in problem and "--model.raster.backend torch" in problem
-    from exploregs_plugin.pipeline import PipelineConfig
+    from exploregs_plugin.engine.pipeline import PipelineConfig
 
     with pytest.raises(BackendError, match="renders with CUDA kernels"):  # refused before any data is read
         PipelineConfig(model=replace(PipelineConfig().model, raster=gsplat)).setup(
@@ -236,7 +236,7 @@ def test_to_device_moves_nested_state():
 
 
 def test_machine_report_says_what_gsplat_will_and_will_not_do(monkeypatch):
-    """`python -m exploregs_plugin.device`: after pip install -e ".[gpu]" on a machine without CUDA,
+    """`python -m exploregs_plugin.runtime.device`: after pip install -e ".[gpu]" on a machine without CUDA,
     one line says gsplat is installed and will not run; with CUDA but no nvcc, what is missing."""
     import importlib.metadata
     import os
@@ -244,7 +244,7 @@ def test_machine_report_says_what_gsplat_will_and_will_not_do(monkeypatch):
     import subprocess
     import sys
 
-    from exploregs_plugin.device import machine_report
+    from exploregs_plugin.runtime.device import machine_report
 
     real_version = importlib.metadata.version
 
@@ -274,7 +274,7 @@ def test_machine_report_says_what_gsplat_will_and_will_not_do(monkeypatch):
     assert "needs nvcc for that (CUDA_HOME=/nonexistent-cuda has no bin/nvcc)" in lines[2]
     monkeypatch.undo()
     # the command itself, as CI runs it (no CUDA toolkit): exit 0, three lines
-    done = subprocess.run([sys.executable, "-m", "exploregs_plugin.device"], capture_output=True, text=True,
+    done = subprocess.run([sys.executable, "-m", "exploregs_plugin.runtime.device"], capture_output=True, text=True,
                           env={**os.environ, "CUDA_HOME": "/nonexistent-cuda"}, timeout=120)
     assert done.returncode == 0 and len(done.stdout.strip().splitlines()) == 3, done.stderr
 

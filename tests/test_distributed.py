@@ -19,12 +19,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from exploregs_plugin.distributed import RANK_ENV, MachineConfig, World, launched_by_torchrun, params_checksum
+from exploregs_plugin.runtime.distributed import RANK_ENV, MachineConfig, World, launched_by_torchrun, params_checksum
 from exploregs_plugin.io.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.model.losses import photometric_loss
 from exploregs_plugin.model.optim import OptimizerConfig, batch_betas
-from exploregs_plugin.pipeline import resolve_batch_size
+from exploregs_plugin.engine.pipeline import resolve_batch_size
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.scripts.launch import free_port, ranks_threads
@@ -32,7 +32,7 @@ from exploregs_plugin.scripts.train import parse_config
 from exploregs_plugin.strategies.budget import resolve_budget
 from exploregs_plugin.strategies.default import accumulate_grad_stats
 from exploregs_plugin.strategies.observation import observe_render
-from exploregs_plugin.trainer import Trainer
+from exploregs_plugin.engine.trainer import Trainer
 
 WORKER = Path(__file__).with_name("distributed_worker.py")
 METHODS = ("exploregs-default", "exploregs-seedsplit", "exploregs-mcmc", "exploregs-guided-occlusion")
@@ -351,8 +351,8 @@ def test_repeated_launcher_signals_are_one_stop_request_but_a_second_sigterm_sto
     """The kernel sends a rank one parent-death signal per thread of its dying launcher: the
     repeats must not stop the rank at once (the other rank would wait in a collective forever),
     and after the loop they are ignored; a SIGTERM after them still means "stop now"."""
-    from exploregs_plugin.distributed import LAUNCHER_GONE, LAUNCHER_PID
-    from exploregs_plugin.stopping import Stopped, StopOnSignals
+    from exploregs_plugin.runtime.distributed import LAUNCHER_GONE, LAUNCHER_PID
+    from exploregs_plugin.engine.stopping import Stopped, StopOnSignals
 
     monkeypatch.setenv(LAUNCHER_PID, "1")
     before = signal.getsignal(LAUNCHER_GONE)

@@ -5,7 +5,7 @@ from pathlib import Path
 
 import pytest
 
-from exploregs_plugin.config_io import load_config, save_config
+from exploregs_plugin.io.config_files import load_config, save_config
 from exploregs_plugin.schedule import ScheduleConfig
 
 
@@ -141,7 +141,7 @@ noise_mode: ray
 def _with_strategy(method: str, strategy_yaml: str) -> dict:
     import yaml
 
-    from exploregs_plugin.config_io import config_to_dict
+    from exploregs_plugin.io.config_files import config_to_dict
     from exploregs_plugin.method_configs import get_method
 
     written = config_to_dict(get_method(method).config)
@@ -152,7 +152,7 @@ def _with_strategy(method: str, strategy_yaml: str) -> dict:
 def test_configs_saved_with_flat_strategy_fields_load_into_the_operators(tmp_path):
     import yaml
 
-    from exploregs_plugin.config_io import config_from_dict, upgraded
+    from exploregs_plugin.io.config_files import config_from_dict, upgraded
     from exploregs_plugin.strategies import MCMCStrategy, PositionNoise, RandomSeeding, RandomSplitting, SeedSplitStrategy
 
     strategy = config_from_dict(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT)).pipeline.strategy
@@ -179,7 +179,7 @@ def test_the_bench_reuses_a_run_saved_with_flat_strategy_fields_only_for_the_sam
 
     from exploregs_plugin.bench.files import JOB_NAME
     from exploregs_plugin.bench.runner import same_config
-    from exploregs_plugin.config_io import config_from_dict
+    from exploregs_plugin.io.config_files import config_from_dict
 
     (tmp_path / JOB_NAME).write_text(yaml.safe_dump(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT), sort_keys=False))
     same = config_from_dict(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT))
@@ -235,7 +235,7 @@ def test_a_config_saved_with_the_core_depth_degradation_loads_or_names_its_metho
 
 
 def test_a_wrapped_error_line_that_starts_with_a_dash_keeps_it():
-    from exploregs_plugin.config_io import tyro_error_text
+    from exploregs_plugin.io.config_files import tyro_error_text
 
     # tyro's box, narrow enough that the bad value "-1" starts a wrapped line
     captured = ("╭─ Value error ──────────────────────────╮\n"
@@ -249,7 +249,7 @@ def test_a_wrapped_error_line_that_starts_with_a_dash_keeps_it():
 
 
 def test_a_config_error_is_named_by_its_flag_not_by_a_class_or_a_group_without_flags(capsys):
-    from exploregs_plugin.config_io import tyro_error_text
+    from exploregs_plugin.io.config_files import tyro_error_text
     from exploregs_plugin.scripts.train import parse_config
 
     def boxed(message: str) -> str:
@@ -272,7 +272,7 @@ def test_a_config_naming_a_renamed_module_loads_and_compares_equal(tmp_path):
     # strategies/ray.py, perturbation.py and operator.py were renamed (ray_perturbation,
     # position_noise, operator_contract): the config.yml of earlier runs names the old modules,
     # and a bench resuming those runs must see the same config (upgraded() rewrites the type)
-    from exploregs_plugin.config_io import MOVED_MODULES, config_to_dict, upgraded
+    from exploregs_plugin.io.config_files import MOVED_MODULES, config_to_dict, upgraded
     from exploregs_plugin.method_configs import get_method
 
     config = get_method("exploregs-ray").config
@@ -289,3 +289,30 @@ def test_a_config_naming_a_renamed_module_loads_and_compares_equal(tmp_path):
 
     assert upgraded(yaml.safe_load(old)) == config_to_dict(config)
     assert MOVED_MODULES["exploregs_plugin.strategies.ray"] == "exploregs_plugin.strategies.ray_perturbation"
+
+
+def test_a_run_config_saved_by_d015f35_loads_and_trains(tmp_path):
+    """config.yml of a run saved by d015f35 (before the engine, evaluation and runtime modules moved
+    into their folders) names exploregs_plugin.trainer, .pipeline, .distributed: it loads into the
+    classes where they live now, trains, saves their new paths and loads again."""
+    from dataclasses import replace
+
+    from exploregs_plugin.engine.pipeline import PipelineConfig
+    from exploregs_plugin.engine.trainer import TrainerConfig
+    from exploregs_plugin.runtime.distributed import MachineConfig
+    from exploregs_plugin.runs import load_run
+
+    saved = Path(__file__).parent / "data" / "run_d015f35" / "config.yml"
+    assert "_type: exploregs_plugin.trainer:TrainerConfig" in saved.read_text()
+    config = load_config(saved)
+    assert type(config) is TrainerConfig and type(config.pipeline) is PipelineConfig
+    assert type(config.machine) is MachineConfig and config.method_name == "exploregs-seedsplit"
+    run_dir = tmp_path / "run"
+    config = replace(config, data="builtin:tiny", max_steps=3, run_dir=run_dir, output_dir=tmp_path, eval_count=1,
+                     tensorboard=False, save_eval_images=False, quiet=True)
+    metrics = config.setup().train()
+    written = (run_dir / "config.yml").read_text()
+    assert "_type: exploregs_plugin.engine.trainer:TrainerConfig" in written
+    assert "exploregs_plugin.trainer:" not in written and "exploregs_plugin.runtime.distributed:MachineConfig" in written
+    run = load_run(run_dir, "cpu")
+    assert run.pipeline.model.num_gaussians == metrics["num_gaussians"] > 0

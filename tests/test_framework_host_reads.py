@@ -19,9 +19,9 @@ import torch
 from torch.overrides import TorchFunctionMode
 
 from exploregs_plugin.callbacks import TrainingCallback
-from exploregs_plugin.collapse import CollapseError, CollapseWatch
+from exploregs_plugin.engine.collapse import CollapseError, CollapseWatch
 from exploregs_plugin.method_configs import get_method
-from exploregs_plugin.nonfinite import NonFiniteWatch
+from exploregs_plugin.engine.nonfinite import NonFiniteWatch
 from exploregs_plugin.schedule import ScheduleConfig
 
 STEPS = 40

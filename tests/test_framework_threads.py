@@ -8,7 +8,7 @@ import sys
 
 import pytest
 
-from exploregs_plugin.threads import available_cpus, default_threads
+from exploregs_plugin.runtime.threads import available_cpus, default_threads
 
 # What a console entry point does (the eg-train script imports its module first, then run_cli),
 # then what the OpenMP runtime and torch ended up with. OMP_DISPLAY_ENV makes each libgomp print
@@ -59,7 +59,7 @@ def test_a_busy_process_on_one_of_two_cpus_leaves_one_thread():
 
 
 def test_idle_cpus_subtract_other_processes_but_not_this_one(tmp_path, monkeypatch):
-    from exploregs_plugin.threads import IdleCpus, threads_for
+    from exploregs_plugin.runtime.threads import IdleCpus, threads_for
 
     monkeypatch.setattr(os, "sched_getaffinity", lambda pid: {0, 1}, raising=False)
     (tmp_path / "self").mkdir()
@@ -81,7 +81,7 @@ def test_idle_cpus_subtract_other_processes_but_not_this_one(tmp_path, monkeypat
 
 
 def test_a_cpu_gets_a_thread_only_when_three_quarters_of_it_is_idle():
-    from exploregs_plugin.threads import threads_for
+    from exploregs_plugin.runtime.threads import threads_for
 
     # a CPU half taken by another process gets no thread: a second thread with half a core makes
     # every equally split parallel region as slow as one thread, plus the waits at its end
@@ -138,10 +138,10 @@ def test_default_threads_follow_affinity_and_omp_num_threads(monkeypatch):
 def test_a_run_follows_the_idle_cpus_between_steps_and_restores_the_count(tmp_path, tiny_scene_dir, monkeypatch):
     import torch
 
-    from exploregs_plugin import thread_follower
-    from exploregs_plugin import trainer as trainer_module
+    from exploregs_plugin.engine import thread_follower
+    from exploregs_plugin.engine import trainer as trainer_module
     from exploregs_plugin.callbacks import TrainingCallback
-    from exploregs_plugin.threads import IdleCpus
+    from exploregs_plugin.runtime.threads import IdleCpus
 
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.setattr(thread_follower, "THREADS_CHECK_SECONDS", 0.0)
@@ -169,10 +169,10 @@ def test_a_run_checks_the_idle_cpus_soon_after_it_starts(tmp_path, tiny_scene_di
     # THREADS_CHECK_SECONDS
     import torch
 
-    from exploregs_plugin import thread_follower
-    from exploregs_plugin import trainer as trainer_module
+    from exploregs_plugin.engine import thread_follower
+    from exploregs_plugin.engine import trainer as trainer_module
     from exploregs_plugin.callbacks import TrainingCallback
-    from exploregs_plugin.threads import IdleCpus
+    from exploregs_plugin.runtime.threads import IdleCpus
 
     monkeypatch.delenv("OMP_NUM_THREADS", raising=False)
     monkeypatch.setattr(thread_follower, "THREADS_CHECK_SECONDS", 1e6)
@@ -200,7 +200,7 @@ def test_a_run_checks_the_idle_cpus_soon_after_it_starts(tmp_path, tiny_scene_di
 def test_num_threads_overrides_the_default(tmp_path, tiny_scene_dir):
     import torch
 
-    from exploregs_plugin.trainer import TrainerConfig
+    from exploregs_plugin.engine.trainer import TrainerConfig
 
     before = torch.get_num_threads()
     try:

@@ -13,13 +13,13 @@ from pathlib import Path
 import pytest
 import torch
 
-from exploregs_plugin.config_io import load_config
-from exploregs_plugin.evaluation import evaluate
+from exploregs_plugin.io.config_files import load_config
+from exploregs_plugin.evaluation.metrics import evaluate
 from exploregs_plugin.io.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
-from exploregs_plugin.pipeline import NonFiniteError
+from exploregs_plugin.engine.pipeline import NonFiniteError
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.trainer import Trainer, TrainerConfig
-from exploregs_plugin.perceptual import lpips_available
+from exploregs_plugin.engine.trainer import Trainer, TrainerConfig
+from exploregs_plugin.evaluation.perceptual import lpips_available
 
 STEPS = 40  # densify at steps 10 and 20 (interval shortened to 10 for these short runs, stop 20)
 
@@ -336,7 +336,7 @@ def test_a_run_started_with_sigint_ignored_trains_on_through_it_and_stops_on_sig
 
 
 def test_training_leaves_an_ignored_sigint_ignored_and_a_handled_one_as_it_was():
-    from exploregs_plugin.stopping import StopOnSignals
+    from exploregs_plugin.engine.stopping import StopOnSignals
 
     before = signal.getsignal(signal.SIGINT)
     try:
@@ -386,14 +386,14 @@ def test_resume_names_the_step_or_says_how_to_start_over(tmp_path, tiny_scene_di
 def test_an_unwritable_run_folder_is_one_line(tmp_path, tiny_scene_dir, monkeypatch, capsys):
     import errno
 
-    from exploregs_plugin import config_io
+    from exploregs_plugin.io import config_files as config_io
     from exploregs_plugin.scripts import run_cli
     from exploregs_plugin.scripts.train import main
 
     def read_only(path, text):
         raise OSError(errno.EROFS, "Read-only file system", str(path))
 
-    monkeypatch.setattr("exploregs_plugin.config_io.atomic_write_text", read_only)
+    monkeypatch.setattr("exploregs_plugin.io.config_files.atomic_write_text", read_only)
     with pytest.raises(SystemExit) as exit_:
         run_cli("eg-train", main, ["exploregs-default", "--data", "builtin:tiny", "--run-dir", str(tmp_path / "ro")])
     assert exit_.value.code == 2 and config_io.atomic_write_text is read_only
@@ -421,7 +421,7 @@ def test_a_bad_value_is_one_line_with_the_valid_range(capsys):
 def test_runs_started_in_the_same_second_get_their_own_folders(tmp_path, tiny_scene_dir, monkeypatch):
     from datetime import datetime
 
-    import exploregs_plugin.run_folder as run_folder_module
+    import exploregs_plugin.engine.run_folder as run_folder_module
 
     class Frozen(datetime):
         @classmethod
@@ -539,7 +539,7 @@ def test_a_collapsing_run_stops_naming_the_learning_rate(tmp_path, tiny_scene_di
 
 
 def test_a_normal_run_never_trips_the_collapse_watch():
-    from exploregs_plugin.collapse import CollapseWatch
+    from exploregs_plugin.engine.collapse import CollapseWatch
 
     watch = CollapseWatch()
     # a healthy curve with view-to-view noise, then an opacity reset (step 60) whose renders are
@@ -558,7 +558,7 @@ def test_a_normal_run_never_trips_the_collapse_watch():
 
 
 def test_the_collapse_watch_can_be_switched_off(tmp_path):
-    from exploregs_plugin.collapse import CollapseError
+    from exploregs_plugin.engine.collapse import CollapseError
     from exploregs_plugin.scripts.train import parse_config
 
     # the training PSNR of a batch step falling from 20 dB to 2 dB stops a run; with
@@ -578,7 +578,7 @@ def test_the_collapse_watch_can_be_switched_off(tmp_path):
 
 
 def test_the_collapse_watch_judges_a_view_against_its_own_record():
-    from exploregs_plugin.collapse import CollapseWatch
+    from exploregs_plugin.engine.collapse import CollapseWatch
 
     # beer at step 300 of a healthy run: the views alternate between about 18 and 28 dB, which a
     # running mean of the raw PSNR takes for a 10 dB fall; against each view's own best it is none
@@ -598,7 +598,7 @@ def test_the_collapse_watch_judges_a_view_against_its_own_record():
     watch.update(420, 20.0, 0.05, view=1, restart=True)
     assert all(watch.update(421 + k, psnr - 12.0, 0.05, view=view) is None for k, (view, psnr) in enumerate(views))
     # a refinement that pruned a large share of the set restarts it too (the world-size prune)
-    from exploregs_plugin.collapse import deliberate_setback
+    from exploregs_plugin.engine.collapse import deliberate_setback
 
     assert deliberate_setback({"pruned": 200, "opacity_reset": 0}, 1000) and deliberate_setback({"opacity_reset": 1}, 5)
     assert not deliberate_setback({"pruned": 50}, 1000) and not deliberate_setback({}, 0)

@@ -104,7 +104,7 @@ def test_schedule_fields_come_from_the_run_and_mcmc_refines_until_25_of_30():
 
 
 def test_eg_train_sets_the_fields_by_name(tmp_path):
-    from exploregs_plugin.config_io import load_config, save_config
+    from exploregs_plugin.io.config_files import load_config, save_config
     from exploregs_plugin.scripts.train import parse_config
 
     config = parse_config(["exploregs-default", "--strategy", "gsplat-default", "--strategy.grow-grad2d", "0.0005",
@@ -125,7 +125,7 @@ def test_a_config_saved_under_the_adapters_old_module_loads(tmp_path):
     # config.yml of runs made before the adapters were named by direction names gsplat_in_eg
     import yaml
 
-    from exploregs_plugin.config_io import load_config, save_config
+    from exploregs_plugin.io.config_files import load_config, save_config
     from exploregs_plugin.scripts.train import parse_config
 
     config = parse_config(["exploregs-default", "--strategy", "gsplat-default", "--strategy.grow-grad2d", "0.0005"])
@@ -373,7 +373,7 @@ def test_mcmc_step_relocates_grows_and_repeats_for_a_seed():
 
 # ------------------------------------------------------------------------------ eg-train on builtin:tiny
 def _train(name: str, run_dir, steps: int = 40):
-    from exploregs_plugin.evaluation import evaluate
+    from exploregs_plugin.evaluation.metrics import evaluate
     from exploregs_plugin.scripts.train import parse_config
 
     config = parse_config(["exploregs-default", "--strategy", name, "--data", "builtin:tiny", "--max-steps",

@@ -16,7 +16,7 @@ from exploregs_plugin.model.gaussians import render_params
 from exploregs_plugin.runs import load_run
 from exploregs_plugin.scripts import export as export_script
 from exploregs_plugin.scripts import render as render_script
-from exploregs_plugin.trainer import TrainerConfig
+from exploregs_plugin.engine.trainer import TrainerConfig
 
 
 @pytest.fixture(scope="module")
@@ -168,7 +168,7 @@ def test_cli_errors_are_clear(run, tmp_path, monkeypatch, capsys):
 
 
 def test_imported_ply_evaluates_like_the_run(run, tmp_path):
-    from exploregs_plugin.evaluation import evaluate
+    from exploregs_plugin.evaluation.metrics import evaluate
     from exploregs_plugin.runs.scene import model_from_params
 
     model, dm = run.pipeline.model, run.pipeline.datamanager

@@ -24,7 +24,7 @@ from exploregs_plugin.runs import load_run
 from exploregs_plugin.runs.scene import dataset_normalization
 from exploregs_plugin.scripts import export as export_script
 from exploregs_plugin.scripts import render as render_script
-from exploregs_plugin.trainer import TrainerConfig
+from exploregs_plugin.engine.trainer import TrainerConfig
 
 F32_EPS = float(np.finfo(np.float32).eps)  # 2^-23: a float32 result is within |x| 2^-24 of its float64 value
 

@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from exploregs_plugin.loss_terms import DepthTerm, PhotometricTerm, ViewLossInput, view_loss
+from exploregs_plugin.engine.loss_terms import DepthTerm, PhotometricTerm, ViewLossInput, view_loss
 from exploregs_plugin.model.losses import depth_l1, photometric_loss
-from exploregs_plugin.pipeline import PipelineConfig
+from exploregs_plugin.engine.pipeline import PipelineConfig
 
 
 def _view(with_depth: bool = True) -> ViewLossInput:

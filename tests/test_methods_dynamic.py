@@ -16,7 +16,7 @@ from PIL import Image
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.trainer import Trainer
+from exploregs_plugin.engine.trainer import Trainer
 
 STEPS = 60  # warm-up to step 12, densify at 10, 20, 30 (interval shortened for these short runs)
 
@@ -161,7 +161,7 @@ def test_eg_render_renders_the_test_camera_over_time(split_run, tmp_path):
 
 def test_time_on_a_static_run_is_refused(tmp_path, tiny_scene_dir):
     from exploregs_plugin.scripts.render import RenderArgs, main
-    from exploregs_plugin.trainer import TrainerConfig
+    from exploregs_plugin.engine.trainer import TrainerConfig
 
     TrainerConfig(data="builtin:tiny", max_steps=2, run_dir=tmp_path / "run", quiet=True, tensorboard=False,
                   eval_count=1, save_eval_images=False).setup().train()

@@ -12,7 +12,7 @@ import torch
 
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.trainer import Trainer
+from exploregs_plugin.engine.trainer import Trainer
 
 STEPS = 30
 SHORT_SCHEDULE = ScheduleConfig(min_refine_every=10)  # 3DGS's 100-step interval shortened for 30 steps

@@ -1,10 +1,10 @@
-"""NonFiniteWatch's per-parameter count of non-finite rows (exploregs_plugin/nonfinite.py)."""
+"""NonFiniteWatch's per-parameter count of non-finite rows (exploregs_plugin/engine/nonfinite.py)."""
 
 from __future__ import annotations
 
 import torch
 
-from exploregs_plugin.nonfinite import nonfinite_count
+from exploregs_plugin.engine.nonfinite import nonfinite_count
 
 
 def test_nonfinite_rows_are_counted_from_row_sums_as_from_every_value():

@@ -15,8 +15,9 @@ import torch
 import torch.nn.functional as F
 from PIL import Image
 
-from exploregs_plugin import evaluation, perceptual
-from exploregs_plugin.perceptual import (MIN_SIDE, LpipsWeightsError, lpips_available, lpips_distance, lpips_network,
+from exploregs_plugin.evaluation import metrics as evaluation
+from exploregs_plugin.evaluation import perceptual
+from exploregs_plugin.evaluation.perceptual import (MIN_SIDE, LpipsWeightsError, lpips_available, lpips_distance, lpips_network,
                                          restricted_load)
 
 DATA = Path(__file__).parent / "data" / "lpips"

@@ -143,7 +143,7 @@ def test_built_in_names_select_the_named_methods_strategy_and_bad_names_are_one_
 
 def test_strategies_declare_what_they_need_and_the_renderer_computes_just_that():
     from exploregs_plugin.model import GaussianModelConfig
-    from exploregs_plugin.pipeline import renderer_for
+    from exploregs_plugin.engine.pipeline import renderer_for
     from exploregs_plugin.strategies import SeedSplitStrategy
     from exploregs_plugin.strategies.base import StrategyError
     from exploregs_plugin.strategies.operator_contract import Operator

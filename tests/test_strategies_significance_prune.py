@@ -5,9 +5,9 @@ from __future__ import annotations
 import pytest
 import torch
 
-from exploregs_plugin.config_io import config_from_dict, config_to_dict
+from exploregs_plugin.io.config_files import config_from_dict, config_to_dict
 from exploregs_plugin.model import GaussianModelConfig
-from exploregs_plugin.pipeline import strategy_for_renderer
+from exploregs_plugin.engine.pipeline import strategy_for_renderer
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.strategies import DefaultStrategy, OcclusionSplittingStrategy, SeedSplitStrategy, StrategyError
 from exploregs_plugin.strategies.default import ndc_gradient_norms

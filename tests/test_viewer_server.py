@@ -165,7 +165,7 @@ def test_eg_view_shows_a_plys_cameras_at_the_data_factor(tmp_path: Path, tiny_sc
 def test_viewer_on_a_training_pipeline(tiny_scene_dir: Path) -> None:
     """The trainer's hooks on a real pipeline: snapshots follow the steps, the Gaussian count
     follows densification, cameras, thumbnails and initial points come from the datamanager."""
-    from exploregs_plugin.trainer import TrainerConfig
+    from exploregs_plugin.engine.trainer import TrainerConfig
 
     config = TrainerConfig(data="builtin:tiny", max_steps=3)
     pipeline = config.pipeline.setup(config.schedule.resolve(config.max_steps), config.seed)

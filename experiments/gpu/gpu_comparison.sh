@@ -124,7 +124,7 @@ export MAX_JOBS TORCH_CUDA_ARCH_LIST=$ARCH
 export PYTHONPATH=$SITE
 # eg-train: the editable install puts it beside the interpreter's other scripts
 PATH=$(python3 -c 'import sysconfig; print(sysconfig.get_path("scripts"))'):$PATH
-python3 -m exploregs_plugin.device 2>&1 | tee -a "$SETUP"
+python3 -m exploregs_plugin.runtime.device 2>&1 | tee -a "$SETUP"
 
 # ---- builds (both at once)
 header "builds: gsplat's kernels, fused-ssim (MAX_JOBS=$MAX_JOBS TORCH_CUDA_ARCH_LIST=$ARCH)" | tee -a "$SETUP"

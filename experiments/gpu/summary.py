@@ -31,7 +31,7 @@ from typing import Any
 
 from exploregs_plugin.bench.runner import read_json
 from exploregs_plugin.bench.time_quality import seconds_to_reach
-from exploregs_plugin.training_loop import METRICS_NAME
+from exploregs_plugin.engine.training_loop import METRICS_NAME
 
 
 def simple_trainer_history(run_dir: str) -> list[dict[str, Any]]:

@@ -26,7 +26,7 @@ from exploregs_plugin.bench.far_region import RESULT_NAME as FAR_REGION_NAME
 from exploregs_plugin.bench.runner import read_json
 from exploregs_plugin.io.checkpoint import load_run_checkpoint
 from exploregs_plugin.io.ply import export_ply
-from exploregs_plugin.training_loop import METRICS_NAME
+from exploregs_plugin.engine.training_loop import METRICS_NAME
 
 NEAR_DB = 0.1
 """A cap is as good as the best when its PSNR is within this of the best's."""

@@ -24,7 +24,7 @@ import json
 import time
 from pathlib import Path
 
-from exploregs_plugin.evaluation import evaluate
+from exploregs_plugin.evaluation.metrics import evaluate
 from exploregs_plugin.runs import load_run
 from exploregs_plugin.runs.simplify import simplify
 

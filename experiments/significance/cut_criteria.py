@@ -17,7 +17,7 @@ import sys
 
 import torch
 
-from exploregs_plugin.evaluation import evaluate
+from exploregs_plugin.evaluation.metrics import evaluate
 from exploregs_plugin.model.significance import visibility_totals
 from exploregs_plugin.runs.load import load_run
 from exploregs_plugin.strategies import row_ops

@@ -1,15 +1,31 @@
-"""The paper's ablations as bench entries, written in eg-train's own arguments.
+"""The paper's ablations as runs, written in eg-train's own arguments.
 
-Each experiment is a tuple of :class:`BenchEntry` (name, method, eg-train arguments); the bench
-runner turns an entry into a TrainerConfig with the same parser as ``eg-train``
-(:func:`exploregs_plugin.bench.spec.build_config`), so there is one override language.
+Each experiment is a tuple of :class:`AblationRun` (name, method, eg-train arguments). eg-bench's
+ablation presets make each run a row of their tables (``bench/presets.py``: a ``BenchEntry`` with
+the same fields), and the bench runner turns it into a TrainerConfig with the same parser as
+``eg-train`` (:func:`exploregs_plugin.bench.spec.build_config`), so there is one override language.
+The research code states what to run; it does not import the harness that runs it.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
 from itertools import combinations
 
-from exploregs_plugin.bench.spec import BenchEntry
+
+@dataclass(frozen=True)
+class AblationRun:
+    """One run of an ablation: a registered method plus eg-train arguments."""
+
+    name: str
+    """Row name (``no-cov``, ``seed+depth``)."""
+    method: str
+    """Registered method, e.g. ``exploregs-branch-ablation``."""
+    overrides: tuple[str, ...] = ()
+    """eg-train arguments applied to the method's config."""
+    description: str = ""
+    """One line for the docs and results.md."""
+
 
 DEPTH_WEIGHT = 0.1
 """Weight of the depth L1 term in the depth-supervision entries."""
@@ -19,33 +35,33 @@ settings of the method exploregs-mono-depth (given here too, so the entries say 
 PATHS = ("mean2d", "cov", "sh")
 
 
-def _branch_ablation(description: str) -> tuple[BenchEntry, ...]:
+def _branch_ablation(description: str) -> tuple[AblationRun, ...]:
     """Every subset of switched-off position branches (8 entries, "all-branches" first)."""
     out = []
     for k in range(len(PATHS) + 1):
         for off in combinations(PATHS, k):
             name = "all-branches" if not off else "no-" + "-".join(off)
-            out.append(BenchEntry(name, "exploregs-branch-ablation", ("--model.detach-paths", *off), description))
+            out.append(AblationRun(name, "exploregs-branch-ablation", ("--model.detach-paths", *off), description))
     return tuple(out)
 
 
-def _depth_supervision(description: str) -> tuple[BenchEntry, ...]:
+def _depth_supervision(description: str) -> tuple[AblationRun, ...]:
     out = []
     depth = ("--depth-loss-weight", repr(DEPTH_WEIGHT))
     for label in ("default", "seed", "seedsplit"):
         method = f"exploregs-{label}"
-        out.append(BenchEntry(label, method, (), description))
-        out.append(BenchEntry(f"{label}+depth", method, depth, description))
+        out.append(AblationRun(label, method, (), description))
+        out.append(AblationRun(f"{label}+depth", method, depth, description))
         # the degraded maps are a pipeline variant: that method, with this entry's strategy
-        out.append(BenchEntry(f"{label}+mono-depth", "exploregs-mono-depth",
+        out.append(AblationRun(f"{label}+mono-depth", "exploregs-mono-depth",
                               ("--strategy", label) + depth + MONOCULAR_DEPTH, description))
     return tuple(out)
 
 
-def _split_ablation(description: str) -> tuple[BenchEntry, ...]:
-    out = [BenchEntry(f"split-n{n}", "exploregs-split", ("--strategy.splitting.n-split", str(n)), description)
+def _split_ablation(description: str) -> tuple[AblationRun, ...]:
+    out = [AblationRun(f"split-n{n}", "exploregs-split", ("--strategy.splitting.n-split", str(n)), description)
            for n in (0, 5, 10, 20, 40, 80)]
-    out += [BenchEntry(f"default-grad{g:g}", "exploregs-default", ("--strategy.grow-grad2d", repr(g)), description)
+    out += [AblationRun(f"default-grad{g:g}", "exploregs-default", ("--strategy.grow-grad2d", repr(g)), description)
             for g in (0.0001, 0.0002, 0.0004, 0.0008)]
     return tuple(out)
 
@@ -59,7 +75,7 @@ monocular-like depth (the paper's depth table)."""
 SPLIT_ABLATION = _split_ablation("Random Splitting n_split sweep and Default grow_grad2d sweep (PSNR vs #Gaussians).")
 """Random Splitting's n_split and Default's gradient threshold: PSNR against Gaussian count."""
 
-EXPERIMENTS: dict[str, tuple[BenchEntry, ...]] = {
+EXPERIMENTS: dict[str, tuple[AblationRun, ...]] = {
     "branch-ablation": BRANCH_ABLATION,
     "depth-supervision": DEPTH_SUPERVISION,
     "split-ablation": SPLIT_ABLATION,

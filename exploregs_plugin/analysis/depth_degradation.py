@@ -23,9 +23,9 @@ from dataclasses import dataclass, field, replace
 import torch
 from torch import Tensor
 
-from exploregs_plugin.loss_terms import DepthTerm, LossTerm, ViewLossInput
+from exploregs_plugin.engine.loss_terms import DepthTerm, LossTerm, ViewLossInput
 from exploregs_plugin.method_configs import as_variant, default_variant
-from exploregs_plugin.pipeline import PipelineConfig
+from exploregs_plugin.engine.pipeline import PipelineConfig
 
 N_WAVES = 6  # plane waves in the smooth bias field
 MIN_RELATIVE_DEPTH = 0.05  # the degraded depth never drops below this fraction of the truth

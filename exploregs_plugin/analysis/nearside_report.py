@@ -19,7 +19,7 @@ from .blending import composited_pairs, image_gradient
 from .sampling import pipeline_view
 
 if TYPE_CHECKING:
-    from exploregs_plugin.pipeline import Pipeline
+    from exploregs_plugin.engine.pipeline import Pipeline
 
 SEED_FLAG = "seed"
 """Seeding's per-Gaussian flag in the strategy statistics (1 for seeds and their descendants)."""

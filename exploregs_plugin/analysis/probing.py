@@ -7,8 +7,8 @@ from pathlib import Path
 from typing import Any, Callable
 
 from exploregs_plugin.callbacks import TrainingCallback
-from exploregs_plugin.pipeline import Pipeline
-from exploregs_plugin.trainer import Trainer, TrainerConfig
+from exploregs_plugin.engine.pipeline import Pipeline
+from exploregs_plugin.engine.trainer import Trainer, TrainerConfig
 
 
 @dataclass

@@ -18,7 +18,7 @@ from exploregs_plugin.cameras import Camera
 from .branches import ViewProblem, training_loss
 
 if TYPE_CHECKING:
-    from exploregs_plugin.pipeline import Pipeline
+    from exploregs_plugin.engine.pipeline import Pipeline
 
 
 def evenly_spaced(count: int, total: int) -> list[int]:

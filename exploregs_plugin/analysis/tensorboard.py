@@ -13,13 +13,13 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 from exploregs_plugin.callbacks import TrainingCallback
 from exploregs_plugin.method_configs import as_variant, default_variant
-from exploregs_plugin.trainer import TrainerConfig
+from exploregs_plugin.engine.trainer import TrainerConfig
 
 from .branches import sample_branch_norms
 from .sampling import train_problems
 
 if TYPE_CHECKING:
-    from exploregs_plugin.pipeline import Pipeline
+    from exploregs_plugin.engine.pipeline import Pipeline
 
 
 class ScalarSink(Protocol):

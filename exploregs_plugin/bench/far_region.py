@@ -6,7 +6,7 @@ test view's expected depth and alpha with the reference's final model; a pixel i
 alpha >= 0.5 and depth > 0, and far when it is covered and its depth is at least the ``quantile``
 (default 0.75: the farthest quarter) of the depth over that view's covered pixels. Every method of
 the scene is then scored on these same pixels, with the PSNR pooled over all test views as
-``evaluation.py`` pools its regions.
+``evaluation/metrics.py`` pools its regions.
 
 Results are cached: ``RUN/far_region.json`` beside each scored run, and the masks of a scene in
 the bench's results folder (``OUT/far_masks/<scene>.pt``), each with the fingerprint of the
@@ -26,12 +26,12 @@ from torch import Tensor
 
 from exploregs_plugin.bench.runner import read_json
 from exploregs_plugin.bench.spec import BenchSpec
-from exploregs_plugin.config_io import load_config
-from exploregs_plugin.evaluation import write_metrics_json
+from exploregs_plugin.io.config_files import load_config
+from exploregs_plugin.evaluation.metrics import write_metrics_json
 from exploregs_plugin.io.checkpoint import CheckpointError, atomic_torch_save, checkpoint_path
 from exploregs_plugin.model.losses import pooled_psnr, psnr
 from exploregs_plugin.runs.load import LoadedRun, load_run
-from exploregs_plugin.trainer import CONFIG_NAME, TrainerConfig
+from exploregs_plugin.engine.trainer import CONFIG_NAME, TrainerConfig
 
 FAR_QUANTILE = 0.75
 """Default depth quantile: far = the farthest quarter of each view's covered pixels."""

@@ -383,7 +383,8 @@ def _analysis(name: str, scenes: tuple[str, ...]) -> BenchSpec:
     """An eg-analyze ablation (branch ablation, depth supervision, split ablation) as a bench."""
     from exploregs_plugin.analysis.ablations import EXPERIMENTS
 
-    return BenchSpec(entries=EXPERIMENTS[name], scenes=tuple(BenchScene(s, f"builtin:{s}") for s in scenes),
+    entries = tuple(BenchEntry(r.name, r.method, r.overrides, r.description) for r in EXPERIMENTS[name])
+    return BenchSpec(entries=entries, scenes=tuple(BenchScene(s, f"builtin:{s}") for s in scenes),
                      seeds=(0,), steps=ANALYSIS_STEPS, eval_count=4, name=name,
                      baseline=ANALYSIS_BASELINES.get(name, "default"))
 

@@ -36,7 +36,7 @@ from exploregs_plugin.bench.spec import (
 from exploregs_plugin.bench.files import ERROR_NAME, JOB_NAME, LOG_NAME, METRICS_NAME, STATE_NAME
 from exploregs_plugin.io.atomic import atomic_write_text
 from exploregs_plugin.io.checkpoint import list_checkpoints
-from exploregs_plugin.trainer import TrainerConfig
+from exploregs_plugin.engine.trainer import TrainerConfig
 
 RUNS_DIR = "runs"
 
@@ -122,7 +122,7 @@ def same_config(run_dir: Path, config: Any) -> bool:
     """Whether the run folder was made for ``config`` (its bench_job.yml matches, see configs_match)."""
     import yaml
 
-    from exploregs_plugin.config_io import config_to_dict, upgraded
+    from exploregs_plugin.io.config_files import config_to_dict, upgraded
 
     try:
         old = yaml.safe_load((Path(run_dir) / JOB_NAME).read_text())
@@ -185,7 +185,7 @@ def run_one(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry
     start = time.perf_counter()
     for attempt in range(1 + max(0, options.retries)):
         if not resume:
-            from exploregs_plugin.config_io import save_config
+            from exploregs_plugin.io.config_files import save_config
 
             _fresh_folder(run_dir)
             save_config(config, run_dir / JOB_NAME)

@@ -16,8 +16,8 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable
 
-from exploregs_plugin.config_io import tyro_error_text
-from exploregs_plugin.trainer import TrainerConfig
+from exploregs_plugin.io.config_files import tyro_error_text
+from exploregs_plugin.engine.trainer import TrainerConfig
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_.+-]*$")
 
@@ -240,7 +240,7 @@ def configs_match(old: Any, new: Any) -> bool:
 
 def config_fingerprint(config: TrainerConfig) -> str:
     """Short hash of the comparable config (recorded in bench_state.json for reference)."""
-    from exploregs_plugin.config_io import config_to_dict
+    from exploregs_plugin.io.config_files import config_to_dict
 
     text = json.dumps(comparable(config_to_dict(config)), sort_keys=True, default=str)
     return hashlib.sha256(text.encode()).hexdigest()[:16]

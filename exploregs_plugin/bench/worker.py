@@ -16,8 +16,8 @@ from exploregs_plugin.bench.files import ERROR_NAME, JOB_NAME
 
 def train(run_dir: Path, resume: bool) -> dict:
     from exploregs_plugin.analysis.tensorboard import BranchGradientLogger
-    from exploregs_plugin.config_io import load_config
-    from exploregs_plugin.trainer import Trainer
+    from exploregs_plugin.io.config_files import load_config
+    from exploregs_plugin.engine.trainer import Trainer
 
     callbacks = [BranchGradientLogger()]
     if resume:

@@ -6,29 +6,21 @@ Public entry points::
     dm = DataManagerConfig(data="builtin:tiny").setup()
 """
 
-import importlib
-from typing import Any
-
 from .cache import CACHE_ENV, cache_root
 from .datamanager import DataManager, DataManagerConfig
 from .errors import DataError
 from .parsed import REGION_LABELS, ImageRecord, Normalization, ParsedScene, ParseOptions
+from ..runtime.lazy_names import lazy_names
 
 # The readers and the built-in scenes load on first use: they import pycolmap, PIL and the scene
-# generators, which a command's --help or a config never needs (docs/architecture.md).
+# generators, which a command's --help or a config never needs (docs/training.md, "Startup").
 _LAZY = {
     "PRESETS": ".builtin.presets", "ScenePreset": ".builtin.presets", "ensure_builtin": ".builtin.presets",
     "make_scene": ".builtin.presets", "read_colmap": ".colmap", "parse_dataset": ".dataparser",
     "read_transforms": ".transforms_json", "write_transforms": ".transforms_json",
 }
 
-
-def __getattr__(name: str) -> Any:
-    if name in _LAZY:
-        value = getattr(importlib.import_module(_LAZY[name], __name__), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_names(__name__, _LAZY)
 
 __all__ = [
     "CACHE_ENV",

@@ -14,7 +14,7 @@ from PIL import Image
 from torch import Tensor
 
 from ..cameras import Camera
-from ..config_io import unset
+from ..io.config_files import unset
 from .backgrounds import NAMED, default_background, evident_background
 from .cache import cache_root
 from .errors import DataError

@@ -12,7 +12,7 @@ that a Gaussian hidden behind others paints nothing. The renderer computes these
 (``RasterSettings.visibility_stats``, the sums the occlusion-aware strategies read), in the same
 pass as the image, on every backend that has them. ``eg-export --max-gaussians``
 (:mod:`exploregs_plugin.runs.simplify`) and the paired cut that decides MCMC's count during training
-(:mod:`exploregs_plugin.count_trial`) both keep the most significant rows.
+(:mod:`exploregs_plugin.engine.count_trial`) both keep the most significant rows.
 """
 
 from __future__ import annotations

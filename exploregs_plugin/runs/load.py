@@ -5,11 +5,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-from exploregs_plugin.config_io import load_config
-from exploregs_plugin.device import resolve_device
+from exploregs_plugin.io.config_files import load_config
+from exploregs_plugin.runtime.device import resolve_device
 from exploregs_plugin.io.checkpoint import load_run_checkpoint
-from exploregs_plugin.pipeline import Pipeline
-from exploregs_plugin.trainer import CONFIG_NAME, TrainerConfig
+from exploregs_plugin.engine.pipeline import Pipeline
+from exploregs_plugin.engine.trainer import CONFIG_NAME, TrainerConfig
 
 
 @dataclass

@@ -16,9 +16,9 @@ import torch
 from torch import Tensor
 
 from exploregs_plugin.cameras import Camera
-from exploregs_plugin.device import resolve_device
+from exploregs_plugin.runtime.device import resolve_device
 from exploregs_plugin.io.scene_files import read_scene, suffix_format
-from exploregs_plugin.trainer import CONFIG_NAME
+from exploregs_plugin.engine.trainer import CONFIG_NAME
 
 PlyFrame = Literal["original", "normalized"]
 
@@ -119,7 +119,7 @@ def cameras_from(source: str | Path, data_factor: int | None = None) -> CameraSo
     """Cameras of a run folder (its dataset, from config.yml; no checkpoint needed), or of any
     dataset the datamanager reads (a path or ``builtin:NAME``). ``data_factor``: the dataset's
     images at 1/N size, as eg-train's ``--data-factor`` (unset: the run's factor, or 1)."""
-    from exploregs_plugin.config_io import load_config
+    from exploregs_plugin.io.config_files import load_config
     from exploregs_plugin.data import DataManagerConfig
     from exploregs_plugin.io.checkpoint import resolve_run
 

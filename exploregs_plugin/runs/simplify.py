@@ -13,9 +13,9 @@ from dataclasses import dataclass
 
 import torch
 
-from exploregs_plugin import count_trial
+from exploregs_plugin.engine import count_trial
 from exploregs_plugin.model.significance import most_significant
-from exploregs_plugin.pipeline import Pipeline
+from exploregs_plugin.engine.pipeline import Pipeline
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.base import Strategy
 

@@ -8,9 +8,9 @@ import os
 import sys
 from typing import Any, Callable, TypeVar
 
-from exploregs_plugin.config_io import tyro_error_text, use_joined_help_lines
+from exploregs_plugin.io.config_files import tyro_error_text, use_joined_help_lines
 from exploregs_plugin.io.checkpoint import CheckpointError
-from exploregs_plugin.threads import apply_threads
+from exploregs_plugin.runtime.threads import apply_threads
 
 T = TypeVar("T")
 

@@ -30,7 +30,7 @@ from exploregs_plugin.analysis.probing import TrainSpec, train_and_probe
 from exploregs_plugin.analysis.sampling import pipeline_view, probe_steps, train_problems
 from exploregs_plugin.analysis.tensorboard import pipeline_branch_norms
 from exploregs_plugin.io.checkpoint import list_checkpoints, resolve_run
-from exploregs_plugin.pipeline import Pipeline
+from exploregs_plugin.engine.pipeline import Pipeline
 from exploregs_plugin.runs import load_run
 from exploregs_plugin.scripts import parse_cli, run_cli
 from exploregs_plugin.strategies import DefaultStrategy

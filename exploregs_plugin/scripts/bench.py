@@ -21,10 +21,10 @@ import tyro
 
 from exploregs_plugin.bench.presets import PRESETS
 from exploregs_plugin.bench.spec import BenchSpec
-from exploregs_plugin.config_io import unset
+from exploregs_plugin.io.config_files import unset
 from exploregs_plugin.data.dataparser import BUILTIN_PREFIX, another_commands_input
 from exploregs_plugin.data.errors import DataError
-from exploregs_plugin.device import resolve_device
+from exploregs_plugin.runtime.device import resolve_device
 from exploregs_plugin.scripts import parse_cli, run_cli
 
 PresetName = Literal[tuple(PRESETS)]  # type: ignore[valid-type]  # every key of bench.presets.PRESETS

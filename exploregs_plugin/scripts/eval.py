@@ -18,8 +18,8 @@ from typing import Literal
 import tyro
 
 from exploregs_plugin.data import DataManagerConfig
-from exploregs_plugin.device import resolve_device
-from exploregs_plugin.evaluation import evaluate, write_metrics_json
+from exploregs_plugin.runtime.device import resolve_device
+from exploregs_plugin.evaluation.metrics import evaluate, write_metrics_json
 from exploregs_plugin.io.checkpoint import check_output_folder
 from exploregs_plugin.io.scene_files import read_scene
 from exploregs_plugin.rasterizer import backend_line

@@ -9,7 +9,7 @@ rendezvous at ``--machine.master-addr:--machine.master-port`` with ``--machine.m
 When a rank fails the launcher stops the others and this command ends with one line naming it.
 Ctrl-C or SIGTERM to this command reaches the ranks (torch's launcher passes it on), which
 checkpoint and stop together; rank 0 prints the one stop line. The ranks stop too when this
-command is killed outright (see :func:`exploregs_plugin.distributed.stop_with_launcher`).
+command is killed outright (see :func:`exploregs_plugin.runtime.distributed.stop_with_launcher`).
 """
 
 from __future__ import annotations
@@ -26,9 +26,9 @@ import uuid
 from pathlib import Path
 from typing import Iterator
 
-from exploregs_plugin.distributed import LAUNCHER_PID, MachineConfig
+from exploregs_plugin.runtime.distributed import LAUNCHER_PID, MachineConfig
 from exploregs_plugin.io.checkpoint import list_checkpoints
-from exploregs_plugin.threads import available_cpus
+from exploregs_plugin.runtime.threads import available_cpus
 
 RUN_DIR_NOTE = "EXPLOREGS_RUN_DIR_NOTE"
 """A file where rank 0 writes its run folder, for the launcher's last line."""

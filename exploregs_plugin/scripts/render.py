@@ -16,7 +16,7 @@ import tyro
 
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.data.errors import DataError
-from exploregs_plugin.device import resolve_device
+from exploregs_plugin.runtime.device import resolve_device
 from exploregs_plugin.io.camera_path import CameraOrder, Trajectory, trajectory_cameras
 from exploregs_plugin.io.checkpoint import check_output_folder
 from exploregs_plugin.io.frames import RenderedSequence, RenderMode, render_sequence

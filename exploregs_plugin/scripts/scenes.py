@@ -27,7 +27,7 @@ from exploregs_plugin.data.neu3d import is_neu3d, read_neu3d
 from exploregs_plugin.data.errors import DataError
 from exploregs_plugin.data.parsed import REGION_LABELS, ParseOptions
 from exploregs_plugin.scripts import parse_cli
-from exploregs_plugin.threads import apply_threads
+from exploregs_plugin.runtime.threads import apply_threads
 
 
 @dataclass

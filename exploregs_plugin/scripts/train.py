@@ -19,16 +19,16 @@ from pathlib import Path
 
 import tyro
 
-from exploregs_plugin.collapse import CollapseError
-from exploregs_plugin.config_io import compact_help, load_config, tyro_error_text
-from exploregs_plugin.distributed import (LAUNCHER_GONE, DistributedError, MachineConfig, PeerLostError,
+from exploregs_plugin.engine.collapse import CollapseError
+from exploregs_plugin.io.config_files import compact_help, load_config, tyro_error_text
+from exploregs_plugin.runtime.distributed import (LAUNCHER_GONE, DistributedError, MachineConfig, PeerLostError,
                                           launched_by_eg_train, launched_by_torchrun, leave_world)
 from exploregs_plugin.io.checkpoint import check_output_folder, resolve_run
 from exploregs_plugin.scripts import run_cli
 from exploregs_plugin.method_configs import MethodRegistryError, all_methods, strategy_choice, with_strategy
-from exploregs_plugin.pipeline import NonFiniteError, resolve_batch_size
+from exploregs_plugin.engine.pipeline import NonFiniteError, resolve_batch_size
 from exploregs_plugin.scripts.launch import LaunchError, LaunchStopped, launch, note_run_dir
-from exploregs_plugin.trainer import CONFIG_NAME, Stopped, Trainer, TrainerConfig
+from exploregs_plugin.engine.trainer import CONFIG_NAME, Stopped, Trainer, TrainerConfig
 
 
 DESCRIPTION = ("Train a 3D Gaussian Splatting scene with ExploreGS. Any method can take any registered "

@@ -16,12 +16,12 @@ from pathlib import Path
 
 import tyro
 
-from exploregs_plugin.device import resolve_device
+from exploregs_plugin.runtime.device import resolve_device
 from exploregs_plugin.io.checkpoint import CheckpointError
 from exploregs_plugin.rasterizer import RasterSettings, backend_line
 from exploregs_plugin.runs.scene import PlyFrame, is_scene_file, load_scene, scene_file_kind
 from exploregs_plugin.scripts import parse_cli
-from exploregs_plugin.threads import apply_threads
+from exploregs_plugin.runtime.threads import apply_threads
 from exploregs_plugin.viewer import Viewer, ViewerConfig, ViewerScene
 
 

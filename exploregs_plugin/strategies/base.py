@@ -294,7 +294,7 @@ class Strategy:
 
     def count_trial_due(self, state: dict[str, Any], step: int, n: int) -> CountTrial | None:
         """The count trial the caller should run after this step, or None; ``n`` is the current
-        count. eg-train's pipeline runs it (:mod:`exploregs_plugin.count_trial`) and hands the
+        count. eg-train's pipeline runs it (:mod:`exploregs_plugin.engine.count_trial`) and hands the
         scores to :meth:`decide_count`. With cap_max 'validated', at the last refinement while
         undecided: :func:`count_rule.candidate_counts` of ``n``."""
         if self.cap_max != VALIDATED or state[COUNT_CAP] is not None or step != self.last_refinement():

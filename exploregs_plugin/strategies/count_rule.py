@@ -2,7 +2,7 @@
 
 While the rule decides, a few training views are held out: never trained on, rendered only to
 score the model. The set grows to a ceiling, trains, and at the end of growth the trainer tries
-it cut to a few smaller counts (the most significant Gaussians of each, :mod:`exploregs_plugin.count_trial`),
+it cut to a few smaller counts (the most significant Gaussians of each, :mod:`exploregs_plugin.engine.count_trial`),
 each candidate fine-tuned alike from the same snapshot on the same views: a paired comparison, in
 which what differs between two candidates is the count alone. The rule picks the smallest
 candidate whose held-out PSNR is not worse than the best candidate's by more than a tolerance,

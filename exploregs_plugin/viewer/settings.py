@@ -9,7 +9,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 from typing import Annotated
 
-from exploregs_plugin.config_io import unset
+from exploregs_plugin.io.config_files import unset
 from exploregs_plugin.viewer.outputs import OUTPUT_KINDS, OutputKind
 
 

@@ -1,8 +1,7 @@
 """The method this plugin registers under the entry-point group ``exploregs.methods``."""
 
+from exploregs_plugin.engine import PipelineConfig, TrainerConfig
 from exploregs_plugin.method_configs import MethodSpecification
-from exploregs_plugin.pipeline import PipelineConfig
-from exploregs_plugin.trainer import TrainerConfig
 
 from exploregs_plugin_example.strategy import OpacityBudgetStrategy
 

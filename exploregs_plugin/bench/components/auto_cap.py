@@ -57,7 +57,7 @@ def trace(out: Path, stop_step: int, train_args: list[str]) -> dict[str, Any]:
     write the trace."""
     from exploregs_plugin.bench.spec import parse_overrides
     from exploregs_plugin.method_configs import get_method
-    from exploregs_plugin.trainer import Trainer
+    from exploregs_plugin.engine.trainer import Trainer
 
     method, *args = train_args
     config = parse_overrides(get_method(method).config, args, "the traced command")

@@ -19,7 +19,7 @@ from pathlib import Path
 
 import torch
 
-from exploregs_plugin.loss_terms import ViewLossInput, view_loss
+from exploregs_plugin.engine.loss_terms import ViewLossInput, view_loss
 from exploregs_plugin.runs.load import load_run
 from exploregs_plugin.strategies.default import accumulate_grad_stats
 from exploregs_plugin.strategies.observation import observe_render

@@ -9,8 +9,10 @@ more with torch's profiler (CPU activity) and counts the *top-level* operators: 
 event that no other operator encloses (``aten::mul`` called by the step, not the ``aten::empty``
 inside it; a backward function's operators count, under the autograd node that runs them).
 A compiled kernel called through its Python binding is not a torch operator and counts only by the
-operators it calls itself. The window holds refinements (the defaults put the warm-up inside the
-densification window), so the count is an average over the steps a run makes while it grows.
+operators it calls itself. The window lies inside the densification window, between two
+refinements (the 300-step schedule refines every 100 steps): it counts the step a growing run
+makes 99 times in 100, whose count is the same at every step of the window (20 or 40 steps give
+the same figure).
 
 The count is deterministic for a seed, a scene and a renderer backend, so a test pins it
 (tests/test_bench_op_count.py) and fails when a method's count grows by more than 10%.
@@ -64,10 +66,10 @@ def top_level_operators(events) -> collections.Counter:
     return counts
 
 
-def count_operators(method: str, data: str = "builtin:default", backend: str = "cpp", warmup: int = 40,
-                    steps: int = 20, max_steps: int = 300, seed: int = 0, data_factor: int | None = None) -> OpCount:
+def count_operators(method: str, data: str = "builtin:default", backend: str = "cpp", warmup: int = 20,
+                    steps: int = 10, max_steps: int = 300, seed: int = 0, data_factor: int | None = None) -> OpCount:
     """Train ``warmup`` steps of ``method`` on one thread, then count the top-level operators of
-    ``steps`` more (a run of ``max_steps`` steps' schedule, so refinements fall inside)."""
+    ``steps`` more (with the schedule of a ``max_steps``-step run)."""
     from torch.profiler import ProfilerActivity, profile
 
     from exploregs_plugin.method_configs import get_method
@@ -95,8 +97,8 @@ def main(argv: list[str] | None = None) -> None:
     ap.add_argument("--data-factor", type=int, default=None)
     ap.add_argument("--methods", nargs="+", default=list(DEFAULT_METHODS))
     ap.add_argument("--backend", default="cpp", choices=["torch", "cpp"])
-    ap.add_argument("--warmup", type=int, default=40, help="steps trained before counting")
-    ap.add_argument("--steps", type=int, default=20, help="steps counted")
+    ap.add_argument("--warmup", type=int, default=20, help="steps trained before counting")
+    ap.add_argument("--steps", type=int, default=10, help="steps counted")
     ap.add_argument("--max-steps", type=int, default=300, help="run length the schedule is resolved for")
     ap.add_argument("--top", type=int, default=10, help="the most frequent operators listed per method")
     a = ap.parse_args(argv)

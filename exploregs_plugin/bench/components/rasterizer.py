@@ -25,7 +25,7 @@ from pathlib import Path
 
 import torch
 
-from exploregs_plugin.device import resolve_device
+from exploregs_plugin.runtime.device import resolve_device
 from exploregs_plugin.rasterizer import rasterize
 from exploregs_plugin.rasterizer.reference import reference_rasterize
 from exploregs_plugin.rasterizer.settings import RasterSettings

@@ -24,7 +24,7 @@ from typing import Any, Mapping
 import torch
 from torch import Tensor
 
-from exploregs_plugin.evaluation import evaluate
+from exploregs_plugin.evaluation.metrics import evaluate
 from exploregs_plugin.io.scene_files import SCENE_FORMATS, SUFFIXES, read_scene, write_scene
 from exploregs_plugin.runs import dataset_normalization, load_run
 from exploregs_plugin.runs.scene import model_from_params

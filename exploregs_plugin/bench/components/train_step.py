@@ -29,7 +29,7 @@ from dataclasses import replace
 
 import torch
 
-from exploregs_plugin.device import resolve_device
+from exploregs_plugin.runtime.device import resolve_device
 from exploregs_plugin.method_configs import get_method
 from exploregs_plugin.model.gaussians import activate, render_params
 from exploregs_plugin.model.losses import photometric_loss

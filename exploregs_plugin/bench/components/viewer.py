@@ -18,7 +18,7 @@ from typing import Any
 import torch
 import tyro
 
-from exploregs_plugin.trainer import TrainerConfig
+from exploregs_plugin.engine.trainer import TrainerConfig
 from exploregs_plugin.viewer.conventions import camera_to_viser, vertical_fov
 from exploregs_plugin.viewer.display import render_frame
 from exploregs_plugin.viewer.render_loop import BrowserCamera, RenderLoop, ViewSettings

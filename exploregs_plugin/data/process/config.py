@@ -32,7 +32,8 @@ class ProcessConfig:
     remedy: bool = True
     """When the model fails its checks (cameras that look away, jumps along the capture order): map
     again from the neighbours' matches only (an ordered capture), then with the other mapper; keep
-    the model with the fewest suspect images and leave those out of the dataset (one warning)."""
+    the model with the fewest suspect images, leave those out of it, register them again into the
+    model without them, and keep the ones that then pass its checks (the rest stay out: one warning)."""
     deterministic: bool = False
     """The same photos give the same model bit for bit on any thread count (bundle adjustment on
     one thread: slower on a large capture)."""

@@ -17,10 +17,11 @@ PLOT_NAME = "process_top_view.png"
 
 def model_report(rec: pycolmap.Reconstruction, all_names: list[str], other_models: list[int],
                  seconds: dict[str, float], settings: dict, model_checks: dict | None = None,
-                 left_out: list[str] | None = None) -> dict:
+                 left_out: list[str] | None = None, came_back: list[str] | None = None) -> dict:
     """The report's fields for the kept model ``rec`` of a capture of ``all_names``: counts,
     errors, seconds, and what the model's checks found (``checks``; ``left_out``: the suspect
-    images removed from the model)."""
+    images removed from the model; ``came_back``: suspect images that registered again into the
+    model without them and passed its checks)."""
     registered = {im.name for im in rec.images.values() if im.has_pose}
     return {
         "images_in": len(all_names),
@@ -33,6 +34,7 @@ def model_report(rec: pycolmap.Reconstruction, all_names: list[str], other_model
         "other_models_registered": other_models,
         "checks": model_checks or {},
         "left_out": sorted(left_out or []),
+        "came_back": sorted(came_back or []),
         "settings": settings,
     }
 
@@ -63,6 +65,9 @@ def summary_lines(report: dict) -> list[str]:
     missing = [n for n in report["not_registered"] if n not in set(report.get("left_out", []))]
     if missing:
         lines.append(f"not registered: {shown_names(missing)}")
+    if report.get("came_back"):
+        lines.append(f"{len(report['came_back'])} suspect images registered again into the checked model and passed "
+                     f"its checks: {shown_names(report['came_back'])}")
     if report.get("left_out"):
         lines.append(f"warning: {len(report['left_out'])} of {report['images_in']} images were posed inconsistently "
                      f"with the rest and are left out of the dataset ({shown_names(report['left_out'])}); the capture "

@@ -19,7 +19,7 @@ from typing import Literal
 from rich.console import Console
 
 from ...io.atomic import atomic_write_text
-from ...threads import default_threads
+from ...runtime.threads import default_threads
 from ..errors import DataError
 from . import checks, retrieval, sfm
 from .config import ProcessConfig
@@ -320,18 +320,43 @@ def _mapping(layout: _Layout, database: Path, images: Path, out: Path, matching:
                         f"matches; try photos with more overlap, --matching exhaustive or --mapper {other}")
     rec, others = _keep_largest(kept.models, out / ".mapping", out)
     left_out: list[str] = []
+    came_back: list[str] = []
     if config.remedy and not kept.found.passed:
-        left_out = kept.found.suspect
-        checks.leave_out(rec, left_out)
+        checks.leave_out(rec, kept.found.suspect)
+        came_back, left_out = _second_chance(rec, kept.found, database, layout.names, threads, log)
         rec.write(str(out / "sparse" / "0"))
     if len(attempts) > 1:
         log.line(f"note: kept the model from {kept.how} with the {kept.mapper} mapper "
                  f"({len(kept.found.suspect)} suspect images)", show=True)
     return {"mapper": kept.mapper, "pairs_kept": kept.how, "checks": kept.found.to_dict(), "left_out": left_out,
+            "came_back": came_back,
             "attempts": [{"how": a.how, "mapper": a.mapper,
                           "registered": _best(a.models).num_reg_images() if a.models else 0,
                           "suspect": len(a.found.suspect) if a.found else None} for a in attempts],
             "other_models": others}
+
+
+def _second_chance(rec, found: checks.ModelChecks, database: Path, names: list[str], threads: int,
+                   log: StageLog) -> tuple[list[str], list[str]]:
+    """The suspect images of the kept model, left out of ``rec``, registered again into it (the model
+    that is right without them) and checked again: ``(came back, still left out)``. An image
+    comes back when it registers and the checks of the model with it find it, and every image
+    kept before, not suspect; otherwise the images that registered are left out again."""
+    suspect = found.suspect
+    registered = sfm.register_into(database, rec, suspect, threads)
+    if registered:
+        again = checks.check_model(rec, names, database, found.ordered)
+        flagged = set(again.suspect)
+        back = [n for n in registered if n not in flagged]
+        if flagged - set(registered):  # a camera that was right looks wrong now: trust none of them
+            back = []
+        checks.leave_out(rec, [n for n in registered if n not in back])
+    else:
+        back = []
+    staying = [n for n in suspect if n not in back]
+    log.line(f"note: the {len(suspect)} suspect images registered again into the kept model: "
+             f"{len(back)} came back ({shown_names(back, 4) or 'none'}), {len(staying)} stay out", show=True)
+    return back, staying
 
 
 def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None = None,
@@ -395,7 +420,7 @@ def process_capture(inputs: list[Path], out: Path, config: ProcessConfig | None 
                 "threads": threads}
     settings.pop("verbose")
     report = model_report(rec, layout.names, mapped.get("other_models", []), stages.seconds(), settings,
-                          mapped.get("checks"), mapped.get("left_out", []))
+                          mapped.get("checks"), mapped.get("left_out", []), mapped.get("came_back", []))
     write_report(report, out)
     plot_top_view(rec, out / PLOT_NAME, suspect=mapped.get("checks", {}).get("suspect", []))
     for line in summary_lines(report) if summary else ():

@@ -165,6 +165,33 @@ def map_scene(database: Path, image_dir: Path, out_dir: Path, mapper: Mapper, th
                                         next_image_callback=lambda: on_registered(1))
 
 
+def register_into(database: Path, rec: pycolmap.Reconstruction, names: Sequence[str], threads: int) -> list[str]:
+    """Register the images ``names`` of ``rec`` (present, without a pose) into it, in that order, from
+    their matches in ``database`` to the points ``rec`` holds (pycolmap's incremental mapper: an
+    absolute pose from the 2D-3D correspondences, then triangulation of the image's other
+    observations); no bundle adjustment, so the model's other cameras keep their poses. Returns
+    the names registered. ``rec`` is changed in place."""
+    with pycolmap.Database.open(database) as db:
+        cache = pycolmap.DatabaseCache.create(db, pycolmap.DatabaseCacheOptions())
+    mapper = pycolmap.IncrementalMapper(cache)
+    mapper.begin_reconstruction(rec)
+    options = pycolmap.IncrementalMapperOptions()
+    options.num_threads = threads
+    options.random_seed = 0  # the same model gives the same poses (up to thread order)
+    triangulation = pycolmap.IncrementalTriangulatorOptions()
+    registered = []
+    try:
+        for name in names:
+            image = rec.find_image_with_name(name)
+            if image is None or image.has_pose or not mapper.register_next_image(options, image.image_id):
+                continue
+            mapper.triangulate_image(triangulation, image.image_id)
+            registered.append(name)
+    finally:
+        mapper.end_reconstruction(False)
+    return registered
+
+
 def clear_matches(database: Path) -> None:
     """Remove every match and two-view geometry (the features stay)."""
     with pycolmap.Database.open(database) as db:

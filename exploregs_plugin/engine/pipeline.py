@@ -8,14 +8,14 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from exploregs_plugin import count_trial
+from exploregs_plugin.engine import count_trial
 from exploregs_plugin.data import DataManagerConfig
-from exploregs_plugin.device import make_generator, restore_generator, to_device
-from exploregs_plugin.distributed import World
+from exploregs_plugin.runtime.device import make_generator, restore_generator, to_device
+from exploregs_plugin.runtime.distributed import World
 from exploregs_plugin.model import GaussianModelConfig
-from exploregs_plugin.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
+from exploregs_plugin.engine.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
 from exploregs_plugin.model.losses import DepthSpace, pooled_psnr, psnr_on_device
-from exploregs_plugin.nonfinite import NonFiniteError, NonFiniteWatch
+from exploregs_plugin.engine.nonfinite import NonFiniteError, NonFiniteWatch
 from exploregs_plugin.model.optim import OptimizerConfig, OptimizerSet, batch_betas, batch_lr_scale
 from exploregs_plugin.strategies.observation import ViewError, ViewObservation, observe_render
 from exploregs_plugin.rasterizer import BackendError, backend_problem, resolve_backend

@@ -3,7 +3,7 @@
 ``auto`` is CUDA when torch sees a CUDA device, else the CPU. Nothing below the engine picks a
 device by itself: functions follow the device of the tensors they are given.
 
-``python -m exploregs_plugin.device`` says what this machine's torch, CUDA and gsplat will and
+``python -m exploregs_plugin.runtime.device`` says what this machine's torch, CUDA and gsplat will and
 will not do (for example after ``pip install -e ".[gpu]"`` on a machine without a GPU).
 """
 

@@ -1,5 +1,5 @@
 """The training loop, ``Trainer``: train steps, logging, evaluation, checkpoints, metrics. Its config
-is ``exploregs_plugin.trainer.TrainerConfig``, whose ``setup()`` builds it (this module does not
+is ``exploregs_plugin.engine.trainer.TrainerConfig``, whose ``setup()`` builds it (this module does not
 import the config back). What it calls between steps has modules of its own: ``stopping``
 (signals), ``watches`` (when the collapse and non-finite watches are read), ``thread_follower``,
 ``run_folder`` and ``rank_evaluation``."""
@@ -18,21 +18,21 @@ from typing import Any, Sequence
 import torch
 
 from exploregs_plugin.callbacks import TrainingCallback
-from exploregs_plugin.config_io import load_config, save_config
-from exploregs_plugin.device import resolve_device
-from exploregs_plugin.distributed import init_world, params_checksum
-from exploregs_plugin.evaluation import evaluate, write_metrics_json
+from exploregs_plugin.io.config_files import load_config, save_config
+from exploregs_plugin.runtime.device import resolve_device
+from exploregs_plugin.runtime.distributed import init_world, params_checksum
+from exploregs_plugin.evaluation.metrics import evaluate, write_metrics_json
 from exploregs_plugin.io.checkpoint import (CheckpointError, checkpoint_path, load_checkpoint, load_run_checkpoint,
                                             save_checkpoint)
-from exploregs_plugin.pipeline import Pipeline, resolve_batch_size
-from exploregs_plugin.rank_evaluation import evaluate_on_ranks
+from exploregs_plugin.engine.pipeline import Pipeline, resolve_batch_size
+from exploregs_plugin.evaluation.ranks import evaluate_on_ranks
 from exploregs_plugin.rasterizer import backend_line
-from exploregs_plugin.run_folder import new_run_dir, run_folder_errors
-from exploregs_plugin.run_logger import RunLogger, host_values
-from exploregs_plugin.stopping import Stopped, StopOnSignals
-from exploregs_plugin.thread_follower import FollowIdleCpus, follows_idle_cpus
-from exploregs_plugin.threads import apply_threads
-from exploregs_plugin.watches import RunWatches
+from exploregs_plugin.engine.run_folder import new_run_dir, run_folder_errors
+from exploregs_plugin.engine.run_logger import RunLogger, host_values
+from exploregs_plugin.engine.stopping import Stopped, StopOnSignals
+from exploregs_plugin.engine.thread_follower import FollowIdleCpus, follows_idle_cpus
+from exploregs_plugin.runtime.threads import apply_threads
+from exploregs_plugin.engine.watches import RunWatches
 
 CONFIG_NAME = "config.yml"
 METRICS_NAME = "metrics.json"
@@ -44,7 +44,7 @@ class Trainer:
 
     def __init__(self, config: Any, run_dir: Path | None = None, checkpoint: Path | None = None,
                  callbacks: Sequence[TrainingCallback] = (), payload: dict[str, Any] | None = None) -> None:
-        """``config``: a :class:`exploregs_plugin.trainer.TrainerConfig` (typed loosely: the config
+        """``config``: a :class:`exploregs_plugin.engine.trainer.TrainerConfig` (typed loosely: the config
         module builds the trainer, so the trainer does not import it back); ``payload``: the
         checkpoint's content when the caller has read it already."""
         self.config = config

@@ -63,6 +63,16 @@ MOVED_MODULES: dict[str, str] = {
     "exploregs_plugin.strategies.ray": "exploregs_plugin.strategies.ray_perturbation",
     "exploregs_plugin.strategies.perturbation": "exploregs_plugin.strategies.position_noise",
     "exploregs_plugin.strategies.operator": "exploregs_plugin.strategies.operator_contract",
+    # the package root's loose modules went into folders by what they are (2026-11-29):
+    # engine/ (the loop and what watches it), evaluation/, runtime/ (devices, ranks, threads), io/
+    **{f"exploregs_plugin.{name}": f"exploregs_plugin.engine.{name}" for name in (
+        "trainer", "training_loop", "pipeline", "stopping", "watches", "run_folder", "thread_follower", "nonfinite",
+        "collapse", "run_logger", "count_trial", "loss_terms")},
+    "exploregs_plugin.evaluation": "exploregs_plugin.evaluation.metrics",
+    "exploregs_plugin.rank_evaluation": "exploregs_plugin.evaluation.ranks",
+    "exploregs_plugin.perceptual": "exploregs_plugin.evaluation.perceptual",
+    **{f"exploregs_plugin.{name}": f"exploregs_plugin.runtime.{name}" for name in ("device", "distributed", "threads")},
+    "exploregs_plugin.config_io": "exploregs_plugin.io.config_files",
 }
 """Modules whose config classes moved whole, since configs were saved: old module -> new module
 (``exploregs_plugin.strategies.ray:RayPerturbationStrategy`` is
@@ -98,7 +108,7 @@ REMOVED_FIELDS: dict[str, dict[str, tuple[Any, str]]] = {
         "detach_paths": ((), "the branch ablation's switch is a field of the method exploregs-branch-ablation "
                              "(eg-train exploregs-branch-ablation --model.detach-paths ...)"),
     },
-    "exploregs_plugin.trainer:TrainerConfig": {
+    "exploregs_plugin.engine.trainer:TrainerConfig": {
         "grad_branches_every": (0, "the live branch-gradient curves are the method exploregs-grad-branches "
                                    "(eg-train exploregs-grad-branches --strategy NAME --grad-branches-every N)"),
         "grad_branches_views": (lambda old: True, "exploregs-grad-branches --grad-branches-views"),
@@ -109,7 +119,7 @@ REMOVED_FIELDS: dict[str, dict[str, tuple[Any, str]]] = {
         "count_window": (lambda old: True, "cap_max 'validated' now decides by a paired cut (--strategy.count-cuts)"),
         "count_min_gain": (lambda old: True, "cap_max 'validated' now decides by a paired cut (--strategy.count-tolerance)"),
     },
-    "exploregs_plugin.pipeline:PipelineConfig": {
+    "exploregs_plugin.engine.pipeline:PipelineConfig": {
         "depth_supervision": (lambda old: not old.active,
                               "degraded depth maps are the method exploregs-mono-depth (eg-train "
                               "exploregs-mono-depth --strategy NAME --depth-supervision.noise-std ...)"),

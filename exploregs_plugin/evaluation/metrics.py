@@ -1,5 +1,5 @@
 """Test-set evaluation: PSNR, SSIM, MS-SSIM and D-SSIM per image and per region, LPIPS
-(AlexNet, v0.1; :mod:`exploregs_plugin.perceptual`) when its weights are installed, render time;
+(AlexNet, v0.1; :mod:`exploregs_plugin.evaluation.perceptual`) when its weights are installed, render time;
 per frame (with its time) for dynamic scenes."""
 
 from __future__ import annotations
@@ -19,7 +19,7 @@ from PIL import Image
 from exploregs_plugin.model.losses import SSIM_WINDOW, d_ssim, ms_ssim_many, pooled_psnr, psnr, ssim_map
 from exploregs_plugin.model import GaussianModel
 from exploregs_plugin.io.atomic import atomic_write_text
-from exploregs_plugin.perceptual import (INSTALL_HINT, MIN_SIDE, WEIGHTS_ENV, LpipsWeightsError, lpips_available,
+from exploregs_plugin.evaluation.perceptual import (INSTALL_HINT, MIN_SIDE, WEIGHTS_ENV, LpipsWeightsError, lpips_available,
                                          lpips_network)
 
 LPIPS_ABSENT = ("absent: LPIPS needs pretrained network weights, which are not available on this machine "

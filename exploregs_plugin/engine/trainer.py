@@ -1,5 +1,5 @@
 """A training run's config, ``TrainerConfig``: every eg-train flag, and the class a run folder's
-``config.yml`` records. ``setup()`` builds the loop, :class:`exploregs_plugin.training_loop.Trainer`,
+``config.yml`` records. ``setup()`` builds the loop, :class:`exploregs_plugin.engine.training_loop.Trainer`,
 which is importable from here too, with the run folder's file names."""
 
 from __future__ import annotations
@@ -11,12 +11,12 @@ from typing import Annotated, Any, Sequence
 import tyro
 
 from exploregs_plugin.callbacks import TrainingCallback
-from exploregs_plugin.distributed import MachineConfig
-from exploregs_plugin.pipeline import PipelineConfig
-from exploregs_plugin.run_folder import RunFolderError  # noqa: F401 (importable here, as before)
+from exploregs_plugin.runtime.distributed import MachineConfig
+from exploregs_plugin.engine.pipeline import PipelineConfig
+from exploregs_plugin.engine.run_folder import RunFolderError  # noqa: F401 (importable here, as before)
 from exploregs_plugin.schedule import ScheduleConfig
-from exploregs_plugin.stopping import Stopped  # noqa: F401 (importable here, as before)
-from exploregs_plugin.training_loop import CONFIG_NAME, METRICS_NAME, Trainer  # noqa: F401 (importable here)
+from exploregs_plugin.engine.stopping import Stopped  # noqa: F401 (importable here, as before)
+from exploregs_plugin.engine.training_loop import CONFIG_NAME, METRICS_NAME, Trainer  # noqa: F401 (importable here)
 from exploregs_plugin.viewer.callback import ViewerCallback
 from exploregs_plugin.viewer.config import ViewerConfig
 

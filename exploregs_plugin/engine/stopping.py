@@ -9,7 +9,7 @@ import threading
 from pathlib import Path
 from typing import Any
 
-from exploregs_plugin.distributed import LAUNCHER_GONE, launched_by_eg_train
+from exploregs_plugin.runtime.distributed import LAUNCHER_GONE, launched_by_eg_train
 
 STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
 

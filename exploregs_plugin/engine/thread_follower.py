@@ -7,7 +7,7 @@ import time
 
 import torch
 
-from exploregs_plugin.threads import IdleCpus, available_cpus, threads_for, threads_from_environment
+from exploregs_plugin.runtime.threads import IdleCpus, available_cpus, threads_for, threads_from_environment
 
 THREADS_CHECK_SECONDS = 5.0  # how often a run without --num-threads follows the CPUs left idle
 # ... and the first time, after this much training: the count the run starts with was measured when
@@ -26,7 +26,7 @@ class FollowIdleCpus:
     """Every THREADS_CHECK_SECONDS, between steps, set torch's thread count (which bounds the
     compositor's workers) to the CPUs other processes left idle: a process that starts competing
     for the cores mid-run takes the run down to one thread instead of stalling it (see
-    :class:`exploregs_plugin.threads.IdleCpus`), and one that ends gives the cores back. The
+    :class:`exploregs_plugin.runtime.threads.IdleCpus`), and one that ends gives the cores back. The
     count changes the speed, not the result (docs/training.md, "Threads")."""
 
     def __init__(self, used: set[int]) -> None:

@@ -1,5 +1,5 @@
-"""When a training run reads its watches: the collapse watch (:mod:`exploregs_plugin.collapse`) and
-the non-finite record (:mod:`exploregs_plugin.nonfinite`) stop a run that went bad, before it
+"""When a training run reads its watches: the collapse watch (:mod:`exploregs_plugin.engine.collapse`) and
+the non-finite record (:mod:`exploregs_plugin.engine.nonfinite`) stop a run that went bad, before it
 writes a checkpoint of that state, at the cost of few reads of the device (docs/architecture.md)."""
 
 from __future__ import annotations
@@ -7,9 +7,9 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any, Callable
 
-from exploregs_plugin.collapse import CollapseError, CollapseWatch, deliberate_setback
-from exploregs_plugin.pipeline import NonFiniteError, Pipeline
-from exploregs_plugin.run_logger import host_values
+from exploregs_plugin.engine.collapse import CollapseError, CollapseWatch, deliberate_setback
+from exploregs_plugin.engine.pipeline import NonFiniteError, Pipeline
+from exploregs_plugin.engine.run_logger import host_values
 from exploregs_plugin.schedule import Schedule
 
 

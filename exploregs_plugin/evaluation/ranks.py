@@ -8,9 +8,9 @@ from typing import Any
 
 import torch
 
-from exploregs_plugin.distributed import World
-from exploregs_plugin.evaluation import evaluate_views, evaluation_panel, summarize_evaluation
-from exploregs_plugin.pipeline import Pipeline
+from exploregs_plugin.runtime.distributed import World
+from exploregs_plugin.evaluation.metrics import evaluate_views, evaluation_panel, summarize_evaluation
+from exploregs_plugin.engine.pipeline import Pipeline
 
 EVAL_PANELS = 2  # test views shown in tensorboard at each evaluation (render | truth | error)
 

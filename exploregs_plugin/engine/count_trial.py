@@ -19,12 +19,12 @@ from typing import Any
 from torch import Tensor
 
 from exploregs_plugin.model.significance import blend_weight_totals, most_significant
-from exploregs_plugin.nonfinite import NonFiniteWatch
+from exploregs_plugin.engine.nonfinite import NonFiniteWatch
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.base import CountTrial, Strategy
 
 Pipeline = Any
-"""The :class:`exploregs_plugin.pipeline.Pipeline` the trial runs on (which imports this module)."""
+"""The :class:`exploregs_plugin.engine.pipeline.Pipeline` the trial runs on (which imports this module)."""
 
 
 class HoldingStrategy(Strategy):
