@@ -768,7 +768,7 @@ def test_a_model_no_remedy_mends_is_trained_without_the_images_that_do_not_come_
                                                                                     monkeypatch, capsys):
     import pycolmap
 
-    monkeypatch.setattr(sfm, "register_into", lambda database, rec, names, threads: [])  # none registers again
+    monkeypatch.setattr(sfm, "register_into", lambda *args: [])  # none registers again
     report, printed, calls, copy = _remap_with(processed, tmp_path, monkeypatch, 3, capsys)
     assert calls == ["database.db", "database-window.db", "database.db"]  # then the other mapper
     quarter = [f"{i:04d}.png" for i in range(N_VIEWS // 2, N_VIEWS // 2 + N_VIEWS // 4)]

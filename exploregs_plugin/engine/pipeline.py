@@ -328,11 +328,13 @@ class Pipeline:
             terms["reg"] = reg.detach()
         loss.backward()
         # the totals stay on the device (float64): the trainer reads them where it logs them; the
-        # PSNR (float64) goes through float32 first, as it always has
-        psnr = (psnr_on_device(image, target) / batch).to(torch.float32)
-        for key, value in {"loss": loss.detach(), "psnr": psnr, **terms}.items():
-            value = value.detach().reshape(()).to(torch.float64)
-            totals[key] = totals[key] + value if key in totals else value
+        # PSNR (float64) goes through float32 first, as it always has. Without grad recording, no
+        # detach is needed, and a 0-dim value is not reshaped: each operator costs a dispatch.
+        with torch.no_grad():
+            psnr = (psnr_on_device(image, target) / batch).to(torch.float32)
+            for key, value in {"loss": loss, "psnr": psnr, **terms}.items():
+                value = (value.reshape(()) if value.dim() else value).to(torch.float64)
+                totals[key] = totals[key] + value if key in totals else value
         return view
 
     def _target_on(self, background: Tensor, target: Tensor, extras: dict[str, Any]) -> Tensor:

@@ -41,8 +41,10 @@ class CppBins:
 class _CompositeCpp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means2d, conics, opacities, feats, support, bins, settings, threads):  # type: ignore[override]
-        tensors = [t.detach().contiguous() for t in (means2d, conics, opacities, feats)]
-        sup = support.detach().to(means2d.dtype).contiguous()
+        # no detach: a Function's forward runs without grad recording, and each operator a step
+        # dispatches costs interpreter time (docs/training.md, "Operators per step")
+        tensors = [t.contiguous() for t in (means2d, conics, opacities, feats)]
+        sup = support.to(means2d.dtype).contiguous()
         ext = extension()
         out, pair_stats = ext.composite_forward(
             *tensors, sup, bins.tile_offsets, bins.pair_gauss, bins.pair_slot, bins.width, bins.height,
@@ -82,7 +84,7 @@ def composite_cpp(
 class _ProjectCpp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height, near, far, settings, threads):  # type: ignore[override]
-        inputs = [t.detach().contiguous() for t in (means, quats, scales, opacities)]
+        inputs = [t.contiguous() for t in (means, quats, scales, opacities)]  # no detach: see _CompositeCpp
         camera = (viewmat.detach(), K.detach(), width, height, float(near), float(far), settings.eps2d,
                   settings.sigma_radius, settings.guard_band, settings.antialiased)  # fmt: skip
         means2d, conics, opac, depths, radii, support, visible = extension().project_forward(*inputs, *camera, settings.alpha_min, threads)
@@ -115,7 +117,7 @@ def project_cpp(
 class _ShCpp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, coeffs, means, rows, camera_center, degree, threads):  # type: ignore[override]
-        inputs = (coeffs.detach().contiguous(), means.detach().contiguous(), rows.contiguous(), camera_center.detach())
+        inputs = (coeffs.contiguous(), means.contiguous(), rows.contiguous(), camera_center.detach())  # see _CompositeCpp
         ctx.save_for_backward(*inputs)
         ctx.degree, ctx.threads = degree, threads
         return extension().sh_forward(*inputs, degree, threads)

@@ -323,7 +323,8 @@ def _mapping(layout: _Layout, database: Path, images: Path, out: Path, matching:
     came_back: list[str] = []
     if config.remedy and not kept.found.passed:
         checks.leave_out(rec, kept.found.suspect)
-        came_back, left_out = _second_chance(rec, kept.found, database, layout.names, threads, log)
+        came_back, left_out = _second_chance(rec, kept.found, database, layout.names, threads,
+                                             config.deterministic, log)
         rec.write(str(out / "sparse" / "0"))
     if len(attempts) > 1:
         log.line(f"note: kept the model from {kept.how} with the {kept.mapper} mapper "
@@ -337,13 +338,13 @@ def _mapping(layout: _Layout, database: Path, images: Path, out: Path, matching:
 
 
 def _second_chance(rec, found: checks.ModelChecks, database: Path, names: list[str], threads: int,
-                   log: StageLog) -> tuple[list[str], list[str]]:
+                   deterministic: bool, log: StageLog) -> tuple[list[str], list[str]]:
     """The suspect images of the kept model, left out of ``rec``, registered again into it (the model
     that is right without them) and checked again: ``(came back, still left out)``. An image
     comes back when it registers and the checks of the model with it find it, and every image
     kept before, not suspect; otherwise the images that registered are left out again."""
     suspect = found.suspect
-    registered = sfm.register_into(database, rec, suspect, threads)
+    registered = sfm.register_into(database, rec, suspect, threads, deterministic)
     if registered:
         again = checks.check_model(rec, names, database, found.ordered)
         flagged = set(again.suspect)

@@ -165,18 +165,20 @@ def map_scene(database: Path, image_dir: Path, out_dir: Path, mapper: Mapper, th
                                         next_image_callback=lambda: on_registered(1))
 
 
-def register_into(database: Path, rec: pycolmap.Reconstruction, names: Sequence[str], threads: int) -> list[str]:
+def register_into(database: Path, rec: pycolmap.Reconstruction, names: Sequence[str], threads: int,
+                  deterministic: bool = False) -> list[str]:
     """Register the images ``names`` of ``rec`` (present, without a pose) into it, in that order, from
     their matches in ``database`` to the points ``rec`` holds (pycolmap's incremental mapper: an
     absolute pose from the 2D-3D correspondences, then triangulation of the image's other
     observations); no bundle adjustment, so the model's other cameras keep their poses. Returns
-    the names registered. ``rec`` is changed in place."""
+    the names registered. ``rec`` is changed in place. ``deterministic``: on one thread, as
+    :func:`map_scene` (the pose refinement's sums come in a fixed order)."""
     with pycolmap.Database.open(database) as db:
         cache = pycolmap.DatabaseCache.create(db, pycolmap.DatabaseCacheOptions())
     mapper = pycolmap.IncrementalMapper(cache)
     mapper.begin_reconstruction(rec)
     options = pycolmap.IncrementalMapperOptions()
-    options.num_threads = threads
+    options.num_threads = 1 if deterministic else threads
     options.random_seed = 0  # the same model gives the same poses (up to thread order)
     triangulation = pycolmap.IncrementalTriangulatorOptions()
     registered = []
