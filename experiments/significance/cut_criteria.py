@@ -5,7 +5,8 @@ training view (one pass, SH degree 0), then the set cut by
 - ``share``: the least significant rows whose S adds up to at most q of the total (the significance
   prune's rule, here with the weights of every training view),
 - ``hidden``: rows whose mean transmittance S / A is below t (drawn, but behind others),
-each scored on the test views (PSNR, LPIPS) against the whole set.
+each scored on the test views (PSNR, LPIPS, and the PSNR of each labelled region, such as the
+built-in scenes' far region) against the whole set.
 
     python experiments/significance/cut_criteria.py RUN_DIR
 """
@@ -31,13 +32,16 @@ def weight_sums(pipeline) -> tuple[torch.Tensor, torch.Tensor]:
     return totals[:, 0], totals[:, 1]
 
 
-def scored(run, mask: torch.Tensor) -> tuple[int, float, float]:
+def scored(run, mask: torch.Tensor) -> tuple[int, float, float, dict[str, float]]:
+    """(Gaussians kept, test PSNR, LPIPS, PSNR per labelled region: far, occluded, ... where the
+    scene has region masks) of the run's set without the rows of ``mask``."""
     pipeline = run.pipeline
     saved = copy.deepcopy(pipeline.state_dict())
     row_ops.remove(pipeline.params, pipeline.optimizers, {}, mask)
     m = evaluate(pipeline.model, pipeline.datamanager)
     pipeline.load_state_dict(saved)
-    return int((~mask).sum()), m["psnr"], m.get("lpips") or float("nan")
+    regions = {k: round(v, 3) for k, v in (m.get("region_psnr") or {}).items()}
+    return int((~mask).sum()), m["psnr"], m.get("lpips") or float("nan"), regions
 
 
 def main(path: str) -> None:
