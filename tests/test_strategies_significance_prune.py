@@ -125,7 +125,49 @@ def test_a_renderer_without_the_sums_runs_the_strategy_without_the_prune():
     assert kept.prune_weight_share == 0.05 and none == []
 
 
+def test_the_end_of_run_cut_removes_the_least_significant_rows_and_says_the_count():
+    g = torch.Generator().manual_seed(0)
+    params = make_gaussians(5, g)
+    optimizers = make_optimizers(params)
+    strategy = DefaultStrategy(final_weight_share=0.1)
+    state = strategy.initialize_state()
+    kept_means = params["means"].detach()[[0, 2, 4]].clone()
+    weights = torch.tensor([10.0, 0.5, 5.0, 0.01, 4.0], dtype=torch.float64)  # total 19.51: 0.51 <= 10%
+    drawn = torch.tensor([3.0, 1.0, 2.0, 1.0, 0.0])  # row 4 drawn by no view: not judged
+    assert strategy.final_cut(params, optimizers, state, weights, drawn, step=99) == 2
+    assert torch.equal(params["means"].detach(), kept_means)
+    assert optimizers["means"].param_groups[0]["params"][0] is params["means"]  # the optimizer follows
+    assert strategy.count_decision(state).startswith("count: 3 of 5 Gaussians kept after the last step (100)")
+    for off in (DefaultStrategy(final_weight_share=0.0), DefaultStrategy(cap_max=100)):  # off, or the user's count
+        assert off.final_cut_share() == 0.0
+        assert off.final_cut(params, optimizers, off.initialize_state(), weights[:3], drawn[:3], 99) == 0
+    assert DefaultStrategy().final_cut_share() == 0.001 == SeedSplitStrategy().final_cut_share()
+
+
+def test_a_run_cuts_after_its_last_step_and_evaluates_the_cut_set(tmp_path):
+    from dataclasses import replace
+
+    from exploregs_plugin.method_configs import get_method
+
+    def run(share: float, name: str):
+        config = get_method("exploregs-seedsplit").config
+        strategy = replace(config.pipeline.strategy, final_weight_share=share)
+        config = replace(config, data="builtin:tiny", max_steps=12, run_dir=tmp_path / name, eval_count=1,
+                         tensorboard=False, save_eval_images=False, quiet=True, num_threads=1,
+                         pipeline=replace(config.pipeline, strategy=strategy))
+        trainer = config.setup()
+        return trainer.train(), trainer.pipeline.model.num_gaussians
+
+    cut, n_cut = run(0.05, "cut")
+    whole, n_whole = run(0.0, "whole")
+    assert n_cut == cut["num_gaussians"] < n_whole == whole["num_gaussians"]
+    assert cut["count_decision"].startswith(f"count: {n_cut:,} of {n_whole:,} Gaussians kept after the last step (12)")
+    assert not whole.get("count_decision")
+
+
 def test_fields_are_checked():
+    with pytest.raises(StrategyError, match="final_weight_share"):
+        DefaultStrategy(final_weight_share=1.0)
     with pytest.raises(StrategyError, match="prune_weight_share"):
         DefaultStrategy(prune_weight_share=1.0)
     with pytest.raises(StrategyError, match="grow_grad2d_height"):
@@ -133,10 +175,10 @@ def test_fields_are_checked():
 
 
 def test_a_config_saved_before_the_fields_existed_loads_as_it_trained():
-    saved = config_to_dict(SeedSplitStrategy(grow_grad2d_height=720, prune_weight_share=0.01))
-    del saved["grow_grad2d_height"], saved["prune_weight_share"]
+    saved = config_to_dict(SeedSplitStrategy(grow_grad2d_height=720, prune_weight_share=0.01, final_weight_share=0.01))
+    del saved["grow_grad2d_height"], saved["prune_weight_share"], saved["final_weight_share"]
     loaded = config_from_dict(saved)
-    assert loaded.grow_grad2d_height is None and loaded.prune_weight_share == 0.0
+    assert loaded.grow_grad2d_height is None and loaded.prune_weight_share == 0.0 and loaded.final_weight_share == 0.0
 
 
 def test_the_height_scaled_statistic_is_the_one_at_the_reference_height():

@@ -18,7 +18,7 @@ from typing import Any
 
 from torch import Tensor
 
-from exploregs_plugin.model.significance import blend_weight_totals, most_significant
+from exploregs_plugin.model.significance import most_significant, visibility_totals
 from exploregs_plugin.engine.nonfinite import NonFiniteWatch
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.base import CountTrial, Strategy
@@ -34,14 +34,20 @@ class HoldingStrategy(Strategy):
         return True
 
 
-def significance(pipeline: Pipeline) -> Tensor:
-    """[N] float64: each Gaussian's compositing weight summed over the training views that are
-    still trained on (a held-out view must not choose what is kept)."""
+def training_visibility(pipeline: Pipeline) -> Tensor:
+    """[N, 2] float64: each Gaussian's compositing weight and alpha, summed over the training views
+    that are still trained on (a held-out view must not choose what is kept); one pass."""
     dm = pipeline.datamanager
     held = set(dm.held_out)
     cameras = [camera for i, camera in enumerate(dm.train_cameras) if i not in held]
     params = {k: v.detach() for k, v in pipeline.params.items()}
-    return blend_weight_totals(params, cameras, pipeline.model.config.raster, pipeline.background)
+    return visibility_totals(params, cameras, pipeline.model.config.raster, pipeline.background)
+
+
+def significance(pipeline: Pipeline) -> Tensor:
+    """[N] float64: each Gaussian's compositing weight over the training views
+    (:func:`training_visibility`'s first column)."""
+    return training_visibility(pipeline)[:, 0]
 
 
 def cut(pipeline: Pipeline, weights: Tensor, count: int, stats: dict[str, Tensor]) -> None:

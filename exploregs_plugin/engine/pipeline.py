@@ -252,6 +252,10 @@ class Pipeline:
         if trial is not None:  # MCMC's cap_max 'validated', at its last refinement
             count_trial.decide(self, step, trial)
         notes += self._return_held_views(step)
+        if step == self.schedule.max_steps - 1:
+            cut, line = self._final_cut(step)
+            counts = {**(counts or {}), "pruned": (counts or {}).get("pruned", 0) + cut}  # the run's totals balance
+            notes += line
         return {
             "loss": totals["loss"],
             "terms": {k: v for k, v in totals.items() if k not in ("loss", "psnr")},
@@ -261,6 +265,24 @@ class Pipeline:
             "means_lr": means_lr,
             "notes": notes,
         }
+
+    def _final_cut(self, step: int) -> tuple[int, list[str]]:
+        """After the run's last step, before its final evaluation: the strategy's end-of-run cut by
+        each Gaussian's compositing weight over every training view (one pass without gradients;
+        :meth:`Strategy.final_cut`); returns the rows removed and the count line it writes. None
+        for a dynamic model (its Gaussians move with time) or on gsplat's kernels, which do not sum
+        the weights (a note)."""
+        share = self.strategy.final_cut_share()
+        if share <= 0.0 or self.model.parts:
+            return 0, []
+        if resolve_backend(self.model.config.raster, self.device) == "gsplat":
+            return 0, [f"note: the end-of-run cut (--strategy.final-weight-share {share:g}) is off: gsplat's "
+                       f"kernels do not sum each Gaussian's compositing weight"]
+        with torch.no_grad():
+            totals = count_trial.training_visibility(self)
+        cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals[:, 0],
+                                      (totals[:, 1] > 0).to(torch.float32), step)
+        return cut, [self.strategy.count_decision(self.strategy_state)]
 
     def _count_note(self, before: str) -> list[str]:
         """The strategy's line on the count it kept, once, at the step it was written (a count

@@ -340,6 +340,19 @@ class Strategy:
         for a strategy without such a rule)."""
         return state.get(COUNT_NOTE, "") if self.cap_max == VALIDATED else ""
 
+    def final_cut_share(self) -> float:
+        """The share of the training views' compositing weight whose least significant Gaussians
+        :meth:`final_cut` removes after the run's last step (0: none; the base keeps every row)."""
+        return 0.0
+
+    def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], weights: Tensor,
+                  drawn: Tensor, step: int) -> int:
+        """After the last step, before the final evaluation: remove rows by their compositing weight
+        over every training view (``weights`` [N], ``drawn`` [N] views that drew each row; the caller
+        renders them, :func:`exploregs_plugin.model.significance.visibility_totals`). Returns the rows
+        removed. Default's rule: :class:`DefaultStrategy.final_weight_share`."""
+        return 0
+
 
 def _field_at(config: Any, dotted: str) -> Any:
     for part in dotted.split("."):
