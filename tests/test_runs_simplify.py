@@ -10,8 +10,13 @@ from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.gaussians import render_params, rgb_to_sh0
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.runs import load_run
-from exploregs_plugin.model.significance import blend_weight_totals, most_significant
+from exploregs_plugin.model.significance import most_significant, visibility_totals
 from exploregs_plugin.runs.simplify import simplify
+
+
+def _weights(params, cameras, settings, background=None):
+    """Each Gaussian's summed compositing weight alpha T over ``cameras`` (its significance)."""
+    return visibility_totals(params, cameras, settings, background)[:, 0]
 
 
 def _camera(width=48, height=40, focal=50.0) -> Camera:
@@ -39,13 +44,13 @@ def test_the_weights_of_a_view_add_up_to_its_accumulated_alpha():
     params = _scene([2.0, 3.0, 4.0, 2.5], [-1.5, -1.0, -1.2, -2.0], [0.0, 2.0, 1.0, -1.0],
                     [(0.0, 0.0), (0.2, 0.1), (-0.3, 0.0), (0.1, -0.2)])
     camera = _camera()
-    weights = blend_weight_totals(params, [camera], RasterSettings())
+    weights = _weights(params, [camera], RasterSettings())
     _, alpha, _, _ = render_params(params, camera, 0, None, RasterSettings())
     assert weights.dtype == torch.float64 and weights.shape == (4,)
     assert (weights > 0).all()
     assert math.isclose(float(weights.sum()), float(alpha.double().sum()), rel_tol=1e-4)
     # two views: the sums add
-    twice = blend_weight_totals(params, [camera, camera], RasterSettings())
+    twice = _weights(params, [camera, camera], RasterSettings())
     torch.testing.assert_close(twice, 2 * weights)
 
 
@@ -54,7 +59,7 @@ def test_a_gaussian_hidden_behind_an_opaque_one_is_not_significant():
     # would rank it first; what it paints is (1 - alpha_front) of its footprint, nearly nothing
     # (front: 18 px wide on screen, back: 5 px, so the front covers the back's whole footprint)
     params = _scene([2.0, 8.0], [-0.3, -0.2], [9.0, 9.0])
-    weights = blend_weight_totals(params, [_camera(128, 128)], RasterSettings())
+    weights = _weights(params, [_camera(128, 128)], RasterSettings())
     volume_proxy = torch.sigmoid(params["opacities"]) * params["scales"].exp().prod(dim=1)
     assert volume_proxy[1] > volume_proxy[0]
     assert weights[1] < 0.05 * weights[0]
@@ -93,9 +98,8 @@ def test_pruning_keeps_the_rows_and_their_adam_moments(run_dir):
     params = run.pipeline.params
     n = int(params["means"].shape[0])
     full_psnr = _train_psnr(run)
-    significance = blend_weight_totals({k: v.detach() for k, v in params.items()},
-                                       run.pipeline.datamanager.train_cameras,
-                                       run.pipeline.model.config.raster, run.pipeline.background)
+    significance = _weights({k: v.detach() for k, v in params.items()}, run.pipeline.datamanager.train_cameras,
+                            run.pipeline.model.config.raster, run.pipeline.background)
     keep = most_significant(significance, n // 2)
     expected_means = params["means"].detach()[keep].clone()
     expected_moment = run.pipeline.optimizers["means"].state[params["means"]]["exp_avg"][keep].clone()

@@ -278,8 +278,7 @@ class Pipeline:
         if resolve_backend(self.model.config.raster, self.device) == "gsplat":
             return 0, [f"note: the end-of-run cut (--strategy.final-weight-share {share:g}) is off: gsplat's "
                        f"kernels do not sum each Gaussian's compositing weight"]
-        with torch.no_grad():
-            totals = count_trial.training_visibility(self)
+        totals = count_trial.training_visibility(self)  # rendered without gradients
         cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals[:, 0],
                                       (totals[:, 1] > 0).to(torch.float32), step)
         return cut, [self.strategy.count_decision(self.strategy_state)]

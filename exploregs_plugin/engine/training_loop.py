@@ -2,7 +2,7 @@
 is ``exploregs_plugin.engine.trainer.TrainerConfig``, whose ``setup()`` builds it (this module does not
 import the config back). What it calls between steps has modules of its own: ``stopping``
 (signals), ``watches`` (when the collapse and non-finite watches are read), ``thread_follower``,
-``run_folder`` and ``rank_evaluation``."""
+``run_folder`` and ``evaluation.ranks``."""
 
 from __future__ import annotations
 

@@ -44,12 +44,6 @@ def visibility_totals(params: Mapping[str, Tensor], cameras: Iterable[Camera], s
     return totals
 
 
-def blend_weight_totals(params: Mapping[str, Tensor], cameras: Iterable[Camera], settings: RasterSettings | None,
-                        background: Tensor | None = None) -> Tensor:
-    """[N] float64: S_j = sum over ``cameras`` and their pixels of alpha_j T_j (see the module)."""
-    return visibility_totals(params, cameras, settings, background)[:, 0]
-
-
 def most_significant(significance: Tensor, count: int) -> Tensor:
     """[N] bool: the ``count`` rows of largest significance. Ties go to the lower index (a stable
     sort), so the choice is the same on every thread count and backend that gives the same sums."""

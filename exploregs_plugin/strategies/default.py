@@ -223,7 +223,7 @@ class DefaultStrategy(Strategy):
     def without_visibility(self) -> "DefaultStrategy | None":
         """This strategy for a renderer that cannot sum the compositing weights: the significance
         prune off (None where the strategy needs the sums for more than that: occlusion-aware splitting)."""
-        without = dataclasses.replace(self, prune_weight_share=0.0, final_weight_share=0.0)
+        without = dataclasses.replace(self, prune_weight_share=0.0)
         return None if VISIBILITY_STATS in without.requirements() else without
 
     def initialize_state(self, scene_scale: float = 1.0, scene_center: Tensor | None = None) -> dict[str, Any]:
