@@ -19,6 +19,7 @@ from exploregs_plugin.engine.nonfinite import NonFiniteError, NonFiniteWatch
 from exploregs_plugin.model.optim import OptimizerConfig, OptimizerSet, batch_betas, batch_lr_scale
 from exploregs_plugin.strategies.observation import ViewError, ViewObservation, observe_render
 from exploregs_plugin.rasterizer import BackendError, backend_problem, resolve_backend
+from exploregs_plugin.rasterizer.composite import single_threaded_ops
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
 from exploregs_plugin.strategies.count_rule import MIN_VIEWS, held_out_indices
@@ -227,7 +228,18 @@ class Pipeline:
 
         Nothing here reads the device: the step's ``loss``, ``psnr`` and ``terms`` are 0-dim
         float64 tensors on it, and a non-finite loss or parameter is recorded there
-        (:attr:`nonfinite`); the trainer reads both where they are needed (:meth:`nonfinite_error`)."""
+        (:attr:`nonfinite`); the trainer reads both where they are needed (:meth:`nonfinite_error`).
+
+        torch's own operators run on one thread here; the compiled kernels (projection, SH,
+        compositing, SSIM) and the compositor's workers take the run's thread count explicitly
+        (``thread_budget``). Why: torch cuts an elementwise operator over more than 32,768 elements
+        into one chunk per thread, and each chunk's last elements go through the scalar sigmoid,
+        exp, ... whose last bit can differ from the vectorised one; the cut moves with the thread
+        count, and a run with more Gaussians than that would part ways on 1 and 2 threads."""
+        with single_threaded_ops():
+            return self._train_step(step)
+
+    def _train_step(self, step: int) -> dict[str, Any]:
         self.model.begin_step(step, self.schedule.max_steps)
         indices = self.datamanager.next_train_indices(self.batch_size)  # every rank draws the whole batch
         # the backgrounds too, so that the run's generator advances alike on every rank

@@ -11,6 +11,7 @@ from torch import Tensor
 
 from exploregs_plugin.kernels import cpp_problem
 from exploregs_plugin.kernels.ssim import ssim_map_cpp
+from exploregs_plugin.rasterizer.composite import thread_budget
 
 SSIM_WINDOW = 11
 SSIM_SIGMA = 1.5
@@ -152,7 +153,7 @@ def ssim(img: Tensor, ref: Tensor) -> Tensor:
         raise ValueError(f"ssim: shapes differ: {tuple(img.shape)} vs {tuple(ref.shape)}")
     if img.device.type == "cpu" and img.dtype in (torch.float32, torch.float64) and cpp_problem() is None:
         x, y = img.permute(2, 0, 1), ref.to(img.dtype).permute(2, 0, 1)
-        return ssim_map_cpp(x, y, SSIM_C1, SSIM_C2, torch.get_num_threads()).mean()
+        return ssim_map_cpp(x, y, SSIM_C1, SSIM_C2, thread_budget()).mean()
     return ssim_map(img, ref).mean()
 
 
