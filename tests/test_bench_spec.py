@@ -188,6 +188,24 @@ def test_full_preset_runs_the_compared_methods_three_times_and_the_rest_once(tmp
         BenchSpec(entries=(BenchEntry("d", "exploregs-default", seeds=(0, 0)),), scenes=small.scenes)
 
 
+def test_methods_named_in_the_preset_keep_the_presets_arguments(tmp_path, monkeypatch):
+    """`eg-bench full --methods default seedsplit mcmc` runs the full bench's entries (its
+    threshold, budget and cap), not the generic entries of those names; other names are as before."""
+    import exploregs_plugin.bench.presets as presets
+
+    for name in ("beer", "fox"):
+        (tmp_path / name).mkdir()
+    monkeypatch.setattr(presets, "shared_scenes_root", lambda: tmp_path)
+    spec = compose("full", methods=("default", "seedsplit", "mcmc", "seed50=seed", "exploregs-ray"), seeds=(0, 1))
+    whole = full(tmp_path)
+    for name in ("default", "seedsplit", "mcmc"):
+        assert spec.entry(name) == whole.entry(name) != named_entries()[name]
+    assert _config(spec, "default").pipeline.strategy.grow_grad2d == pytest.approx(0.0012)
+    assert spec.entry("mcmc").depends_on() == {"default"}
+    assert spec.entry("seed50").overrides == named_entries()["seed"].overrides
+    assert [e.name for e in spec.entries] == ["default", "seedsplit", "mcmc", "seed50", "exploregs-ray"]
+
+
 def _record(entry: str, seed: int, psnr: float | None, far: float = 20.0) -> RunRecord:
     if psnr is None:
         return RunRecord("s", entry, seed, Path("/x"), status="failed", error="boom")

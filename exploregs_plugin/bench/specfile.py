@@ -145,7 +145,11 @@ def compose(
     if "baseline" in data:
         fields["baseline"] = str(data["baseline"])
     if methods is not None:
-        fields["entries"] = tuple(entry_from_arg(m) for m in methods)
+        # a name the preset (or spec file) defines is its entry, with its overrides: `eg-bench full
+        # --methods default seedsplit` runs the full bench's Default and Seed+Split, at its threshold
+        # and budget, not the generic entries of those names
+        defined = {e.name: e for e in fields.get("entries", ())}
+        fields["entries"] = tuple(defined[m] if m in defined else entry_from_arg(m) for m in methods)
     if scenes is not None:
         fields["scenes"] = tuple(scene_from_arg(s) for s in scenes)
     for key, value in (("seeds", seeds), ("steps", steps), ("eval_count", eval_count), ("baseline", baseline)):
