@@ -10,7 +10,7 @@ from exploregs_plugin.rasterizer.cpp_backend import cpp_problem
 
 PINNED_PER_STEP = {
     "exploregs-default": 269.1,
-    "exploregs-seedsplit": 430.1,
+    "exploregs-seedsplit": 410.1,
     "exploregs-mcmc": 344.1,
 }
 """Top-level operators per step, steps 20-29 of a 300-step schedule of the built-in scene, cpp
