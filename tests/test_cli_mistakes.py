@@ -205,3 +205,20 @@ def test_every_commands_mistakes_give_one_true_line_and_exit_code_2(run, ply, ti
         signal.signal(signal.SIGTERM, sigterm)
     assert wrong == []
     assert not (tmp_path / "missing-out").exists() and not (tmp_path / "missing-bench").exists()
+
+
+def test_a_warning_is_one_line_naming_the_command_and_python_form_comes_back(monkeypatch):
+    """A dataset's note (3 of 59 photos not in the model, ...) reaches the user as one line, not as
+    Python's file:line: UserWarning plus the source line of the code that warned."""
+    import warnings
+
+    monkeypatch.delenv("EXPLOREGS_DEBUG", raising=False)
+    before = warnings.formatwarning
+    text = run_cli("eg-train", lambda _: warnings.formatwarning(
+        UserWarning("/data/images: 3 of 59 images are not in the COLMAP model"), UserWarning, "colmap.py", 253,
+        "warnings.warn(...)"), [])
+    assert text == "eg-train: warning: /data/images: 3 of 59 images are not in the COLMAP model\n"
+    assert warnings.formatwarning is before
+    monkeypatch.setenv("EXPLOREGS_DEBUG", "1")  # the developer's form: where it came from
+    text = run_cli("eg-train", lambda _: warnings.formatwarning(UserWarning("x"), UserWarning, "colmap.py", 253), [])
+    assert "colmap.py:253: UserWarning: x" in text

@@ -6,6 +6,8 @@ import contextlib
 import io
 import os
 import sys
+import warnings
+from functools import partial
 from typing import Any, Callable, TypeVar
 
 from exploregs_plugin.io.config_files import tyro_error_text, use_joined_help_lines
@@ -43,9 +45,14 @@ def run_cli(command: str, main: Callable[[T], Any], args: T) -> Any:
     """Run ``main(args)``; a user error prints ``COMMAND: error: ...`` and exits with code 2.
 
     Set EXPLOREGS_DEBUG=1 to get the traceback instead. Every command computes with one thread per
-    CPU this process may use (or OMP_NUM_THREADS); eg-train's --num-threads overrides it.
+    CPU this process may use (or OMP_NUM_THREADS); eg-train's --num-threads overrides it. A warning
+    prints as one line, ``COMMAND: warning: ...`` (Python's own form adds the file, line number and
+    source line of the code that warned, which tell a user nothing); EXPLOREGS_DEBUG keeps that form.
     """
     apply_threads()
+    formatted = warnings.formatwarning
+    if not os.environ.get("EXPLOREGS_DEBUG"):
+        warnings.formatwarning = partial(_one_line_warning, command)
     try:
         return main(args)
     except USER_ERRORS as err:
@@ -53,3 +60,10 @@ def run_cli(command: str, main: Callable[[T], Any], args: T) -> Any:
             raise
         print(f"{command}: error: {err}", file=sys.stderr)
         raise SystemExit(2) from err
+    finally:
+        warnings.formatwarning = formatted
+
+
+def _one_line_warning(command: str, message: Warning | str, category: type[Warning], filename: str, lineno: int,
+                      line: str | None = None) -> str:
+    return f"{command}: warning: {message}\n"
