@@ -32,11 +32,12 @@ def nonfinite_count(name: str, p: Tensor) -> Tensor:
     or, for a model part's parameter, its values."""
     with torch.no_grad():  # no detach: nothing here is recorded (each operator costs a dispatch)
         if p.ndim > 1 and not name.startswith(PART_PREFIX):
-            # A row's float64 sum is non-finite exactly when the row holds a NaN or inf (NaN and inf
-            # propagate; finite float32 values sum to at most K x 3.4e38, far inside float64): one
-            # pass over the tensor instead of isfinite's three and an any (8% of a beer step at 45k
-            # Gaussians, docs/rasterizer.md). Rows minus the finite ones: four operators.
-            return p.shape[0] - torch.isfinite(p.sum(dim=tuple(range(1, p.ndim)), dtype=torch.float64)).sum()
+            # p * 0 is 0 for a finite value and NaN for a NaN or an inf, so a row's sum of it is NaN
+            # exactly when the row holds one, and cannot overflow (finite float32 values can: 3.4e38
+            # twice). A float32 product and sum instead of a float64 copy and its sum: Default's beer
+            # step 0.6 ms shorter at 11.7k Gaussians (docs/training.md); isfinite's three passes and
+            # an any were 8% of a beer step at 45k Gaussians (docs/rasterizer.md).
+            return p.shape[0] - torch.isfinite((p * 0.0).sum(dim=tuple(range(1, p.ndim)))).sum()
         return p.numel() - torch.isfinite(p).sum()
 
 
