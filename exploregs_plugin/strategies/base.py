@@ -348,9 +348,10 @@ class Strategy:
     def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], weights: Tensor,
                   drawn: Tensor, step: int) -> int:
         """After the last step, before the final evaluation: remove rows by their compositing weight
-        over every training view (``weights`` [N], ``drawn`` [N] views that drew each row; the caller
-        renders them, :func:`exploregs_plugin.model.significance.visibility_totals`). Returns the rows
-        removed. Default's rule: :class:`DefaultStrategy.final_weight_share`."""
+        over every training view (``weights`` [N]; ``drawn`` [N], > 0 where a view drew the row: the
+        pipeline passes the rows' alpha sums; it renders both with
+        :func:`exploregs_plugin.model.significance.visibility_totals`). Returns the rows removed.
+        Default's rule: :class:`DefaultStrategy.final_weight_share`."""
         return 0
 
 

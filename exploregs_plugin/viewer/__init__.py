@@ -7,8 +7,9 @@ server side (``Viewer``, ``ViewerScene``) is imported on first use.
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
+from exploregs_plugin.runtime.lazy_names import lazy_names
 from exploregs_plugin.viewer.config import ViewerConfig
 
 if TYPE_CHECKING:
@@ -16,15 +17,4 @@ if TYPE_CHECKING:
     from exploregs_plugin.viewer.viewer import Viewer
 
 __all__ = ["Viewer", "ViewerConfig", "ViewerScene"]
-
-
-def __getattr__(name: str) -> Any:
-    if name == "Viewer":
-        from exploregs_plugin.viewer.viewer import Viewer
-
-        return Viewer
-    if name == "ViewerScene":
-        from exploregs_plugin.viewer.scene import ViewerScene
-
-        return ViewerScene
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = lazy_names(__name__, {"Viewer": ".viewer", "ViewerScene": ".scene"})
