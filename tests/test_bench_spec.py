@@ -113,6 +113,20 @@ def test_a_run_matches_its_config_whatever_its_folder_and_across_added_fields():
         config_fingerprint(build_config(spec, spec.scenes[0], spec.entry("default"), 0, Path("/y")))
 
 
+def test_a_scene_reached_by_a_relative_or_an_absolute_path_is_the_same_run(tmp_path, monkeypatch):
+    """A spec file names ../shared/scenes/beer, an earlier command /work/shared/scenes/beer: the
+    runs are one scene's, so the finished ones are reused (the config holds the resolved path)."""
+    scene_dir = tmp_path / "scenes" / "beer"
+    scene_dir.mkdir(parents=True)
+    monkeypatch.chdir(tmp_path / "scenes")
+    spec = preset("quick")
+    relative, absolute = BenchScene("beer", "../scenes/beer"), BenchScene("beer", str(scene_dir))
+    config = build_config(spec, relative, spec.entry("default"), 0, Path("/x"))
+    assert Path(config.pipeline.datamanager.data) == scene_dir.resolve()
+    assert config_fingerprint(config) == config_fingerprint(build_config(spec, absolute, spec.entry("default"), 0, Path("/x")))
+    assert build_config(spec, BenchScene("t", "builtin:tiny"), spec.entry("default"), 0, Path("/x")).pipeline.datamanager.data == "builtin:tiny"
+
+
 def test_compose_cli_and_spec_file(tmp_path):
     spec = compose(methods=("default", "seed50=seed", "exploregs-mcmc"), scenes=("builtin:farside", "mine=/data/x",
                                                                                  "/data/fox/transforms.json"),

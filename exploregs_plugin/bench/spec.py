@@ -200,13 +200,17 @@ def parse_overrides(config: TrainerConfig, args: list[str], where: str) -> Train
 def build_config(spec: BenchSpec, scene: BenchScene, entry: BenchEntry, seed: int, run_dir: Path) -> TrainerConfig:
     """The complete TrainerConfig of one run: the method's config, the bench fields (data, steps,
     seed, run folder, evaluation count, quiet), then the scene's options, then the entry's overrides."""
+    from exploregs_plugin.data.dataparser import BUILTIN_PREFIX
     from exploregs_plugin.method_configs import MethodRegistryError, get_method
 
     try:
         base = get_method(entry.method).config
     except MethodRegistryError as err:
         raise BenchSpecError(f"entry {entry.name!r}: {err}") from err
-    config = replace(base, data=scene.data, max_steps=spec.steps, seed=seed, device=spec.device, eval_count=spec.eval_count,
+    # a dataset path is absolute in the run's config, so the same scene reached from another folder
+    # (../shared/scenes/beer from the repository, /work/shared/scenes/beer) is the same run
+    data = scene.data if scene.data.startswith(BUILTIN_PREFIX) else str(Path(scene.data).expanduser().resolve())
+    config = replace(base, data=data, max_steps=spec.steps, seed=seed, device=spec.device, eval_count=spec.eval_count,
                      quiet=True, tensorboard=False, save_eval_images=False)
     config = parse_overrides(config, list(scene.options), f"scene {scene.name!r} options")
     config = parse_overrides(config, list(entry.overrides), f"entry {entry.name!r} overrides")
