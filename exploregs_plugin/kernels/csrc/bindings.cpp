@@ -43,14 +43,15 @@ at::Tensor sh_forward(at::Tensor coeffs, at::Tensor means, at::Tensor rows, at::
 std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Tensor rows,
                                        at::Tensor camera, int64_t degree, at::Tensor g_colors, int64_t threads);
 
-// ssim_cpu.cpp
-std::vector<at::Tensor> ssim_forward(at::Tensor img, at::Tensor ref, double c1, double c2, int64_t threads);
-at::Tensor ssim_backward(at::Tensor img, at::Tensor ref, at::Tensor moments, at::Tensor grad_map,
-                            double c1, double c2, int64_t threads);
+// photometric_cpu.cpp
+std::vector<at::Tensor> photometric_forward(at::Tensor img, at::Tensor ref, double lambda, double c1, double c2,
+                                            int64_t threads);
+at::Tensor photometric_backward(at::Tensor moments, at::Tensor grad_loss, double lambda, double c1, double c2,
+                                int64_t threads);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
-  m.def("ssim_forward", &ssim_forward, "SSIM map with an 11x11 Gaussian window (forward)");
-  m.def("ssim_backward", &ssim_backward, "SSIM map (backward)");
+  m.def("photometric_forward", &photometric_forward, "(1 - lambda) L1 + lambda (1 - SSIM) (forward)");
+  m.def("photometric_backward", &photometric_backward, "(1 - lambda) L1 + lambda (1 - SSIM) (backward)");
   m.def("sh_forward", &sh_forward, "SH colours (forward)");
   m.def("sh_backward", &sh_backward, "SH colours (backward)");
   m.def("project_forward", &project_forward, "EWA projection (forward)");
