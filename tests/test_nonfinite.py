@@ -22,3 +22,42 @@ def test_nonfinite_rows_are_counted_from_row_sums_as_from_every_value():
         expected = (~torch.isfinite(p)).reshape(50, -1).any(dim=1).sum() if p.ndim > 1 else (~torch.isfinite(p)).sum()
         assert int(nonfinite_count("shN", p)) == int(expected)
     assert int(nonfinite_count("deformation.grid", torch.tensor([[1.0, float("nan")], [float("inf"), 2.0]]))) == 2
+
+
+def test_the_compiled_count_of_every_tensor_in_one_call_equals_the_torch_count():
+    """nonfinite_counts (on the CPU: one kernel call testing each value's exponent bits) against
+    nonfinite_count per tensor: rows with a NaN, +inf or -inf anywhere in them, rows whose float32
+    sum would overflow, float64, a transposed (non-contiguous) tensor, an empty one, a model
+    part's values; and the same counts at 1 and 2 threads."""
+    import pytest
+
+    from exploregs_plugin.engine.nonfinite import nonfinite_counts
+    from exploregs_plugin.kernels import cpp_problem
+    from exploregs_plugin.rasterizer.composite import thread_budget
+
+    if cpp_problem() is not None:
+        pytest.skip(f"compiled kernels unavailable: {cpp_problem()}")
+    g = torch.Generator().manual_seed(1)
+    named = [("means", torch.randn(300, 3, generator=g)), ("shN", torch.randn(300, 15, 3, generator=g)),
+             ("opacities", torch.randn(300, generator=g)), ("scales", torch.randn(3, 300, generator=g).t()),
+             ("quats", torch.randn(300, 4, generator=g, dtype=torch.float64)), ("empty", torch.zeros(0, 3)),
+             ("deformation.grid", torch.randn(7, 9, generator=g))]
+    values = {name: p for name, p in named}
+    rows = torch.randperm(300, generator=g)[:40]
+    for k, r in enumerate(rows.tolist()):
+        name = ("means", "shN", "opacities", "scales", "quats")[k % 5]
+        flat = values[name][r].reshape(-1) if values[name].ndim > 1 else values[name]
+        flat[(k * 7) % flat.numel() if values[name].ndim > 1 else r] = (float("nan"), float("inf"), -float("inf"))[k % 3]
+    values["means"][rows[0]] = 3.4e38  # finite: its float32 sum would overflow (row may hold a NaN too)
+    values["means"][299] = 3.4e38
+    values["deformation.grid"][2, 3] = float("nan")
+    expected = torch.stack([nonfinite_count(name, p) for name, p in named])
+    assert expected.sum() > 20 and int(expected[-1]) == 1
+    previous = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            assert thread_budget() == threads
+            assert torch.equal(nonfinite_counts(named), expected)
+    finally:
+        torch.set_num_threads(previous)

@@ -8,13 +8,14 @@ training view (one pass, SH degree 0), then the set cut by
 each scored on the test views (PSNR, LPIPS, and the PSNR of each labelled region, such as the
 built-in scenes' far region) against the whole set.
 
-    python experiments/significance/cut_criteria.py RUN_DIR
+    python experiments/significance/cut_criteria.py RUN_DIR [RUN_DIR ...]
+    python experiments/significance/cut_criteria.py RUN_DIR --shares 0.003 0.01 0.02 0.04 --no-hidden
 """
 
 from __future__ import annotations
 
+import argparse
 import copy
-import sys
 
 import torch
 
@@ -44,19 +45,27 @@ def scored(run, mask: torch.Tensor) -> tuple[int, float, float, dict[str, float]
     return int((~mask).sum()), m["psnr"], m.get("lpips") or float("nan"), regions
 
 
-def main(path: str) -> None:
+def main(path: str, shares: tuple[float, ...] = (0.001, 0.003, 0.01), hidden: bool = True) -> None:
     run = load_run(path, "cpu")
     s, a = weight_sums(run.pipeline)
     drawn = (a > 0).float()
     n = s.shape[0]
     print(f"{path}: {n} Gaussians")
-    print("whole", scored(run, torch.zeros(n, dtype=torch.bool)))
-    for q in (0.001, 0.003, 0.01):
-        print(f"share {q}", scored(run, least_significant(s, drawn, q)))
+    print("whole", scored(run, torch.zeros(n, dtype=torch.bool)), flush=True)
+    for q in shares:
+        print(f"share {q}", scored(run, least_significant(s, drawn, q)), flush=True)
+    if not hidden:
+        return
     t_mean = s / a.clamp_min(1e-12)
     for t in (0.02, 0.05, 0.1, 0.2):
-        print(f"hidden {t}", scored(run, (a > 0) & (t_mean < t)))
+        print(f"hidden {t}", scored(run, (a > 0) & (t_mean < t)), flush=True)
 
 
 if __name__ == "__main__":
-    main(sys.argv[1])
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("runs", nargs="+", help="finished run folders")
+    parser.add_argument("--shares", type=float, nargs="+", default=[0.001, 0.003, 0.01])
+    parser.add_argument("--no-hidden", action="store_true", help="skip the mean-transmittance criterion")
+    args = parser.parse_args()
+    for run_dir in args.runs:
+        main(run_dir, tuple(args.shares), not args.no_hidden)

@@ -49,6 +49,9 @@ std::vector<at::Tensor> photometric_forward(at::Tensor img, at::Tensor ref, doub
 at::Tensor photometric_backward(at::Tensor moments, at::Tensor grad_loss, double lambda, double c1, double c2,
                                 int64_t threads);
 
+// watch_cpu.cpp
+at::Tensor nonfinite_counts(std::vector<at::Tensor> tensors, std::vector<int64_t> by_row, int64_t threads);
+
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("photometric_forward", &photometric_forward, "(1 - lambda) L1 + lambda (1 - SSIM) (forward)");
   m.def("photometric_backward", &photometric_backward, "(1 - lambda) L1 + lambda (1 - SSIM) (backward)");
@@ -59,5 +62,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "Tile-Gaussian pairs, front to back per tile");
   m.def("composite_forward", &composite_forward, "Front-to-back compositing (forward)");
   m.def("composite_backward", &composite_backward, "Front-to-back compositing (backward, per-pair sums)");
+  m.def("nonfinite_counts", &nonfinite_counts, "Rows (or values) of each tensor holding a NaN or an inf");
   m.def("sum_pairs", &sum_pairs, "Per-Gaussian sums of per-pair rows in a fixed order");
 }
