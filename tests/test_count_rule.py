@@ -327,12 +327,31 @@ def test_the_trial_leaves_the_pipeline_as_it_was_and_pairs_its_candidates(tmp_pa
     assert pipeline.held_out_psnrs(120) == scores[0]
 
 
-def test_too_few_training_views_to_hold_out_is_one_clear_line(tmp_path, tiny_scene_dir):
-    config = _config(tmp_path / "run")
-    config = replace(config, pipeline=replace(config.pipeline, datamanager=replace(
-        config.pipeline.datamanager, test_every=2, use_dataset_split=False)))  # 5 training views of 10
-    with pytest.raises(ValueError, match="at least 8 training views"):
-        config.setup()
+def test_too_few_training_views_to_hold_out_fall_back_to_a_rule_that_reads_none(tmp_path, tiny_scene_dir, capsys):
+    """A capture of 5 training views asks for a count decided on held-out views: MCMC decides it
+    by the training loss's fall instead (cap_max 'auto'), Default and Seed+Split by the end-of-run
+    cut; one line says which, no view is held out, and the run trains."""
+    def five_views(config):
+        return replace(config, pipeline=replace(config.pipeline, datamanager=replace(
+            config.pipeline.datamanager, test_every=2, use_dataset_split=False)))  # 5 training views of 10
+
+    mcmc = five_views(_config(tmp_path / "mcmc"))
+    trainer = mcmc.setup()
+    assert trainer.pipeline.strategy.cap_max == "auto" and trainer.pipeline.datamanager.held_out == []
+    line = next(ln for ln in capsys.readouterr().out.splitlines() if ln.startswith("count:"))
+    assert line == ("count: tiny has 5 training views, fewer than the 8 a count decided on held-out views needs; "
+                    "the training loss's fall (--strategy.cap-max auto) decides it instead")
+    config = get_method("exploregs-seedsplit").config
+    strategy = replace(config.pipeline.strategy, cap_max="validated")
+    seedsplit = five_views(replace(config, data="builtin:tiny", max_steps=40, run_dir=tmp_path / "seedsplit",
+                                   quiet=True, tensorboard=False, eval_count=1, save_eval_images=False,
+                                   checkpoint_every=40, pipeline=replace(config.pipeline, strategy=strategy)))
+    trainer = seedsplit.setup()
+    assert trainer.pipeline.strategy.cap_max is None and trainer.pipeline.datamanager.held_out == []
+    assert "the end-of-run cut by significance (--strategy.final-weight-share 0.001) decides it instead" in \
+        capsys.readouterr().out
+    m = trainer.train()
+    assert m["num_gaussians"] > 0 and m["count_decision"].startswith("count: ")
 
 
 def test_the_datamanager_passes_over_held_views_and_keeps_them_in_its_state(tiny_dm):

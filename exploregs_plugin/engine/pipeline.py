@@ -22,7 +22,7 @@ from exploregs_plugin.rasterizer import BackendError, backend_problem, resolve_b
 from exploregs_plugin.rasterizer.composite import single_threaded_ops
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
-from exploregs_plugin.strategies.count_rule import MIN_VIEWS, held_out_indices
+from exploregs_plugin.strategies.count_rule import MIN_VIEWS, VALIDATED, held_out_indices
 from exploregs_plugin.strategies.requirements import VIEW_ERRORS, VISIBILITY_STATS
 
 
@@ -100,6 +100,18 @@ def strategy_for_renderer(strategy: Any, model: GaussianModelConfig, device: tor
                      f"Gaussian's compositing weight (--model.raster.backend cpp or torch do)"]
 
 
+def strategy_for_views(strategy: Any, n_train: int, scene_name: str) -> tuple[Any, list[str]]:
+    """The strategy to train with on ``n_train`` training views, and the line that says what
+    changed: a count to be decided on held-out views (cap_max 'validated') needs at least
+    ``MIN_VIEWS`` of them; a smaller capture gets the strategy's rule that reads the training views
+    only (:meth:`Strategy.without_held_out_views`), not a refusal."""
+    if getattr(strategy, "cap_max", None) != VALIDATED or held_out_indices(n_train):
+        return strategy, []
+    without, rule = strategy.without_held_out_views()
+    return without, [f"count: {scene_name} has {n_train} training views, fewer than the {MIN_VIEWS} a count decided "
+                     f"on held-out views needs; {rule} decides it instead"]
+
+
 @dataclass
 class PipelineConfig:
     """Everything a training step needs: data, model, optimizer, densification strategy, loss."""
@@ -172,6 +184,9 @@ class Pipeline:
         self.model = model_config.setup(*to_device((dm.points, dm.points_rgb), device), seed=seed)
         self.optim = self._make_optimizer_set()
         self.loss_terms = config.loss_terms()
+        strategy_config, notes = strategy_for_views(strategy_config, len(dm.train_cameras), dm.scene_name)
+        for note in notes if world.is_main else ():
+            print(note, flush=True)
         self.strategy = strategy_config.setup(schedule)
         self.strategy.check_sanity(self.model.params, self.optimizers)
         # Scene centre = mean training-camera centre (seeding measures distances from it).

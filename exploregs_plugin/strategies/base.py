@@ -91,7 +91,8 @@ class Strategy:
     count_cuts of its count (the most significant Gaussians), each candidate fine-tuned
     count_trial_steps steps from the same snapshot; the smallest whose held-out PSNR is within
     count_tolerance dB of the best candidate's (per view, with its standard error) is kept and
-    the views return to training (eg-train's pipeline runs the trial; docs/strategies.md)."""
+    the views return to training (eg-train's pipeline runs the trial; docs/strategies.md). A
+    capture of fewer than 8 training views trains with :meth:`without_held_out_views` instead."""
     refine_start_iter: int | None = None
     """Refinement runs on steps strictly after this one. None: the run's schedule (refine_start)."""
     refine_stop_iter: int | None = None
@@ -125,6 +126,17 @@ class Strategy:
         """What this strategy needs from the renderer: its class's ``requires`` (a composed
         strategy adds its operators')."""
         return type(self).requires
+
+    def without_held_out_views(self) -> tuple["Strategy", str]:
+        """This strategy for a capture too small to hold views out (cap_max 'validated' with
+        fewer than ``count_rule.MIN_VIEWS`` training views), and what decides its count then: no
+        cap, and the end-of-run cut by significance where the strategy has one (it reads the
+        training views only)."""
+        without = dataclasses.replace(self, cap_max=None)
+        share = without.final_cut_share()
+        rule = (f"the end-of-run cut by significance (--strategy.final-weight-share {share:g})" if share > 0
+                else "no cap (the growth rule alone)")
+        return without, rule
 
     CAP_WORDS: ClassVar[tuple[str, ...]] = (VALIDATED,)
     """The words cap_max takes besides a count."""

@@ -19,7 +19,7 @@ for the trainer to add to its loss.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Literal
 
 import torch
@@ -202,6 +202,11 @@ class MCMCStrategy(Strategy):
             raise StrategyError(f"{type(self).__name__} with cap_max '{AUTO}' reads the training loss: pass "
                                 f"loss=<the step's loss, a 0-d tensor> to step_post_backward")
         auto_add_loss(state, loss)
+
+    def without_held_out_views(self) -> tuple["MCMCStrategy", str]:
+        """Too few training views to hold some out: the training loss's fall decides the count
+        instead (cap_max 'auto', which reads no held-out view)."""
+        return replace(self, cap_max=AUTO), f"the training loss's fall (--strategy.cap-max {AUTO})"
 
     def growth_cap(self, state: dict[str, Any], n: int) -> int:
         """The cap of this refinement's growth: ``cap_max``; for 'validated' the count kept, or,
