@@ -186,7 +186,7 @@ def _load() -> tuple[Any, str | None]:
         _clear_stale_lock(folder)
     units = [p.stem for p in SOURCES]
     print(f"building the compiled CPU kernels: {len(units)} C++ units, once per machine and version "
-          f"(about 28 s of CPU time, measured on a 2-core machine; docs/training.md)", file=sys.stderr, flush=True)
+          f"(about 33 s of CPU time, measured on a 2-core machine; docs/training.md)", file=sys.stderr, flush=True)
     log = io.StringIO()
     progress = _BuildProgress(folder, units)
     try:
