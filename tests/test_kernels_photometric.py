@@ -14,7 +14,7 @@ import torch
 
 from exploregs_plugin.kernels import cpp_problem
 from exploregs_plugin.kernels.photometric import photometric_loss_cpp
-from exploregs_plugin.model.losses import SSIM_C1, SSIM_C2, l1, photometric_loss, ssim
+from exploregs_plugin.model.losses import MSE_FLOOR, SSIM_C1, SSIM_C2, VIEW_PSNR, l1, photometric_loss, psnr, ssim
 
 pytestmark = pytest.mark.skipif(shutil.which(os.environ.get("CXX", "c++")) is None, reason="no C++ compiler")
 
@@ -27,7 +27,7 @@ def _torch_loss(img: torch.Tensor, ref: torch.Tensor, lam: float) -> tuple[torch
 def _both(img: torch.Tensor, ref: torch.Tensor, lam: float = 0.2, threads: int = 2, upstream: float = 1.0):
     """((loss, l1, dssim), gradient) of the fused kernel, then of the torch loss."""
     out = []
-    for loss_fn in (lambda x: photometric_loss_cpp(x, ref, lam, SSIM_C1, SSIM_C2, threads),
+    for loss_fn in (lambda x: photometric_loss_cpp(x, ref, lam, SSIM_C1, SSIM_C2, MSE_FLOOR, threads)[:3],
                     lambda x: _torch_loss(x, ref, lam)):
         x = img.clone().requires_grad_()
         loss, l1_term, dssim = loss_fn(x)
@@ -71,8 +71,16 @@ def test_float32_loss_and_gradient_close_to_the_torch_path():
     # photometric_loss takes the kernel on the CPU and logs its two terms
     x = img.clone().requires_grad_()
     loss, terms = photometric_loss(x, ref, 0.2)
-    assert loss.grad_fn is not None and not terms["l1"].requires_grad and not terms["dssim"].requires_grad
+    assert loss.grad_fn is not None and not any(t.requires_grad for t in terms.values())
     assert torch.equal(torch.stack([loss.detach(), terms["l1"], terms["dssim"]]), v)
+    # the view's PSNR from the same pass: float64 errors, the float64 PSNR's value to rounding
+    assert terms[VIEW_PSNR].dtype == torch.float64 and abs(terms[VIEW_PSNR].item() - psnr(img, ref)) <= 1e-9
+
+
+def test_the_psnr_of_identical_images_is_the_floors():
+    img = torch.rand(12, 14, 3, generator=torch.Generator().manual_seed(6))
+    view_psnr = photometric_loss_cpp(img, img.clone(), 0.2, SSIM_C1, SSIM_C2, MSE_FLOOR, 1)[3]
+    assert view_psnr.item() == psnr(img, img.clone()) == 100.0
 
 
 def test_an_upstream_gradient_scales_the_gradient():
@@ -90,13 +98,16 @@ def test_same_bits_at_1_2_and_4_threads():
     results = [_both(img, ref, threads=threads)[0] for threads in (1, 2, 4)]
     for v, g in results[1:]:
         assert torch.equal(v, results[0][0]) and torch.equal(g, results[0][1])
+    psnrs = [photometric_loss_cpp(img, ref, 0.2, SSIM_C1, SSIM_C2, MSE_FLOOR, threads)[3] for threads in (1, 2, 4)]
+    assert all(torch.equal(p, psnrs[0]) for p in psnrs)
 
 
 def test_gradcheck():
     gen = torch.Generator().manual_seed(3)
     img = torch.rand(13, 15, 2, generator=gen, dtype=torch.float64, requires_grad=True)
     ref = torch.rand(13, 15, 2, generator=gen, dtype=torch.float64)
-    assert torch.autograd.gradcheck(lambda x: photometric_loss_cpp(x, ref, 0.2, SSIM_C1, SSIM_C2, 2)[0], [img])
+    assert torch.autograd.gradcheck(lambda x: photometric_loss_cpp(x, ref, 0.2, SSIM_C1, SSIM_C2, MSE_FLOOR, 2)[0],
+                                    [img])
 
 
 def test_the_loss_benchmark_times_two_paths_that_agree():

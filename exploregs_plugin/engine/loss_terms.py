@@ -40,7 +40,8 @@ class LossTerm(Protocol):
 
 @dataclass(frozen=True)
 class PhotometricTerm:
-    """3DGS's image loss: (1 - lambda) L1 + lambda (1 - SSIM); logs ``l1`` and ``dssim``."""
+    """3DGS's image loss: (1 - lambda) L1 + lambda (1 - SSIM); logs ``l1`` and ``dssim`` (and the
+    view's PSNR, ``VIEW_PSNR``, where the compiled loss computed it in the same pass)."""
 
     ssim_lambda: float = 0.2
 

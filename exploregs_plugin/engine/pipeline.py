@@ -14,7 +14,7 @@ from exploregs_plugin.runtime.device import make_generator, restore_generator, t
 from exploregs_plugin.runtime.distributed import World
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.engine.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
-from exploregs_plugin.model.losses import DepthSpace, pooled_psnr, psnr_on_device
+from exploregs_plugin.model.losses import VIEW_PSNR, DepthSpace, pooled_psnr, psnr_on_device
 from exploregs_plugin.engine.nonfinite import NonFiniteError, NonFiniteWatch
 from exploregs_plugin.model.optim import OptimizerConfig, OptimizerSet, batch_betas, batch_lr_scale
 from exploregs_plugin.strategies.observation import ViewError, ViewObservation, observe_render
@@ -371,6 +371,7 @@ class Pipeline:
         view = observe_render(info, n_cameras=batch, error=error, downscale=downscale)
         self.strategy.step_pre_backward(self.params, self.optimizers, self.strategy_state, step, view)
         loss, terms = view_loss(self.loss_terms, ViewLossInput(image, target, depth, extras, index))
+        view_psnr = terms.pop(VIEW_PSNR, None)  # the loss kernel's, computed in its pass (on a CPU)
         if batch > 1:
             loss = loss / batch  # the batch's mean loss (its gradient is the mean of the views')
             terms = {k: v / batch for k, v in terms.items()}
@@ -383,7 +384,9 @@ class Pipeline:
         # PSNR (float64) goes through float32 first, as it always has. Without grad recording, no
         # detach is needed, and a 0-dim value is not reshaped: each operator costs a dispatch.
         with torch.no_grad():
-            psnr = (psnr_on_device(image, target) / batch).to(torch.float32)
+            if view_psnr is None:
+                view_psnr = psnr_on_device(image, target)
+            psnr = (view_psnr / batch if batch > 1 else view_psnr).to(torch.float32)
             for key, value in {"loss": loss, "psnr": psnr, **terms}.items():
                 value = (value.reshape(()) if value.dim() else value).to(torch.float64)
                 totals[key] = totals[key] + value if key in totals else value

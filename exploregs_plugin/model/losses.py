@@ -186,17 +186,23 @@ def pooled_psnr(squared_error: float, count: int) -> float:
     return -10.0 * math.log10(max(squared_error / count, MSE_FLOOR))
 
 
+VIEW_PSNR = "psnr"
+"""The logged part of :func:`photometric_loss` that is the view's PSNR (where the compiled kernel
+computed it in the loss's pass; a caller that logs the PSNR computes it itself when it is absent)."""
+
+
 def photometric_loss(img: Tensor, ref: Tensor, ssim_lambda: float) -> tuple[Tensor, dict[str, Tensor]]:
-    """3DGS loss: (1 - lambda) L1 + lambda (1 - SSIM). Returns (loss, terms).
+    """3DGS loss: (1 - lambda) L1 + lambda (1 - SSIM). Returns (loss, terms): ``l1``, ``dssim``.
 
     On the CPU, where the compiled kernels build, the whole loss is one kernel forward and one
     backward (the same values as the torch path below up to float rounding, tested): the torch
     path is about twenty operators more per step, and its five depthwise convolutions cost a
-    fraction of a step that the kernel does not."""
+    fraction of a step that the kernel does not. The kernel's terms also hold the view's PSNR
+    (:data:`VIEW_PSNR`, float64, as :func:`psnr_on_device` up to the order of its sum)."""
     if img.device.type == "cpu" and img.dtype in (torch.float32, torch.float64) and cpp_problem() is None:
-        loss, l1_term, ssim_term = photometric_loss_cpp(img, ref.to(img.dtype), ssim_lambda, SSIM_C1, SSIM_C2,
-                                                        thread_budget())
-        return loss, {"l1": l1_term, "dssim": ssim_term}
+        loss, l1_term, ssim_term, view_psnr = photometric_loss_cpp(img, ref.to(img.dtype), ssim_lambda, SSIM_C1,
+                                                                   SSIM_C2, MSE_FLOOR, thread_budget())
+        return loss, {"l1": l1_term, "dssim": ssim_term, VIEW_PSNR: view_psnr}
     l1_term = l1(img, ref)
     ssim_term = 1.0 - ssim(img, ref)
     loss = (1.0 - ssim_lambda) * l1_term + ssim_lambda * ssim_term

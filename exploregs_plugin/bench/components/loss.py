@@ -19,7 +19,7 @@ from dataclasses import dataclass
 import torch
 
 from exploregs_plugin.kernels.photometric import photometric_loss_cpp
-from exploregs_plugin.model.losses import SSIM_C1, SSIM_C2, l1, ssim
+from exploregs_plugin.model.losses import MSE_FLOOR, SSIM_C1, SSIM_C2, l1, ssim
 
 SSIM_LAMBDA = 0.2
 
@@ -39,7 +39,7 @@ def _torch_loss(img: torch.Tensor, ref: torch.Tensor) -> torch.Tensor:
 
 
 def _compiled_loss(img: torch.Tensor, ref: torch.Tensor, threads: int) -> torch.Tensor:
-    return photometric_loss_cpp(img, ref, SSIM_LAMBDA, SSIM_C1, SSIM_C2, threads)[0]
+    return photometric_loss_cpp(img, ref, SSIM_LAMBDA, SSIM_C1, SSIM_C2, MSE_FLOOR, threads)[0]
 
 
 def time_loss(height: int, width: int, threads: int = 1, rounds: int = 3, repeats: int = 50) -> LossTiming:

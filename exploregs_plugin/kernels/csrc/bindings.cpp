@@ -45,7 +45,7 @@ std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Ten
 
 // photometric_cpu.cpp
 std::vector<at::Tensor> photometric_forward(at::Tensor img, at::Tensor ref, double lambda, double c1, double c2,
-                                            int64_t threads);
+                                            double mse_floor, int64_t threads);
 at::Tensor photometric_backward(at::Tensor moments, at::Tensor grad_loss, double lambda, double c1, double c2,
                                 int64_t threads);
 

@@ -100,7 +100,7 @@ void to_planes(const scalar_t* hwc, scalar_t* planes, int64_t c, int64_t hw) {
     for (int64_t ch = 0; ch < c; ++ch) planes[ch * hw + j] = hwc[j * c + ch];
 }
 
-// x, y: [C, H, W] planes; mom: [5, C, H, W]; rows: [C H, 2] per-row sums of |x - y| and S.
+// x, y: [C, H, W] planes; mom: [5, C, H, W]; rows: [C H, 3] per-row sums of |x - y|, S and (x - y)^2.
 template <typename scalar_t>
 void forward_impl(const scalar_t* x, const scalar_t* y, scalar_t* mom, double* rows, int64_t c, int64_t h,
                   int64_t w, scalar_t C1, scalar_t C2, int64_t threads) {
@@ -119,6 +119,7 @@ void forward_impl(const scalar_t* x, const scalar_t* y, scalar_t* mom, double* r
       blur(src.data(), mom + plane * hw, tmp.data(), h, w, g.data());
     }
     std::vector<scalar_t> ssim_row(w), l1_row(w);
+    std::vector<double> squared_row(w);
 #pragma omp for schedule(static)
     for (int64_t row = 0; row < c * h; ++row) {  // row = channel * h + image row: the planes' rows in order
       const int64_t first = row * w;
@@ -129,9 +130,12 @@ void forward_impl(const scalar_t* x, const scalar_t* y, scalar_t* mom, double* r
         const scalar_t cxy = mom[4 * c * hw + i] - mx * my;
         ssim_row[k] = ((2 * mx * my + C1) * (2 * cxy + C2)) / ((mx * mx + my * my + C1) * (vx + vy + C2));
         l1_row[k] = std::abs(x[i] - y[i]);
+        const double d = double(x[i]) - double(y[i]);  // the PSNR's error in double, as model.losses.psnr
+        squared_row[k] = d * d;
       }
-      rows[2 * row] = lane_sum(l1_row.data(), w);
-      rows[2 * row + 1] = lane_sum(ssim_row.data(), w);
+      rows[3 * row] = lane_sum(l1_row.data(), w);
+      rows[3 * row + 1] = lane_sum(ssim_row.data(), w);
+      rows[3 * row + 2] = lane_sum(squared_row.data(), w);
     }
   }
 }
@@ -168,10 +172,12 @@ void backward_impl(const scalar_t* x, const scalar_t* y, const scalar_t* mom, sc
 }  // namespace
 
 // img, ref: [H, W, C] contiguous, one shape and dtype. Returns (the loss, mean |img - ref|,
-// 1 - mean SSIM: 0-dim tensors of img's dtype, the means summed in double; moments [7, C, H, W]:
-// mu_x, mu_y, e_xx, e_yy, e_xy, img, ref as planes, kept for the backward).
+// 1 - mean SSIM: 0-dim tensors of img's dtype; the PSNR of img against ref in dB, -10 log10(max(MSE,
+// mse_floor)), a 0-dim float64 tensor (the training step's logged PSNR, for nothing more than one
+// more sum); the means summed in double; moments [7, C, H, W]: mu_x, mu_y, e_xx, e_yy, e_xy, img,
+// ref as planes, kept for the backward).
 std::vector<at::Tensor> photometric_forward(at::Tensor img, at::Tensor ref, double lambda, double c1, double c2,
-                                            int64_t threads) {
+                                            double mse_floor, int64_t threads) {
   TORCH_CHECK(img.is_contiguous() && ref.is_contiguous() && img.sizes() == ref.sizes() && img.dim() == 3 &&
                   img.scalar_type() == ref.scalar_type(),
               "photometric_cpu: img and ref must be contiguous [H, W, C] of one shape and dtype");
@@ -179,24 +185,27 @@ std::vector<at::Tensor> photometric_forward(at::Tensor img, at::Tensor ref, doub
   // moments [7, C, H, W]: the five moments, then img and ref as planes (the backward reads them)
   auto moments = at::empty({7, c, h, w}, img.options());
   auto loss = at::empty({}, img.options()), l1 = at::empty({}, img.options()), dssim = at::empty({}, img.options());
-  std::vector<double> rows(2 * c * h);
+  auto psnr = at::empty({}, img.options().dtype(at::kDouble));
+  std::vector<double> rows(3 * c * h);
   AT_DISPATCH_FLOATING_TYPES(img.scalar_type(), "photometric_forward", [&] {
     scalar_t* mom = moments.data_ptr<scalar_t>();
     scalar_t *x = mom + 5 * c * h * w, *y = mom + 6 * c * h * w;
     to_planes(img.data_ptr<scalar_t>(), x, c, h * w);
     to_planes(ref.data_ptr<scalar_t>(), y, c, h * w);
     forward_impl<scalar_t>(x, y, mom, rows.data(), c, h, w, scalar_t(c1), scalar_t(c2), threads);
-    double l1_sum = 0, s_sum = 0;
+    double l1_sum = 0, s_sum = 0, squared_sum = 0;
     for (int64_t row = 0; row < c * h; ++row) {  // row order, whatever the threads
-      l1_sum += rows[2 * row];
-      s_sum += rows[2 * row + 1];
+      l1_sum += rows[3 * row];
+      s_sum += rows[3 * row + 1];
+      squared_sum += rows[3 * row + 2];
     }
     const double n = double(std::max<int64_t>(1, c * h * w)), l1_mean = l1_sum / n, dssim_mean = 1.0 - s_sum / n;
     *loss.data_ptr<scalar_t>() = scalar_t((1.0 - lambda) * l1_mean + lambda * dssim_mean);
     *l1.data_ptr<scalar_t>() = scalar_t(l1_mean);
     *dssim.data_ptr<scalar_t>() = scalar_t(dssim_mean);
+    *psnr.data_ptr<double>() = -10.0 * std::log10(std::max(squared_sum / n, mse_floor));
   });
-  return {loss, l1, dssim, moments};
+  return {loss, l1, dssim, psnr, moments};
 }
 
 // dL/dimg [H, W, C] of L = (1 - lambda) mean|img - ref| + lambda (1 - mean SSIM), times grad_loss
