@@ -79,6 +79,13 @@ def exit_single_threaded() -> None:
             torch.set_num_threads(_THREADS_STATE["saved"])
 
 
+def single_threaded_now() -> bool:
+    """Whether some caller holds torch ops single-threaded (:func:`single_threaded_ops`: a CPU
+    run's whole training step)."""
+    with _THREADS_LOCK:
+        return _THREADS_STATE["depth"] > 0
+
+
 @contextmanager
 def single_threaded_ops():
     """Runs torch ops single-threaded inside the block (restores the caller's setting).

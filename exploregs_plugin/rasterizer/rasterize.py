@@ -11,7 +11,7 @@ from torch import Tensor
 
 from ..cameras import Camera
 from .backends import backend_problem, resolve_backend
-from .composite import composite, enter_single_threaded, exit_single_threaded, single_threaded_ops, thread_budget
+from .composite import composite, enter_single_threaded, exit_single_threaded, single_threaded_now, single_threaded_ops, thread_budget
 from .cpp_backend import CppBins, composite_cpp, project_cpp, sh_colors_cpp
 from .gsplat_backend import BackendError, rasterize_gsplat
 from .projection import project_gaussians
@@ -262,6 +262,9 @@ def _finish(img: Tensor, background: Tensor | None, means: Tensor, settings: Ras
         image = image + (1.0 - acc) * background.to(means)
     depth = img[..., 3:4] / acc.clamp_min(ALPHA_DEPTH_MIN)
     cpu = means.device.type == "cpu"
-    if cpu and settings.single_threaded_backward and torch.is_grad_enabled() and image.requires_grad:
+    # inside a CPU run's training step every op is single-threaded already (Pipeline.train_step
+    # holds single_threaded_ops through the backward): no identity node and its three copies
+    if cpu and settings.single_threaded_backward and torch.is_grad_enabled() and image.requires_grad \
+            and not single_threaded_now():
         image, acc, depth = _SingleThreadedBackward.apply(image, acc, depth)
     return image, acc, depth
