@@ -117,3 +117,9 @@ def test_the_loss_benchmark_times_two_paths_that_agree():
     assert len(timing.compiled_ms) == len(timing.torch_ms) == 2
     assert all(t > 0 for t in timing.compiled_ms + timing.torch_ms)
     assert timing.loss_difference <= 1e-6
+
+
+def test_images_of_two_shapes_are_one_clear_line():
+    img = torch.rand(12, 14, 3)
+    with pytest.raises(ValueError, match=r"photometric_loss: shapes differ: \(12, 14, 3\) vs \(12, 13, 3\)"):
+        photometric_loss(img, torch.rand(12, 13, 3), 0.2)

@@ -199,6 +199,8 @@ def photometric_loss(img: Tensor, ref: Tensor, ssim_lambda: float) -> tuple[Tens
     path is about twenty operators more per step, and its five depthwise convolutions cost a
     fraction of a step that the kernel does not. The kernel's terms also hold the view's PSNR
     (:data:`VIEW_PSNR`, float64, as :func:`psnr_on_device` up to the order of its sum)."""
+    if img.shape != ref.shape:  # before the kernel, whose own check is a C++ error, not this line
+        raise ValueError(f"photometric_loss: shapes differ: {tuple(img.shape)} vs {tuple(ref.shape)}")
     if img.device.type == "cpu" and img.dtype in (torch.float32, torch.float64) and cpp_problem() is None:
         loss, l1_term, ssim_term, view_psnr = photometric_loss_cpp(img, ref.to(img.dtype), ssim_lambda, SSIM_C1,
                                                                    SSIM_C2, MSE_FLOOR, thread_budget())

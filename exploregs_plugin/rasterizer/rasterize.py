@@ -11,7 +11,8 @@ from torch import Tensor
 
 from ..cameras import Camera
 from .backends import backend_problem, resolve_backend
-from .composite import composite, enter_single_threaded, exit_single_threaded, single_threaded_now, single_threaded_ops, thread_budget
+from .composite import (composite, enter_single_threaded, exit_single_threaded, single_threaded_now,
+                        single_threaded_ops, thread_budget)
 from .cpp_backend import CppBins, composite_cpp, project_cpp, sh_colors_cpp
 from .gsplat_backend import BackendError, rasterize_gsplat
 from .projection import project_gaussians
