@@ -10,7 +10,13 @@ import os
 from pathlib import Path
 
 import pytest
-import torch
+
+# The package before torch: it asks OpenMP for passive waiting, which the runtime reads once, when
+# torch loads it (runtime/threads.py). Imported after torch, the tests' own process would spin its
+# threads at the end of every parallel region, as no command of the package does: CPU time that
+# tells nothing and, on a busy machine, a collapse of every two-thread run in this process.
+import exploregs_plugin  # noqa: F401,I001
+import torch  # noqa: E402
 
 SHARED_SCENES = Path(__file__).resolve().parents[1].parent / "shared" / "scenes"
 """Real captured scenes next to the repository (tests that use them skip when absent)."""

@@ -28,12 +28,52 @@ def tiny_spec(*extra: BenchEntry, scenes: tuple[BenchScene, ...] | None = None) 
                      seeds=(0,), steps=STEPS, eval_count=2, name="test")
 
 
+@pytest.fixture(scope="module", autouse=True)
+def one_thread_per_run():
+    """Every run's process computes on one thread (OMP_NUM_THREADS, which eg-train honours), for
+    this module: on a scene this small a second thread only waits for the first, and on a busy
+    machine it spins while it waits (runtime/threads.py); the thread count changes no result."""
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setenv("OMP_NUM_THREADS", "1")
+        yield
+
+
 @pytest.fixture(scope="module")
-def bench(tmp_path_factory, tiny_scene_dir):
+def bench(tmp_path_factory, tiny_scene_dir, one_thread_per_run):
     out = tmp_path_factory.mktemp("bench")
     logs: list[str] = []
     payload = run_bench(tiny_spec(), out, RunOptions(log=logs.append), command="eg-bench (test)")
     return out, payload, logs
+
+
+@pytest.fixture()
+def workers_in_this_process(monkeypatch):
+    """The bench starts each run's worker (``python -m exploregs_plugin.bench.worker RUN_DIR``) as a
+    call of the worker's main in this process, on one thread, its output into the run's bench.log
+    as the process's would go: for a test of what the bench decides and records rather than of how
+    a run is started, which saves an interpreter and a torch import per run. The runs of ``bench``
+    start real processes."""
+    import contextlib
+    import subprocess
+    from types import SimpleNamespace
+
+    import torch
+
+    from exploregs_plugin.bench import runner, worker
+
+    def run(cmd, stdout, stderr, timeout):
+        assert cmd[1:3] == ["-m", "exploregs_plugin.bench.worker"] and stderr is subprocess.STDOUT, cmd
+        threads = torch.get_num_threads()
+        torch.set_num_threads(1)
+        try:
+            with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stdout):
+                returncode = worker.main(cmd[3:])
+        finally:
+            torch.set_num_threads(threads)
+        return subprocess.CompletedProcess(cmd, returncode)
+
+    monkeypatch.setattr(runner, "subprocess", SimpleNamespace(run=run, STDOUT=subprocess.STDOUT,
+                                                              TimeoutExpired=subprocess.TimeoutExpired))
 
 
 def _metrics(out: Path, entry: str) -> dict:
@@ -168,7 +208,8 @@ def test_parallel_runs_parse_overrides_in_the_main_thread_and_lose_no_output(ben
     assert sorted(ln.split("] ")[1] for ln in printed) == [f"tiny/default-{i}/seed0: not run" for i in range(1, 7)]
 
 
-def test_real_gpu_preset_at_tiny_scale_matches_counts_through_result_references(tmp_path, tiny_scene_dir):
+def test_real_gpu_preset_at_tiny_scale_matches_counts_through_result_references(tmp_path, tiny_scene_dir,
+                                                                              workers_in_this_process):
     from exploregs_plugin.bench.presets import REAL_GPU_STEPS, real_gpu
     from exploregs_plugin.bench.spec import BenchSpecError, build_config
     from exploregs_plugin.io.config_files import load_config

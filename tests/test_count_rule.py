@@ -8,6 +8,7 @@ from __future__ import annotations
 import math
 import shutil
 from dataclasses import replace
+from types import SimpleNamespace
 
 import pytest
 import torch
@@ -24,6 +25,18 @@ from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, ma
 from exploregs_plugin.engine.trainer import Trainer
 
 WINDOW = dict(refine_start_iter=2, refine_stop_iter=200, refine_every=10, reset_every=100, count_trial_steps=5)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def one_thread_in_this_module():
+    """torch on one thread for these tests, restored after: on sets of a few hundred Gaussians a
+    second thread only waits for work (and spins while it waits), and the thread count changes no
+    bit (test_the_decision_and_the_run_are_the_same_bits_on_one_and_two_threads). A run that sets
+    its own count (num_threads) keeps it."""
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
 
 
 # ------------------------------------------------------------------------------ the rule
@@ -213,7 +226,7 @@ def _config(run_dir, **strategy_fields):
     config = get_method("exploregs-mcmc").config
     strategy = replace(config.pipeline.strategy, cap_max="validated", **strategy_fields)
     return replace(config, data="builtin:tiny", max_steps=300, run_dir=run_dir, quiet=True, tensorboard=False,
-                   eval_count=1, save_eval_images=False, checkpoint_every=100,
+                   eval_count=1, save_eval_images=False, checkpoint_every=100, num_threads=1,
                    schedule=ScheduleConfig(min_refine_every=10), pipeline=replace(config.pipeline, strategy=strategy))
 
 
@@ -233,18 +246,41 @@ def _same_params(a, b):
         assert torch.equal(p, b.pipeline.params[name]), name
 
 
-def test_a_run_holds_views_out_until_the_decision_and_resumes_with_it(tmp_path, tiny_scene_dir):
+@pytest.fixture(scope="module")
+def decided_run(tmp_path_factory, tiny_scene_dir):
+    """The run of ``_config`` with a tolerance no cut can miss (1000 dB): (trainer, metrics, record,
+    count and held-out views before the first step, run folder). It keeps a checkpoint every 50
+    steps, so that a copy of its folder resumes from before the trial at step 240 (step 200) or
+    after it (step 250). Shared by the tests below, which read the run and resume copies of its
+    folder, never the folder itself."""
+    record = _Record()
+    config = replace(_config(tmp_path_factory.mktemp("decided") / "run", count_tolerance=1000.0),
+                     checkpoint_every=50, keep_checkpoints=10)
+    trainer = config.setup(callbacks=[record])
+    start_count, held = trainer.pipeline.model.num_gaussians, trainer.pipeline.datamanager.held_out
+    metrics = trainer.train()
+    return SimpleNamespace(trainer=trainer, metrics=metrics, record=record, start_count=start_count, held=held,
+                           run_dir=config.run_dir)
+
+
+def _resume_from(run_dir, step, copy):
+    """A copy of ``run_dir`` holding its checkpoint of ``step`` alone, resumed from it."""
+    shutil.copytree(run_dir, copy)
+    for checkpoint in (copy / "checkpoints").glob("*.pt"):
+        if checkpoint.name != f"step-{step:07d}.pt":
+            checkpoint.unlink()
+    return Trainer.from_run(copy, max_steps=None, quiet=True)
+
+
+def test_a_run_holds_views_out_until_the_decision_and_resumes_with_it(tmp_path, decided_run):
     """The tiny scene (8 training views; 2 held out), refinements every 10 steps until step 250, so
     the trial comes at step 240 (3 fine-tuning steps per candidate, 1% of 300). A tolerance no cut
     can miss (1000 dB) keeps the smallest candidate, a quarter of the count at step 240. The
     held-out views are not drawn before the decision and are drawn after; a second run gives the
     same bits, and a run resumed from step 250 (after the decision) keeps it."""
-    record = _Record()
-    trainer = _config(tmp_path / "run", count_tolerance=1000.0).setup(callbacks=[record])
-    n0 = trainer.pipeline.model.num_gaussians
-    held = trainer.pipeline.datamanager.held_out
+    run = decided_run
+    trainer, m, record, n0, held = run.trainer, run.metrics, run.record, run.start_count, run.held
     assert held == [2, 6]
-    m = trainer.train()
     returned = min(s for s, h in record.held.items() if not h)
     assert returned == 241  # the trial at step 240 decided; the views return from step 241's draw on
     assert not {i for s in range(1, returned + 1) for i in record.views[s]} & set(held)
@@ -262,28 +298,17 @@ def test_a_run_holds_views_out_until_the_decision_and_resumes_with_it(tmp_path, 
     again.train()
     _same_params(trainer, again)
 
-    late = replace(_config(tmp_path / "late", count_tolerance=1000.0), checkpoint_every=250, keep_checkpoints=5).setup()
-    late.train()
-    resumed_late = tmp_path / "resumed-late"
-    shutil.copytree(tmp_path / "late", resumed_late)
-    for extra in sorted((resumed_late / "checkpoints").glob("*.pt"))[1:]:
-        extra.unlink()  # keep step-0000250.pt, after the decision
-    resumed = Trainer.from_run(resumed_late, max_steps=None, quiet=True)
+    resumed = _resume_from(run.run_dir, 250, tmp_path / "resumed-late")  # after the decision
     assert resumed.start_step == 250
     assert resumed.pipeline.datamanager.held_out == [] and resumed.pipeline.strategy_state["count_cap"] == cap
     resumed.train()
     _same_params(trainer, resumed)
 
 
-def test_a_run_resumed_before_the_decision_holds_the_same_views_and_decides_alike(tmp_path, tiny_scene_dir):
-    config = replace(_config(tmp_path / "run"), checkpoint_every=200, keep_checkpoints=10)
-    trainer = config.setup()
-    m = trainer.train()
-    resumed_dir = tmp_path / "resumed"
-    shutil.copytree(tmp_path / "run", resumed_dir)
-    for late in sorted((resumed_dir / "checkpoints").glob("*.pt"))[1:]:
-        late.unlink()  # keep step-0000200.pt: before the trial at 240
-    resumed = Trainer.from_run(resumed_dir, max_steps=None, quiet=True)
+def test_a_run_resumed_before_the_decision_holds_the_same_views_and_decides_alike(tmp_path, decided_run):
+    run = decided_run
+    trainer, m = run.trainer, run.metrics
+    resumed = _resume_from(run.run_dir, 200, tmp_path / "resumed")  # before the trial at 240
     assert resumed.start_step == 200 and resumed.pipeline.datamanager.held_out == [2, 6]
     assert resumed.pipeline.strategy_state["count_cap"] is None
     r = resumed.train()
@@ -345,7 +370,8 @@ def test_too_few_training_views_to_hold_out_fall_back_to_a_rule_that_reads_none(
     strategy = replace(config.pipeline.strategy, cap_max="validated")
     seedsplit = five_views(replace(config, data="builtin:tiny", max_steps=40, run_dir=tmp_path / "seedsplit",
                                    quiet=True, tensorboard=False, eval_count=1, save_eval_images=False,
-                                   checkpoint_every=40, pipeline=replace(config.pipeline, strategy=strategy)))
+                                   checkpoint_every=40, num_threads=1,
+                                   pipeline=replace(config.pipeline, strategy=strategy)))
     trainer = seedsplit.setup()
     assert trainer.pipeline.strategy.cap_max is None and trainer.pipeline.datamanager.held_out == []
     assert "the end-of-run cut by significance (--strategy.final-weight-share 0.001) decides it instead" in \
@@ -418,9 +444,12 @@ def test_mcmc_explore_decides_its_count_the_same_way():
 
 
 def test_the_decision_and_the_run_are_the_same_bits_on_one_and_two_threads(tmp_path, tiny_scene_dir):
+    """60 steps: the set grows at the refinements every 10 steps and the trial comes at the last,
+    step 40, where the tolerance keeps a middle candidate (so the pick rests on the held-out
+    scores); the run trains on with the kept set to its end."""
     runs = []
     for threads in (1, 2):
-        trainer = replace(_config(tmp_path / f"threads-{threads}"), num_threads=threads).setup()
+        trainer = replace(_config(tmp_path / f"threads-{threads}"), num_threads=threads, max_steps=60).setup()
         runs.append((trainer.train(), trainer))
     (first, a), (second, b) = runs
     assert first["count_decision"] == second["count_decision"] and first["count_decision"].startswith("count chosen")
@@ -431,11 +460,13 @@ def test_the_decision_and_the_run_are_the_same_bits_on_one_and_two_threads(tmp_p
 def test_default_and_seed_split_decide_their_count_the_same_way(tmp_path, tiny_scene_dir, method):
     """cap_max 'validated' on the growing methods: no ceiling (their thresholds bound growth), the
     same held-out views and the same trial at their last refinement (step 140 of 300: refinement
-    stops at half the run), and a tolerance no cut can miss keeps the smallest candidate."""
+    stops at half the run), and a tolerance no cut can miss keeps the smallest candidate. The tiny
+    scene at a quarter of its size (16 x 12 pixels): the rule is the same at any size, and the
+    growing sets (400 Gaussians to over 10,000 by step 140) cost less to train."""
     config = get_method(method).config
     strategy = replace(config.pipeline.strategy, cap_max="validated", count_tolerance=1000.0)
-    config = replace(config, data="builtin:tiny", max_steps=300, run_dir=tmp_path / "run", quiet=True,
-                     tensorboard=False, eval_count=1, save_eval_images=False, checkpoint_every=300,
+    config = replace(config, data="builtin:tiny", data_factor=4, max_steps=300, run_dir=tmp_path / "run", quiet=True,
+                     tensorboard=False, eval_count=1, save_eval_images=False, checkpoint_every=300, num_threads=1,
                      schedule=ScheduleConfig(min_refine_every=10), pipeline=replace(config.pipeline, strategy=strategy))
     record = _Record()
     trainer = config.setup(callbacks=[record])

@@ -15,20 +15,34 @@ from exploregs_plugin.runtime.threads import available_cpus, default_threads
 # the settings it read when it was loaded: GOMP_SPINCOUNT 0 is passive waiting as the runtime
 # applies it. (torch's own libgomp loads with torch: importing torch before the package would
 # leave it spinning, and a second libgomp that loads later, pycolmap's, would hide that.)
-PROBE = """
+PROBE_IMPORTS = """
 from exploregs_plugin.scripts.train import main
 from exploregs_plugin.scripts import run_cli
 import os, torch
+"""
+PROBE_COMMAND = """
 run_cli("probe", lambda _: print("threads", torch.get_num_threads(), os.environ.get("OMP_WAIT_POLICY")), None)
 """
+PROBE = PROBE_IMPORTS + PROBE_COMMAND
+PROBE_ON_CUE = PROBE_IMPORTS + """
+import sys
+print("imported", flush=True)
+sys.stdin.readline()
+""" + PROBE_COMMAND
+"""The probe, holding its command until a line on stdin: a competitor started then has to keep its
+CPU busy only while the command measures, not through the seconds of importing torch."""
+
+
+def probe_environ(**env: str) -> dict[str, str]:
+    environ = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "OMP_NUM_THREADS")}
+    environ.update(env, OMP_DISPLAY_ENV="VERBOSE")
+    return environ
 
 
 def probe(cpus: set[int] | None = None, **env: str) -> tuple[str, str]:
-    environ = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "OMP_NUM_THREADS")}
-    environ.update(env, OMP_DISPLAY_ENV="VERBOSE")
     preexec = (lambda: os.sched_setaffinity(0, cpus)) if cpus else None
-    out = subprocess.run([sys.executable, "-c", PROBE], env=environ, capture_output=True, text=True, timeout=120,
-                         preexec_fn=preexec)
+    out = subprocess.run([sys.executable, "-c", PROBE], env=probe_environ(**env), capture_output=True, text=True,
+                         timeout=120, preexec_fn=preexec)
     assert out.returncode == 0, out.stderr[-2000:]
     return out.stdout.strip().splitlines()[-1], out.stderr
 
@@ -49,12 +63,23 @@ def test_commands_wait_passively_with_one_thread_per_allowed_cpu():
                     reason="needs two CPUs and CPU affinity (Linux)")
 def test_a_busy_process_on_one_of_two_cpus_leaves_one_thread():
     a, b = sorted(os.sched_getaffinity(0))[:2]
-    busy = subprocess.Popen([sys.executable, "-c", "while True: pass"], preexec_fn=lambda: os.sched_setaffinity(0, {a}))
+    command = subprocess.Popen([sys.executable, "-c", PROBE_ON_CUE], env=probe_environ(), stdin=subprocess.PIPE,
+                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=lambda: os.sched_setaffinity(0, {a, b}))
+    busy = None
     try:
-        line, _ = probe({a, b})
+        assert command.stdout.readline().strip() == "imported", command.stderr.read()[-2000:]
+        busy = subprocess.Popen([sys.executable, "-c", "print('spinning', flush=True)\nwhile True: pass"],
+                                stdout=subprocess.PIPE, text=True, preexec_fn=lambda: os.sched_setaffinity(0, {a}))
+        assert busy.stdout.readline().strip() == "spinning"
+        out, err = command.communicate("go\n", timeout=120)
     finally:
-        busy.kill()
-        busy.wait()
+        for proc in (busy, command):
+            if proc is not None:
+                proc.kill()
+                proc.wait()
+    assert command.returncode == 0, err[-2000:]
+    line = out.strip().splitlines()[-1]
     assert line == "threads 1 PASSIVE"
 
 

@@ -317,7 +317,7 @@ def test_a_short_training_run_with_cpp_matches_torch(tmp_path, tiny_scene_dir):
 
 
 @needs_cpp
-def test_a_built_extension_loads_past_a_leftover_build_lock(tmp_path):
+def test_a_built_extension_loads_past_a_leftover_build_lock(tmp_path, monkeypatch):
     """A process killed while torch's loader held the build lock leaves the lock file behind; a
     finished build is imported without waiting on it."""
     from exploregs_plugin.kernels.build import _build_dir, extension_name
@@ -326,9 +326,10 @@ def test_a_built_extension_loads_past_a_leftover_build_lock(tmp_path):
     name = extension_name()
     built = _build_dir(name)
     env = dict(os.environ, TORCH_EXTENSIONS_DIR=str(tmp_path))
-    code = "from exploregs_plugin.kernels.build import _build_dir, extension_name; print(_build_dir(extension_name()))"
-    folder = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-    target = tmp_path / os.path.relpath(folder.stdout.strip().splitlines()[-1], tmp_path)
+    # the folder a process with that cache would build in (torch reads the variable at each call)
+    with monkeypatch.context() as patch:
+        patch.setenv("TORCH_EXTENSIONS_DIR", str(tmp_path))
+        target = tmp_path / os.path.relpath(_build_dir(extension_name()), tmp_path)
     target.mkdir(parents=True, exist_ok=True)
     shutil.copy2(built / f"{name}.so", target / f"{name}.so")
     (target / "lock").touch()  # held by no one
