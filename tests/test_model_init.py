@@ -41,3 +41,64 @@ def test_initial_scales_are_the_log_of_the_3nn_distance_far_from_the_origin():
     # a coincident pair: its twin at 0 counts as a neighbour (then 3 and sqrt(10))
     assert dist[3].item() == dist[4].item() == pytest.approx((0 + 3 + 10 ** 0.5) / 3, rel=1e-5)
     assert params["scales"].shape == (5, 3) and torch.isfinite(params["scales"]).all()
+
+
+def _hard_cloud(offset: float, n: int = 6000) -> torch.Tensor:
+    """About 2.1 n points as SfM leaves them: a noisy sphere and a plane (surfaces, not a volume),
+    isolated points far out and a little off the sphere, exact twins and a straight line, at
+    ``offset`` from the origin."""
+    g = torch.Generator().manual_seed(3)
+    u = torch.randn(n, 3, generator=g)
+    sphere = u / u.norm(dim=1, keepdim=True) + 0.002 * torch.randn(n, 3, generator=g)
+    plane = torch.cat([torch.rand(2 * n // 3, 2, generator=g) * 4 - 2, torch.full((2 * n // 3, 1), -1.0)], dim=1)
+    far = torch.randn(n // 60, 3, generator=g) * 30
+    v = torch.randn(n // 60, 3, generator=g)  # a little off the sphere, alone among its cells
+    satellites = v / v.norm(dim=1, keepdim=True) * (1.1 + 0.2 * torch.rand(n // 60, 1, generator=g))
+    line = torch.cat([torch.linspace(2, 3, n // 3)[:, None], torch.zeros(n // 3, 2)], dim=1)
+    twins = sphere[: n // 10].clone()
+    return torch.cat([sphere, plane, far, satellites, line, twins]) + offset
+
+
+def _every_pair(points: torch.Tensor) -> torch.Tensor:
+    from exploregs_plugin.model.neighbours import _nearest_brute
+
+    return _nearest_brute(points, points, 3, 2048)[:, 1:].mean(dim=1)
+
+
+@pytest.mark.parametrize("offset", [0.0, 1.0e4])
+def test_the_grid_finds_the_same_neighbours_as_every_pair_bit_for_bit(offset):
+    """Above BRUTE_FORCE_BELOW points the neighbours come from a grid: the same bits as every
+    pair, at one and two threads, on a cloud near the origin and far from it."""
+    from exploregs_plugin.model.neighbours import BRUTE_FORCE_BELOW
+
+    points = _hard_cloud(offset)
+    assert points.shape[0] > BRUTE_FORCE_BELOW
+    every_pair = _every_pair(points)
+    before = torch.get_num_threads()
+    try:
+        for threads in (1, 2):
+            torch.set_num_threads(threads)
+            assert torch.equal(knn_mean_distance(points), every_pair)
+    finally:
+        torch.set_num_threads(before)
+    twins = 6000 // 10  # the cloud's last rows: copies of its first sphere points
+    assert (every_pair[-twins:] == every_pair[:twins]).all() and (every_pair[:twins] > 0).all()
+
+
+def test_points_left_uncertain_by_a_grid_go_round_again_with_coarser_ones(monkeypatch):
+    """With small query blocks the isolated points' neighbours may lie beyond the cells searched:
+    they are searched again in grids of twice the cell, then by every pair, and still end with the
+    bits of every pair."""
+    from exploregs_plugin.model import neighbours
+
+    monkeypatch.setattr(neighbours, "BRUTE_FORCE_BELOW", 500)
+    monkeypatch.setattr(neighbours, "CHUNK_POINTS", 16)
+    monkeypatch.setattr(neighbours, "BRUTE_FORCE_ROWS", 8)
+    rounds: list[tuple[int, float]] = []
+    real = neighbours._nearest_in_grid
+    monkeypatch.setattr(neighbours, "_nearest_in_grid",
+                        lambda p, pending, cell, k: rounds.append((pending.numel(), cell)) or real(p, pending, cell, k))
+    points = _hard_cloud(0.0, n=1500)
+    assert torch.equal(knn_mean_distance(points), _every_pair(points))
+    assert len(rounds) >= 3 and rounds[0][0] == points.shape[0]
+    assert all(b[0] <= a[0] and b[1] == 2 * a[1] for a, b in zip(rounds, rounds[1:])) and rounds[1][0] < rounds[0][0]
