@@ -27,16 +27,11 @@ from exploregs_plugin.engine.trainer import Trainer
 WINDOW = dict(refine_start_iter=2, refine_stop_iter=200, refine_every=10, reset_every=100, count_trial_steps=5)
 
 
-@pytest.fixture(scope="module", autouse=True)
-def one_thread_in_this_module():
-    """torch on one thread for these tests, restored after: on sets of a few hundred Gaussians a
-    second thread only waits for work (and spins while it waits), and the thread count changes no
-    bit (test_the_decision_and_the_run_are_the_same_bits_on_one_and_two_threads). A run that sets
-    its own count (num_threads) keeps it."""
-    before = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(before)
+# torch on one thread for these tests (conftest's one_thread): on sets of a few hundred Gaussians a
+# second thread only waits for work, and the thread count changes no bit
+# (test_the_decision_and_the_run_are_the_same_bits_on_one_and_two_threads). A run that sets its own
+# count (num_threads, as every run of _config does) keeps it.
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 # ------------------------------------------------------------------------------ the rule

@@ -6,6 +6,7 @@ import pytest
 import torch
 
 from exploregs_plugin.model.gaussians import init_params, knn_mean_distance
+from exploregs_plugin.model.neighbours import every_pair_mean_distance
 
 
 def _exact(points: torch.Tensor, k: int = 3) -> torch.Tensor:
@@ -59,12 +60,6 @@ def _hard_cloud(offset: float, n: int = 6000) -> torch.Tensor:
     return torch.cat([sphere, plane, far, satellites, line, twins]) + offset
 
 
-def _every_pair(points: torch.Tensor) -> torch.Tensor:
-    from exploregs_plugin.model.neighbours import _nearest_brute
-
-    return _nearest_brute(points, points, 3, 2048)[:, 1:].mean(dim=1)
-
-
 @pytest.mark.parametrize("offset", [0.0, 1.0e4])
 def test_the_grid_finds_the_same_neighbours_as_every_pair_bit_for_bit(offset):
     """Above BRUTE_FORCE_BELOW points the neighbours come from a grid: the same bits as every
@@ -73,7 +68,7 @@ def test_the_grid_finds_the_same_neighbours_as_every_pair_bit_for_bit(offset):
 
     points = _hard_cloud(offset)
     assert points.shape[0] > BRUTE_FORCE_BELOW
-    every_pair = _every_pair(points)
+    every_pair = every_pair_mean_distance(points)
     before = torch.get_num_threads()
     try:
         for threads in (1, 2):
@@ -99,6 +94,6 @@ def test_points_left_uncertain_by_a_grid_go_round_again_with_coarser_ones(monkey
     monkeypatch.setattr(neighbours, "_nearest_in_grid",
                         lambda p, pending, cell, k: rounds.append((pending.numel(), cell)) or real(p, pending, cell, k))
     points = _hard_cloud(0.0, n=1500)
-    assert torch.equal(knn_mean_distance(points), _every_pair(points))
-    assert len(rounds) >= 3 and rounds[0][0] == points.shape[0]
+    assert torch.equal(knn_mean_distance(points), every_pair_mean_distance(points))
+    assert len(rounds) >= 3 and rounds[0][0] == points.shape[0] - neighbours.SAMPLE_POINTS  # the sample is final
     assert all(b[0] <= a[0] and b[1] == 2 * a[1] for a, b in zip(rounds, rounds[1:])) and rounds[1][0] < rounds[0][0]

@@ -247,11 +247,12 @@ class Pipeline:
 
         torch's own operators run on one thread here; the compiled kernels (projection, SH,
         compositing, the loss, the non-finite watch) and the compositor's workers take the run's
-        thread count explicitly (``thread_budget``). Why: torch cuts an elementwise operator over more than 32,768 elements
-        into one chunk per thread, and each chunk's last elements go through the scalar sigmoid,
-        exp, ... whose last bit can differ from the vectorised one; the cut moves with the thread
-        count, and a run with more Gaussians than that would part ways on 1 and 2 threads. On a
-        GPU the step's operators run there; the host's (the data path) keep their threads."""
+        thread count explicitly (``thread_budget``). Why: torch cuts an elementwise operator over
+        more than 32,768 elements into one chunk per thread, and each chunk's last elements go
+        through the scalar sigmoid, exp, ... whose last bit can differ from the vectorised one; the
+        cut moves with the thread count, and a run with more Gaussians than that would part ways on
+        1 and 2 threads. On a GPU the step's operators run there; the host's (the data path) keep
+        their threads."""
         if self.device.type != "cpu":
             return self._train_step(step)
         with single_threaded_ops():

@@ -41,6 +41,12 @@ def _nearest_brute(rows: Tensor, points: Tensor, k: int, chunk: int) -> Tensor:
     return torch.cat(out) if out else rows.new_zeros((0, k + 1))
 
 
+def every_pair_mean_distance(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
+    """Mean distance [P] of each point to its k nearest other points (P > k), from every pair: the
+    reference the grid gives the bits of, and the path of small clouds."""
+    return _nearest_brute(points, points, k, chunk)[:, 1:].mean(dim=1)
+
+
 def _spread_bits(v: Tensor) -> Tensor:
     """The low 21 bits of v (int64) moved to every third bit: one axis of a 3-D Morton code."""
     v = v & 0x1FFFFF
@@ -71,17 +77,16 @@ def _nearest_in_grid(points: Tensor, pending: Tensor, cell: float, k: int) -> tu
         low = cells[rows].min(dim=0).values - 1
         high = cells[rows].max(dim=0).values + 1
         near = ((cells >= low) & (cells <= high)).all(dim=1).nonzero().squeeze(1)
-        d = _pair_distances(points[rows], points[near])
-        nearest = torch.topk(d, min(k + 1, near.shape[0]), dim=1, largest=False).values
+        if near.shape[0] < k + 1:  # fewer points in the cells than neighbours asked for
+            values.append(torch.zeros(rows.shape[0], k + 1, dtype=points.dtype, device=points.device))
+            certain.append(torch.zeros(rows.shape[0], dtype=torch.bool, device=points.device))
+            continue
+        nearest = torch.topk(_pair_distances(points[rows], points[near]), k + 1, dim=1, largest=False).values
         # distance from each point to the faces of the searched block, less the slack
         face_low = origin + low.to(points.dtype) * cell
         face_high = origin + (high + 1).to(points.dtype) * cell
         p = points[rows]
         margin = torch.minimum(p - face_low, face_high - p).min(dim=1).values - slack
-        if nearest.shape[1] < k + 1:  # fewer points in the block than neighbours asked for
-            values.append(torch.zeros(rows.shape[0], k + 1, dtype=points.dtype, device=points.device))
-            certain.append(torch.zeros(rows.shape[0], dtype=torch.bool, device=points.device))
-            continue
         values.append(nearest)
         certain.append(nearest[:, k] < margin)
     # from Z-order back to the order of ``pending``
@@ -110,18 +115,22 @@ def knn_mean_distance(points: Tensor, k: int = 3, chunk: int = 2048) -> Tensor:
         return torch.ones(n, dtype=points.dtype, device=points.device)
     k_eff = min(k, n - 1)
     if n < BRUTE_FORCE_BELOW:
-        return _nearest_brute(points, points, k_eff, chunk)[:, 1:].mean(dim=1)
-    sample = points[torch.linspace(0, n - 1, SAMPLE_POINTS, device=points.device).long()]
-    reach = _nearest_brute(sample, points, k_eff, chunk)[:, k_eff]
+        return every_pair_mean_distance(points, k_eff, chunk)
+    # the sample's neighbours, from every pair, are final: they choose the cell and are not searched again
+    sampled = torch.linspace(0, n - 1, SAMPLE_POINTS, device=points.device).long()  # distinct: n > SAMPLE_POINTS
+    sample_nearest = _nearest_brute(points[sampled], points, k_eff, chunk)
     extent = float((points.max(dim=0).values - points.min(dim=0).values).max())
     # twice the sample's median reach: most points are certain in the first grid, and the cells
     # stay small where the cloud is dense (a 90% quantile took 2.4 times as long on random points
     # along the training rays, whose spacing spreads far)
-    cell = 2.0 * float(torch.quantile(reach.double(), 0.5))
+    cell = 2.0 * float(torch.quantile(sample_nearest[:, k_eff].double(), 0.5))
     if not cell > 0 or not extent > 0:  # most of the cloud coincides: every pair decides
-        return _nearest_brute(points, points, k_eff, chunk)[:, 1:].mean(dim=1)
+        return every_pair_mean_distance(points, k_eff, chunk)
     nearest = torch.empty(n, k_eff + 1, dtype=points.dtype, device=points.device)
-    pending = torch.arange(n, device=points.device)
+    nearest[sampled] = sample_nearest
+    searched = torch.ones(n, dtype=torch.bool, device=points.device)
+    searched[sampled] = False
+    pending = searched.nonzero().squeeze(1)
     while pending.numel() > 0:
         if pending.numel() < BRUTE_FORCE_ROWS or cell > extent:  # few left, or the grid is one cell
             nearest[pending] = _nearest_brute(points[pending], points, k_eff, chunk)

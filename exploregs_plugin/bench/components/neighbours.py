@@ -17,7 +17,7 @@ from dataclasses import dataclass
 
 import torch
 
-from exploregs_plugin.model.neighbours import _nearest_brute, knn_mean_distance
+from exploregs_plugin.model.neighbours import every_pair_mean_distance, knn_mean_distance
 
 
 @dataclass(frozen=True)
@@ -44,16 +44,13 @@ def time_neighbours(points: int, threads: int = 1, rounds: int = 2) -> Neighbour
     previous = torch.get_num_threads()
     torch.set_num_threads(threads)
     try:
-        def every_pair() -> torch.Tensor:
-            return _nearest_brute(cloud, cloud, 3, 2048)[:, 1:].mean(dim=1)
-
         grid, brute, same = [], [], True
         for _ in range(rounds):
             start = time.process_time()
             by_grid = knn_mean_distance(cloud)
             grid.append(time.process_time() - start)
             start = time.process_time()
-            by_pairs = every_pair()
+            by_pairs = every_pair_mean_distance(cloud)
             brute.append(time.process_time() - start)
             same = same and torch.equal(by_grid, by_pairs)
     finally:
