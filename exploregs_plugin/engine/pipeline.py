@@ -16,7 +16,7 @@ from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.engine.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
 from exploregs_plugin.model.losses import VIEW_PSNR, DepthSpace, pooled_psnr, psnr_on_device
 from exploregs_plugin.engine.nonfinite import NonFiniteError, NonFiniteWatch
-from exploregs_plugin.model.optim import OptimizerConfig, OptimizerSet, batch_betas, batch_lr_scale
+from exploregs_plugin.model.optim import Optimizer, OptimizerConfig, OptimizerSet, batch_betas, batch_lr_scale
 from exploregs_plugin.strategies.observation import ViewError, ViewObservation, observe_render
 from exploregs_plugin.rasterizer import BackendError, backend_problem, resolve_backend
 from exploregs_plugin.rasterizer.composite import single_threaded_ops
@@ -211,7 +211,7 @@ class Pipeline:
         return OptimizerSet(gaussians, self.means_lr_at, groups, batch_betas(self.batch_size, self.config.batch_rule))
 
     @property
-    def optimizers(self) -> dict[str, torch.optim.Adam]:
+    def optimizers(self) -> dict[str, Optimizer]:
         """One Adam per Gaussian parameter name: what the strategies see."""
         return self.optim.gaussians
 
