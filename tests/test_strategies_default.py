@@ -10,6 +10,7 @@ import torch
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.strategies import DefaultStrategy, StrategyError, row_ops
+from exploregs_plugin.strategies.default import accumulate_grad_stats, ndc_gradient_norms
 from exploregs_plugin.strategies.observation import ViewObservation, observe_render
 from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_views
 
@@ -64,6 +65,28 @@ def test_nonfinite_gradients_are_skipped_and_counted():
     assert counts["nonfinite_grads"] == 2
     assert torch.equal(state["stats"]["count"], torch.tensor([1.0, 0.0, 0.0, 1.0]))
     assert torch.isfinite(state["stats"]["grad2d"]).all()
+
+
+def test_one_cameras_statistic_is_the_same_bits_as_a_batch_of_one():
+    """The step's [N, 2] gradient is accumulated as it is (no reshape into a camera batch): the
+    same sums and counts as the [1, N, 2] form, and a non-finite gradient counts as skipped only
+    where the view drew the Gaussian; two cameras add in camera order."""
+    g = torch.Generator().manual_seed(3)
+    grads = torch.randn(2, 6, 2, generator=g) * 1e-4
+    grads[0, 1, 0], grads[0, 2, 1], grads[1, 4, 0] = float("nan"), float("inf"), float("-inf")
+    visible = torch.tensor([[True, True, False, True, True, False], [True, False, True, True, True, True]])
+    flat, batch, two = {}, {}, {}
+    for stats, pixel_grads, vis in ((flat, grads[0], visible[0]), (batch, grads[:1], visible[:1])):
+        skipped = accumulate_grad_stats(stats, pixel_grads, vis, W, H, n_cameras=2, downscale=2, reference_height=96)
+        assert int(skipped) == 1  # row 1 (drawn, NaN); row 2's inf was not drawn
+    assert torch.equal(flat["grad2d"], batch["grad2d"]) and torch.equal(flat["count"], batch["count"])
+    assert torch.equal(flat["count"], torch.tensor([1.0, 0.0, 0.0, 1.0, 1.0, 0.0]))
+    assert int(accumulate_grad_stats(two, grads, visible, W, H)) == 2  # (0, 1) and (1, 4)
+    expected = torch.zeros(6)
+    for camera in range(2):
+        norms = ndc_gradient_norms(grads[camera], W, H)
+        expected += torch.where(visible[camera] & torch.isfinite(norms), norms, 0.0)
+    assert torch.equal(two["grad2d"], expected)
 
 
 def test_missing_retain_grad_is_a_clear_error():

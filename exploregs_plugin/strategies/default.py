@@ -18,6 +18,7 @@ implements them by running its operators in order; a subclass may also override 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from dataclasses import dataclass
 from typing import Any, ClassVar
 
@@ -57,13 +58,13 @@ def accumulate_grad_stats(
 ) -> Tensor:
     """Add this step's NDC gradient norms to ``stats["grad2d"]`` and views to ``stats["count"]``.
 
-    pixel_grads: [C, N, 2] dL/d(mean2d) in pixels; visible: [C, N] bool. The stats are created
-    (zeros [N]) on first use; ``reference_height``: see :func:`ndc_gradient_norms`. Rows with a
-    non-finite gradient are skipped (neither summed nor counted); returns how many visible rows
-    were skipped, a 0-dim long tensor on the gradients' device (read only where it is logged:
-    nothing here waits for the device).
+    pixel_grads: [C, N, 2] dL/d(mean2d) in pixels, or [N, 2] for one camera; visible: [C, N]
+    (or [N]) bool. The stats are created (zeros [N]) on first use; ``reference_height``: see
+    :func:`ndc_gradient_norms`. Rows with a non-finite gradient are skipped (neither summed nor
+    counted); returns how many visible rows were skipped, a 0-dim long tensor on the gradients'
+    device (read only where it is logged: nothing here waits for the device).
     """
-    c, n, _ = pixel_grads.shape
+    n = pixel_grads.shape[-2]
     if "grad2d" not in stats:
         stats["grad2d"] = torch.zeros(n, device=pixel_grads.device)
         stats["count"] = torch.zeros(n, device=pixel_grads.device)
@@ -73,15 +74,16 @@ def accumulate_grad_stats(
             f"the Gaussian set was changed without strategies.row_ops"
         )
     norms = ndc_gradient_norms(pixel_grads, width, height, n_cameras, downscale, reference_height)
-    finite = torch.isfinite(norms)
-    take = visible & finite
+    take = visible & torch.isfinite(norms)
     # Masked adds, camera by camera, instead of an index_add_ over torch.where(take): a nonzero
     # has to read its size from the device. The same sums in the same order (x + 0 = x for the
-    # rows left out: the statistics are never -0).
-    for camera in range(c):
-        stats["grad2d"] += torch.where(take[camera], norms[camera], 0.0)
-        stats["count"] += take[camera]
-    return (visible & ~finite).sum()
+    # rows left out: the statistics are never -0). One camera's tensors are added as they are:
+    # each select is one more operator a step (docs/training.md, "Operators per step").
+    per_camera = [(norms, take)] if norms.dim() == 1 else zip(norms, take)
+    for camera_norms, camera_take in per_camera:
+        stats["grad2d"] += torch.where(camera_take, camera_norms, 0.0)
+        stats["count"] += camera_take
+    return (visible ^ take).sum()  # visible and not finite
 
 
 def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: int = 1,
@@ -107,16 +109,27 @@ def ndc_gradient_norms(pixel_grads: Tensor, width: int, height: int, n_cameras: 
     Dividing by s holds the pixel-sized Gaussians' statistic, the one that decides when
     densification stops, to its full-size value: a level densifies down to its own pixel and not
     below (detail it cannot show), and never more than full size would."""
-    # filled on the device, not made there from a list: on a GPU that is a copy from the host,
-    # which torch makes wait for every kernel queued before it
-    scale = torch.empty(2, dtype=torch.float32, device=pixel_grads.device)
+    grads = pixel_grads.detach() if pixel_grads.requires_grad else pixel_grads  # no operator where none is needed
+    if grads.dtype != torch.float32:
+        grads = grads.to(torch.float32)
+    return (grads * _ndc_scale(grads.device, width, height, n_cameras, downscale, reference_height)).norm(dim=-1)
+
+
+@functools.lru_cache(maxsize=64)
+def _ndc_scale(device: torch.device, width: int, height: int, n_cameras: int, downscale: int,
+               reference_height: int | None) -> Tensor:
+    """The [2] float32 factors of :func:`ndc_gradient_norms`, made once per device and view size
+    (a run has a few: its levels and batch sizes), so a step dispatches no operator for them.
+    Filled on the device, not made there from a list: on a GPU that is a copy from the host, which
+    torch makes wait for every kernel queued before it. Never written to after it is made."""
+    scale = torch.empty(2, dtype=torch.float32, device=device)
     scale[0], scale[1] = width / 2.0, height / 2.0
     scale = scale * float(n_cameras)
     if downscale != 1:
         scale = scale / float(downscale)
     if reference_height is not None:
         scale = scale * (float(height * downscale) / float(reference_height))
-    return (pixel_grads.detach().to(torch.float32) * scale).norm(dim=-1)
+    return scale
 
 
 def grow_masks(
@@ -350,11 +363,12 @@ class DefaultStrategy(Strategy):
                 f"the view's 2D-mean gradient has shape {tuple(grad.shape)} but there are {n} Gaussians: "
                 f"the observation must come from rendering the current Gaussian set"
             )
+        visible = view.visible()
         if self.prunes_by_significance() and view.visibility is not None:
-            accumulate_weights(state["stats"], view.visibility[:, 0], view.visible())
+            accumulate_weights(state["stats"], view.visibility[:, 0], visible)
         return accumulate_grad_stats(
-            state["stats"], grad.reshape(1, n, 2), view.visible().reshape(1, n), view.width, view.height, view.n_cameras,
-            view.downscale, self.grow_grad2d_height,
+            state["stats"], grad, visible, view.width, view.height, view.n_cameras, view.downscale,
+            self.grow_grad2d_height,
         )
 
     def growth(self, params: Params, state: dict[str, Any]) -> tuple[Tensor, Tensor]:
