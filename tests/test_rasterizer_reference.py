@@ -275,3 +275,21 @@ def test_the_compositor_uses_the_callers_thread_count():
         assert _workers(RasterSettings(), torch.device("meta")) == 1  # a GPU-like device: one thread
     finally:
         torch.set_num_threads(before)
+
+
+@pytest.mark.parametrize("dtype, bits", [(torch.float32, torch.int32), (torch.float64, torch.int64)])
+def test_the_few_operator_rotation_is_the_same_bits(dtype, bits):
+    """quats_to_rotmats(few_operators=True), the split's form, gives the forty-operator form's
+    floats bit for bit, signed zeros included: random quaternions over twelve orders of magnitude,
+    the zero quaternion, one below the identity threshold, axis-aligned ones with -0 components."""
+    from exploregs_plugin.rasterizer.projection import quats_to_rotmats
+
+    g = torch.Generator().manual_seed(7)
+    q = torch.randn(512, 4, generator=g, dtype=dtype) * torch.logspace(-6, 6, 512, dtype=dtype)[:, None]
+    special = torch.tensor([[0.0, 0.0, 0.0, 0.0], [1e-13, 0.0, 0.0, 0.0], [1.0, 0.0, 0.0, 0.0], [-0.5, -0.0, 0.0, 0.3],
+                            [0.0, -1.0, -0.0, 0.0], [-0.0, 0.0, 0.0, -2.0]], dtype=dtype)  # fmt: skip
+    q = torch.cat([special, q])
+    plain, few = quats_to_rotmats(q), quats_to_rotmats(q, few_operators=True)
+    assert torch.equal(plain.view(bits), few.view(bits))
+    assert torch.equal(plain[0], torch.eye(3, dtype=dtype)) and torch.equal(plain[1], torch.eye(3, dtype=dtype))
+    assert (plain.view(bits) == torch.tensor(-0.0, dtype=dtype).view(bits)).any()  # a -0 entry is compared too

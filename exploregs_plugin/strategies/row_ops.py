@@ -150,7 +150,7 @@ def split(
         return 0
     means, log_scales = params["means"], params["scales"]
     scales = torch.exp(log_scales[sel].detach())
-    rot = quats_to_rotmats(params["quats"][sel].detach())  # [S, 3, 3]
+    rot = quats_to_rotmats(params["quats"][sel].detach(), few_operators=True)  # [S, 3, 3], few rows
     z = torch.randn(2, len(sel), 3, generator=generator, dtype=means.dtype, device=generator.device).to(means.device)
     offsets = torch.einsum("nij,nj,bnj->bni", rot, scales, z).reshape(-1, 3)  # [2 S, 3]: first children, then second
     log_factor = math.log(scale_factor)
@@ -168,12 +168,16 @@ def split(
             rows[children].sub_(log_factor)
         return rows
 
+    children_moments: list[Tensor] = []
+
     def moments_fn(key: str, v: Tensor) -> Tensor:
         rows = v.index_select(0, order)
-        rows[children].zero_()  # children start with zero moments
+        children_moments.append(rows[children])
         return rows
 
     update_params_and_optimizers(param_fn, moments_fn, params, optimizers)
+    if children_moments:  # children start with zero moments: one operator for all (none before Adam's first step)
+        torch._foreach_zero_(children_moments)
     _update_stats(stats, lambda v: v.index_select(0, order))
     return len(sel)
 
