@@ -56,7 +56,8 @@ def update_params_and_optimizers(
     """
     for name in list(params.keys()) if names is None else list(names):
         old = params[name]
-        new = torch.nn.Parameter(param_fn(name, old.detach()), requires_grad=old.requires_grad)
+        # no detach: under no_grad param_fn's result records nothing (each operator is a dispatch)
+        new = torch.nn.Parameter(param_fn(name, old), requires_grad=old.requires_grad)
         params[name] = new
         optimizer = optimizers.get(name)
         if optimizer is None:
@@ -149,9 +150,11 @@ def split(
     if len(sel) == 0:
         return 0
     means, log_scales = params["means"], params["scales"]
-    scales = torch.exp(log_scales[sel].detach())
-    rot = quats_to_rotmats(params["quats"][sel].detach(), few_operators=True)  # [S, 3, 3], few rows
-    z = torch.randn(2, len(sel), 3, generator=generator, dtype=means.dtype, device=generator.device).to(means.device)
+    scales = torch.exp(log_scales[sel])  # under no_grad: nothing to detach
+    rot = quats_to_rotmats(params["quats"][sel], few_operators=True)  # [S, 3, 3], few rows
+    z = torch.randn(2, len(sel), 3, generator=generator, dtype=means.dtype, device=generator.device)
+    if z.device != means.device:
+        z = z.to(means.device)
     offsets = torch.einsum("nij,nj,bnj->bni", rot, scales, z).reshape(-1, 3)  # [2 S, 3]: first children, then second
     log_factor = math.log(scale_factor)
     # Every tensor is one gather of the rows in their new order (the rest, then each parent twice),
