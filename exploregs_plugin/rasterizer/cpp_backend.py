@@ -18,6 +18,12 @@ from .settings import RasterSettings
 __all__ = ["cpp_problem", "CppBins", "composite_cpp", "project_cpp", "sh_colors_cpp"]
 
 
+def _as_dtype(t: Tensor, dtype: torch.dtype) -> Tensor:
+    """``t`` in ``dtype`` (the support is a non-differentiable output: nothing to detach), with no
+    operator dispatched where it is in that dtype already."""
+    return t if t.dtype == dtype else t.to(dtype)
+
+
 def _thresholds(s: RasterSettings) -> tuple[float, float, float]:
     return s.alpha_max, s.alpha_min, s.transmittance_min
 
@@ -28,7 +34,7 @@ class CppBins:
 
     def __init__(self, means2d: Tensor, support: Tensor, depths: Tensor, width: int, height: int, tile_size: int):
         order = torch.argsort(depths, stable=True)  # pairs are made front to back
-        m2, sup = means2d.detach().contiguous(), support.detach().to(means2d.dtype).contiguous()
+        m2, sup = means2d.detach().contiguous(), _as_dtype(support, means2d.dtype).contiguous()
         self.tile_offsets, self.pair_gauss, self.pair_slot, self.gauss_first, self.gauss_count = extension().bin_tiles(
             m2, sup, order.contiguous(), width, height, tile_size)
         self.width, self.height, self.tile_size = width, height, tile_size
@@ -44,7 +50,7 @@ class _CompositeCpp(torch.autograd.Function):
         # no detach: a Function's forward runs without grad recording, and each operator a step
         # dispatches costs interpreter time (docs/training.md, "Operators per step")
         tensors = [t.contiguous() for t in (means2d, conics, opacities, feats)]
-        sup = support.to(means2d.dtype).contiguous()
+        sup = _as_dtype(support, means2d.dtype).contiguous()
         ext = extension()
         out, pair_stats = ext.composite_forward(
             *tensors, sup, bins.tile_offsets, bins.pair_gauss, bins.pair_slot, bins.width, bins.height,
@@ -85,7 +91,8 @@ class _ProjectCpp(torch.autograd.Function):
     @staticmethod
     def forward(ctx, means, quats, scales, opacities, viewmat, K, width, height, near, far, settings, threads):  # type: ignore[override]
         inputs = [t.contiguous() for t in (means, quats, scales, opacities)]  # no detach: see _CompositeCpp
-        camera = (viewmat.detach(), K.detach(), width, height, float(near), float(far), settings.eps2d,
+        # no detach: the compiled projection is chosen only for a camera without gradient
+        camera = (viewmat, K, width, height, float(near), float(far), settings.eps2d,
                   settings.sigma_radius, settings.guard_band, settings.antialiased)  # fmt: skip
         means2d, conics, opac, depths, radii, support, visible = extension().project_forward(*inputs, *camera, settings.alpha_min, threads)
         ctx.mark_non_differentiable(radii, support, visible)

@@ -193,7 +193,8 @@ def _rasterize(
     near_plane, far_plane, means_cov, means_sh, settings, compiled, threads,
 ):  # fmt: skip
     """Project every Gaussian, colour the visible ones, composite them and finish the images."""
-    viewmat, K = viewmat.to(means), K.to(means)  # the dtype and device of the means
+    # the dtype and device of the means (no operator where they have them already)
+    viewmat, K = (t if (t.dtype, t.device) == (means.dtype, means.device) else t.to(means) for t in (viewmat, K))
     if compiled and (means_cov is None or means_cov is means) and not (viewmat.requires_grad or K.requires_grad):
         proj = project_cpp(means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane,
                            settings, threads)
@@ -244,7 +245,7 @@ def _composite_visible(proj, vis, rgb, width, height, settings, compiled, thread
     depths_vis = proj.depths.detach().index_select(0, vis)
     conics_vis, opac_vis = proj.conics.index_select(0, vis), proj.opacities.index_select(0, vis)
     if compiled:
-        bins = CppBins(means2d_vis.detach(), support, depths_vis, width, height, settings.tile_size)
+        bins = CppBins(means2d_vis, support, depths_vis, width, height, settings.tile_size)  # it detaches
         img, visibility = composite_cpp(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings, threads)
         return img, visibility, bins.n_pairs
     bins = bin_gaussians(means2d_vis.detach(), support, depths_vis, width, height, settings.tile_size)
