@@ -193,3 +193,14 @@ def test_a_training_step_never_imports_torch_dynamo():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip() == "False"
+
+
+def test_zero_grad_drops_or_zeroes_the_gradients_as_torchs_optimizers_do():
+    p = nn.Parameter(torch.ones(3))
+    opt = _ours([p])
+    p.grad = torch.full((3,), 2.0)
+    kept = p.grad
+    opt.zero_grad(set_to_none=False)
+    assert p.grad is kept and torch.equal(p.grad, torch.zeros(3))
+    opt.zero_grad()
+    assert p.grad is None

@@ -66,7 +66,6 @@ class FusedAdam:
             raise ValueError(f"FusedAdam runs plain Adam only ({_GROUP_DEFAULTS})")
         self.param_groups.append({"params": params, **fields})
 
-    @torch.no_grad()
     def step(self) -> None:
         fused_adam_step([self])
 
@@ -77,9 +76,12 @@ class FusedAdam:
                     continue
                 if set_to_none:
                     p.grad = None
+                    continue
+                if p.grad.grad_fn is not None:
+                    p.grad.detach_()
                 else:
-                    p.grad.detach_() if p.grad.grad_fn is not None else p.grad.requires_grad_(False)
-                    p.grad.zero_()
+                    p.grad.requires_grad_(False)
+                p.grad.zero_()
 
     # ------------------------------------------------------------------ torch's state-dict format
     def state_dict(self) -> dict[str, Any]:

@@ -40,9 +40,7 @@ def level_statistics(path: Path, downscales: tuple[int, ...]) -> dict[int, tuple
             view.keep_gradient("level_statistic")
             loss, _ = view_loss(pipeline.loss_terms, ViewLossInput(image, target, depth, extras, i))
             loss.backward()
-            grad = view.screen_gradient()
-            n = grad.shape[0]
-            accumulate_grad_stats(stats, grad.reshape(1, n, 2), view.visible().reshape(1, n), view.width, view.height)
+            accumulate_grad_stats(stats, view.screen_gradient(), view.visible(), view.width, view.height)
             for tensor in pipeline.params.values():
                 tensor.grad = None
             height = camera.height
