@@ -145,7 +145,14 @@ def test_a_step_reads_the_device_only_at_the_log_line_and_refinements(tmp_path, 
     assert all(reads.by_step[s] > 0 for s in refined)  # a refinement learns what it grew and pruned
 
 
-def test_the_nonfinite_record_names_the_first_bad_step_when_read_later():
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
+def test_the_nonfinite_record_names_the_first_bad_step_when_read_later(monkeypatch, compiled):
+    from exploregs_plugin.engine import nonfinite
+    from exploregs_plugin.kernels import cpp_problem
+
+    if compiled and cpp_problem() is not None:
+        pytest.skip(f"compiled kernels unavailable: {cpp_problem()}")
+    monkeypatch.setattr(nonfinite, "_compiled", lambda tensors, dtypes: compiled)
     watch = NonFiniteWatch()
     opacities = torch.zeros(5)
     field = torch.zeros(4)

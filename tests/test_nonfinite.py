@@ -24,14 +24,15 @@ def test_nonfinite_rows_are_counted_from_row_sums_as_from_every_value():
     assert int(nonfinite_count("deformation.grid", torch.tensor([[1.0, float("nan")], [float("inf"), 2.0]]))) == 2
 
 
-def test_the_compiled_count_of_every_tensor_in_one_call_equals_the_torch_count():
-    """nonfinite_counts (on the CPU: one kernel call testing each value's exponent bits) against
-    nonfinite_count per tensor: rows with a NaN, +inf or -inf anywhere in them, rows whose float32
-    sum would overflow, float64, a transposed (non-contiguous) tensor, an empty one, a model
-    part's values; and the same counts at 1 and 2 threads."""
+def test_the_compiled_watch_records_the_torch_counts_in_place(monkeypatch):
+    """NonFiniteWatch.params on the CPU (one kernel call that tests each value's exponent bits and
+    updates the record in place) against the torch path (nonfinite_count per tensor and a
+    ``where``): rows with a NaN, +inf or -inf anywhere in them, rows whose float32 sum would
+    overflow, float64, a transposed (non-contiguous) tensor, an empty one, a model part's values;
+    the same record at 1 and 2 threads, and a later bad step leaves it as it is."""
     import pytest
 
-    from exploregs_plugin.engine.nonfinite import nonfinite_counts
+    from exploregs_plugin.engine import nonfinite
     from exploregs_plugin.kernels import cpp_problem
     from exploregs_plugin.rasterizer.composite import thread_budget
 
@@ -53,11 +54,26 @@ def test_the_compiled_count_of_every_tensor_in_one_call_equals_the_torch_count()
     values["deformation.grid"][2, 3] = float("nan")
     expected = torch.stack([nonfinite_count(name, p) for name, p in named])
     assert expected.sum() > 20 and int(expected[-1]) == 1
+    finite = [(name, torch.zeros_like(p)) for name, p in named]
+
+    def record(compiled: bool) -> torch.Tensor:
+        monkeypatch.setattr(nonfinite, "_compiled", lambda tensors, dtypes: compiled)
+        watch = nonfinite.NonFiniteWatch()
+        watch.params(3, finite, 300)  # nothing recorded
+        watch.params(4, named, 300)
+        values["opacities"][:] = float("nan")  # a later step: the record keeps step 4
+        watch.params(5, named, 301)
+        values["opacities"].copy_(opacities)
+        return watch._param_record
+
+    opacities = values["opacities"].clone()
     previous = torch.get_num_threads()
     try:
+        by_torch = record(False)
+        assert by_torch.tolist() == [4, 300, *expected.tolist()]
         for threads in (1, 2):
             torch.set_num_threads(threads)
             assert thread_budget() == threads
-            assert torch.equal(nonfinite_counts(named), expected)
+            assert torch.equal(record(True), by_torch)
     finally:
         torch.set_num_threads(previous)

@@ -165,11 +165,14 @@ def test_float64_gradcheck_of_each_kernel():
     # SH colours of a subset of rows (colours kept away from the clamp at 0)
     coeffs = scene.sh_coeffs.clone()
     coeffs[:, 0] = 2.0
-    rows = torch.tensor([0, 3, 4, 7, 11])
+    visible = torch.zeros(scene.means.shape[0], dtype=torch.bool)
+    visible[[0, 3, 4, 7, 11]] = True
     center = -(scene.viewmat[:3, :3].T @ scene.viewmat[:3, 3])
     for degree in range(4):
+        colours = sh_colors_cpp(coeffs, scene.means, visible, center, degree, 2)
+        assert colours.shape == (scene.means.shape[0], 3) and not colours[~visible].any()  # 0 where not drawn
         assert torch.autograd.gradcheck(
-            lambda k, m: sh_colors_cpp(k, m, rows, center, degree, 2),
+            lambda k, m: sh_colors_cpp(k, m, visible, center, degree, 2),
             [coeffs.clone().requires_grad_(), scene.means.clone().requires_grad_()], eps=1e-6, atol=1e-6)
 
 

@@ -80,14 +80,13 @@ def test_a_floored_determinant_or_a_nan_keeps_the_sigma_box():
 def _render(scene, settings, sigma_box: bool, monkeypatch):
     """Image, alpha, depth, pair count and every gradient; ``sigma_box``: composite with the
     sigma_radius box (``radii``) instead of the narrowed support."""
-    real = rasterize_module._composite_visible
+    for name in ("_composite_visible", "_composite_compiled"):  # the torch and the compiled path
+        def composite(proj, *args, real=getattr(rasterize_module, name)):
+            if sigma_box:
+                proj = replace(proj, support=proj.radii.to(proj.means2d.dtype))
+            return real(proj, *args)
 
-    def composite(proj, *args):
-        if sigma_box:
-            proj = replace(proj, support=proj.radii.to(proj.means2d.dtype))
-        return real(proj, *args)
-
-    monkeypatch.setattr(rasterize_module, "_composite_visible", composite)
+        monkeypatch.setattr(rasterize_module, name, composite)
     params = [t.detach().float().clone().requires_grad_() for t in
               (scene.means, scene.quats, scene.scales, scene.opacities, scene.sh_coeffs)]  # fmt: skip
     image, alpha, depth, info = rasterize(*params, scene.camera.to(torch.float32), settings=settings)

@@ -45,18 +45,15 @@ def nonfinite_count(name: str, p: Tensor) -> Tensor:
 
 
 def nonfinite_counts(named: list[tuple[str, Tensor]]) -> Tensor:
-    """:func:`nonfinite_count` of every tensor of ``named``, as a [K] long tensor on their device.
-
-    On the CPU, where the compiled kernels build, one call counts them all (an integer test of each
-    value's exponent bits: the same counts, no float sums, and none of the five operators per
-    tensor of the torch path)."""
-    first = named[0][1]
-    if first.device.type == "cpu" and cpp_problem() is None \
-            and all(p.dtype in (torch.float32, torch.float64) for _, p in named):
-        by_row = [int(p.ndim > 1 and not name.startswith(PART_PREFIX)) for name, p in named]
-        # the parameters as they are: the kernel reads their values and records nothing (no detach)
-        return extension().nonfinite_counts([p for _, p in named], by_row, thread_budget())
+    """:func:`nonfinite_count` of every tensor of ``named``, as a [K] long tensor on their device
+    (the torch path: on the CPU the compiled watch counts them all in one call, with an integer
+    test of each value's exponent bits, see :class:`NonFiniteWatch`)."""
     return torch.stack([nonfinite_count(name, p) for name, p in named])
+
+
+def _compiled(tensors: list[Tensor], dtypes: tuple[torch.dtype, ...]) -> bool:
+    """Whether the compiled watch takes ``tensors``: on the CPU, where the kernels build."""
+    return tensors[0].device.type == "cpu" and cpp_problem() is None and all(t.dtype in dtypes for t in tensors)
 
 
 class NonFiniteWatch:
@@ -64,26 +61,47 @@ class NonFiniteWatch:
 
     :meth:`loss` and :meth:`params` are called every step and never read the device; :meth:`error`
     reads the record once. Steps after the first bad one leave the record as it is, so the error
-    names the step where the run first went bad, however late it is read."""
+    names the step where the run first went bad, however late it is read. On the CPU each call is
+    one compiled operator that updates its record in place (it was nine: a test, a comparison and
+    a ``where`` per recorded value)."""
 
     def __init__(self) -> None:
-        self._loss_step: Tensor | None = None  # long, -1 until a loss is non-finite
-        self._loss_values: dict[str, Tensor] = {}  # that step's totals (loss and terms)
-        self._param_step: Tensor | None = None  # long, -1 until a parameter is non-finite
-        self._param_counts: Tensor | None = None  # [K] each parameter's non-finite rows (values) then
-        self._param_gaussians: Tensor | None = None  # the Gaussian count then
+        # float64 [1 + K]: the first step whose loss is non-finite (-1 until one), then that step's
+        # totals of the keys (the loss, the PSNR and the terms)
+        self._loss_record: Tensor | None = None
+        self._loss_keys: tuple[str, ...] = ()
+        # long [2 + K]: the first step with a non-finite parameter (-1 until one), the Gaussian count
+        # then, and each trained tensor's non-finite rows (a part's: values) then
+        self._param_record: Tensor | None = None
         self._param_names: list[str] = []
 
     def loss(self, step: int, totals: dict[str, Tensor]) -> None:
         """Record ``totals`` (0-dim float64: ``loss``, ``psnr`` and the terms) if this is the first
         step whose loss is non-finite."""
-        loss = totals["loss"]
-        if self._loss_step is None:
-            self._loss_step = torch.full((), -1, dtype=torch.long, device=loss.device)
-        first = ~torch.isfinite(loss) & (self._loss_step < 0)
-        self._loss_step = torch.where(first, step, self._loss_step)
-        self._loss_values = {k: torch.where(first, v, self._loss_values[k] if k in self._loss_values
-                                            else torch.zeros_like(v)) for k, v in totals.items()}
+        keys, values = tuple(totals), list(totals.values())
+        if keys != self._loss_keys:
+            self._loss_record = self._rekeyed(keys, values[0].device)
+        if _compiled(values, (torch.float64,)):
+            extension().watch_loss_(values, self._loss_record, step)
+            return
+        record = self._loss_record
+        first = ~torch.isfinite(values[0]) & (record[0] < 0)
+        now = torch.stack([torch.full((), float(step), dtype=torch.float64, device=record.device)]
+                          + [v.to(torch.float64) for v in values])
+        self._loss_record = torch.where(first, now, record)
+
+    def _rekeyed(self, keys: tuple[str, ...], device: torch.device) -> Tensor:
+        """A loss record for ``keys`` that keeps what the old one recorded (its step and the values
+        of the keys both have); a run's keys are fixed, so this is its first step."""
+        record = torch.zeros(1 + len(keys), dtype=torch.float64, device=device)
+        record[0] = -1.0
+        if self._loss_record is not None:
+            record[0] = self._loss_record[0]
+            for i, key in enumerate(keys):
+                if key in self._loss_keys:
+                    record[1 + i] = self._loss_record[1 + self._loss_keys.index(key)]
+        self._loss_keys = keys
+        return record
 
     def params(self, step: int, named: list[tuple[str, Tensor]], num_gaussians: int) -> None:
         """Record each parameter's non-finite rows (a part's: values) and the Gaussian count if
@@ -91,34 +109,34 @@ class NonFiniteWatch:
         fixed order (the error names the first bad one)."""
         if not named:
             return
-        counts = nonfinite_counts(named)
-        if self._param_step is None:  # the trained tensors' names are fixed for a run
+        if self._param_record is None:  # the trained tensors' names are fixed for a run
             self._param_names = [name for name, _ in named]
-            self._param_step = torch.full((), -1, dtype=torch.long, device=counts.device)
-            self._param_counts = torch.zeros_like(counts)
-            self._param_gaussians = torch.zeros((), dtype=torch.long, device=counts.device)
-        first = (counts > 0).any() & (self._param_step < 0)
-        self._param_step = torch.where(first, step, self._param_step)
-        self._param_counts = torch.where(first, counts, self._param_counts)
-        self._param_gaussians = torch.where(first, num_gaussians, self._param_gaussians)
+            self._param_record = torch.full((2 + len(named),), -1, dtype=torch.long, device=named[0][1].device)
+        tensors = [p for _, p in named]
+        if _compiled(tensors, (torch.float32, torch.float64)):
+            by_row = [int(p.ndim > 1 and not name.startswith(PART_PREFIX)) for name, p in named]
+            # the parameters as they are: the kernel reads their values and records nothing (no detach)
+            extension().watch_params_(tensors, by_row, self._param_record, step, num_gaussians, thread_budget())
+            return
+        counts = nonfinite_counts(named)
+        record = self._param_record
+        first = (counts > 0).any() & (record[0] < 0)
+        now = torch.cat([torch.tensor([step, num_gaussians], dtype=torch.long, device=record.device), counts])
+        self._param_record = torch.where(first, now, record)
 
     def error(self) -> NonFiniteError | None:
         """The error of the first step that went non-finite (its loss first, where the loss and
         the parameters went bad at the same step), or None. One read of the device."""
-        parts: list[Tensor] = []
-        if self._loss_step is not None:
-            parts += [self._loss_step.reshape(1)] + [v.reshape(1) for v in self._loss_values.values()]
-        if self._param_step is not None:
-            parts += [self._param_step.reshape(1), self._param_gaussians.reshape(1), self._param_counts.reshape(-1)]
+        parts = [r.to(torch.float64) for r in (self._loss_record, self._param_record) if r is not None]
         if not parts:
             return None
-        values = torch.cat([p.to(torch.float64) for p in parts]).tolist()
+        values = torch.cat(parts).tolist()
         loss_step = param_step = -1
-        if self._loss_step is not None:
+        if self._loss_record is not None:
             loss_step = int(values[0])
-            loss = dict(zip(self._loss_values, values[1:1 + len(self._loss_values)]))
-            values = values[1 + len(self._loss_values):]
-        if self._param_step is not None:
+            loss = dict(zip(self._loss_keys, values[1:1 + len(self._loss_keys)]))
+            values = values[1 + len(self._loss_keys):]
+        if self._param_record is not None:
             param_step, gaussians, counts = int(values[0]), int(values[1]), values[2:]
         if loss_step >= 0 and (param_step < 0 or loss_step <= param_step):
             terms = ", ".join(f"{k}={v:.4g}" for k, v in loss.items() if k not in ("loss", "psnr"))

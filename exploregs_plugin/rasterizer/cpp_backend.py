@@ -30,13 +30,19 @@ def _thresholds(s: RasterSettings) -> tuple[float, float, float]:
 
 
 class CppBins:
-    """Tile-Gaussian pairs made by the C++ binning (front to back within each tile)."""
+    """Tile-Gaussian pairs made by the C++ binning (front to back within each tile) of the rows
+    where ``visible`` holds (every row when it is None)."""
 
-    def __init__(self, means2d: Tensor, support: Tensor, depths: Tensor, width: int, height: int, tile_size: int):
-        order = torch.argsort(depths, stable=True)  # pairs are made front to back
+    def __init__(self, means2d: Tensor, support: Tensor, depths: Tensor, width: int, height: int, tile_size: int,
+                 visible: Tensor | None = None):
+        # pairs are made front to back; the rows not drawn are skipped wherever they sort, so the
+        # order of the drawn ones is that of a sort of their depths alone (stable: ties by row)
+        order = torch.argsort(depths, stable=True)  # indices: nothing to detach
+        if visible is None:
+            visible = torch.ones(means2d.shape[0], dtype=torch.bool, device=means2d.device)
         m2, sup = means2d.detach().contiguous(), _as_dtype(support, means2d.dtype).contiguous()
         self.tile_offsets, self.pair_gauss, self.pair_slot, self.gauss_first, self.gauss_count = extension().bin_tiles(
-            m2, sup, order.contiguous(), width, height, tile_size)
+            m2, sup, order, visible.contiguous(), width, height, tile_size)
         self.width, self.height, self.tile_size = width, height, tile_size
 
     @property
@@ -104,7 +110,8 @@ class _ProjectCpp(torch.autograd.Function):
     def backward(ctx, g_means2d, g_conics, g_opac, g_depths, *_):  # type: ignore[override]
         inputs = ctx.saved_tensors
         n, like = inputs[0].shape[0], inputs[0]
-        grads = [like.new_zeros(shape) if g is None else g.contiguous()
+        # the kernel reads strided rows (the compositor's gradients are columns of one block): no copies
+        grads = [like.new_zeros(shape) if g is None else g
                  for g, shape in ((g_means2d, (n, 2)), (g_conics, (n, 3)), (g_opac, (n,)), (g_depths, (n,)))]
         d = extension().project_backward(*inputs, *ctx.camera, *grads, ctx.threads)
         return (*d, None, None, None, None, None, None, None, None)
@@ -123,19 +130,20 @@ def project_cpp(
 
 class _ShCpp(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, coeffs, means, rows, camera_center, degree, threads):  # type: ignore[override]
-        inputs = (coeffs.contiguous(), means.contiguous(), rows.contiguous(), camera_center.detach())  # see _CompositeCpp
+    def forward(ctx, coeffs, means, visible, camera_center, degree, threads):  # type: ignore[override]
+        inputs = (coeffs.contiguous(), means.contiguous(), visible.contiguous(), camera_center.detach())  # see _CompositeCpp
         ctx.save_for_backward(*inputs)
         ctx.degree, ctx.threads = degree, threads
         return extension().sh_forward(*inputs, degree, threads)
 
     @staticmethod
     def backward(ctx, g_colors):  # type: ignore[override]
-        d_coeffs, d_means = extension().sh_backward(*ctx.saved_tensors, ctx.degree, g_colors.contiguous(), ctx.threads)
+        d_coeffs, d_means = extension().sh_backward(*ctx.saved_tensors, ctx.degree, g_colors, ctx.threads)  # strided rows read as they are
         return d_coeffs, d_means, None, None, None, None
 
 
-def sh_colors_cpp(coeffs: Tensor, means: Tensor, rows: Tensor, camera_center: Tensor, degree: int,
+def sh_colors_cpp(coeffs: Tensor, means: Tensor, visible: Tensor, camera_center: Tensor, degree: int,
                   threads: int) -> Tensor:
-    """:func:`sh.sh_colors` of the rows ``rows`` [M] of coeffs [N, K, 3] and means [N, 3]: [M, 3]."""
-    return _ShCpp.apply(coeffs, means, rows, camera_center, degree, threads)
+    """:func:`sh.sh_colors` of coeffs [N, K, 3] and means [N, 3] where ``visible`` [N] (bool) holds,
+    0 in the other rows: [N, 3] (the compositor reads the visible rows of full-size tensors)."""
+    return _ShCpp.apply(coeffs, means, visible, camera_center, degree, threads)

@@ -203,9 +203,16 @@ def _rasterize(
             means, quats, scales, opacities, viewmat, K, width, height, near_plane, far_plane, settings, means_cov
         )
     camera_center = -(viewmat[:3, :3].T @ viewmat[:3, 3])
-    vis = torch.nonzero(proj.visible).squeeze(1)
-    rgb = _colours(means, means_sh, sh_coeffs, colors, degree, vis, camera_center, compiled, threads)
-    img, visibility, n_pairs = _composite_visible(proj, vis, rgb, width, height, settings, compiled, threads)
+    if compiled:  # the compiled kernels read the visible rows of the full-size tensors
+        img, visibility, n_pairs = _composite_compiled(
+            proj, means, means_sh, sh_coeffs, colors, degree, camera_center, width, height, settings, threads)
+    else:
+        vis = torch.nonzero(proj.visible).squeeze(1)
+        rgb = _colours(means, means_sh, sh_coeffs, colors, degree, vis, camera_center)
+        img, visibility, n_pairs = _composite_visible(proj, vis, rgb, width, height, settings)
+        if settings.visibility_stats:
+            visibility = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device).index_copy_(
+                0, vis, visibility)
     image, acc, depth = _finish(img, background, means, settings)
     info: dict[str, Any] = {
         "means2d": proj.means2d,
@@ -220,39 +227,52 @@ def _rasterize(
         "n_pairs": n_pairs,
     }
     if settings.visibility_stats:
-        info["visibility"] = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device).index_copy_(
-            0, vis, visibility)
+        info["visibility"] = visibility
     return image, acc, depth, info
 
 
-def _colours(means, means_sh, sh_coeffs, colors, degree, vis, camera_center, compiled, threads) -> Tensor:
+def _colours(means, means_sh, sh_coeffs, colors, degree, vis, camera_center) -> Tensor:
     """[M, 3] colours of the visible rows ``vis``: the given ``colors``, or the SH evaluated in the
     direction from the camera centre (through ``means_sh`` when the SH path has its own tensor)."""
     if degree < 0:
         return colors.index_select(0, vis)
     src = means if means_sh is None else means_sh
-    if compiled and src is means and not camera_center.requires_grad:
-        return sh_colors_cpp(sh_coeffs, means, vis, camera_center, degree, threads)
     return sh_colors(sh_coeffs.index_select(0, vis), src.index_select(0, vis), camera_center, degree)
 
 
-def _composite_visible(proj, vis, rgb, width, height, settings, compiled, threads) -> tuple[Tensor, Tensor, int]:
-    """Bin and alpha-composite the visible rows: ([H, W, 5] colour, depth and alpha, their
-    visibility sums [M, 2], the number of tile-Gaussian pairs)."""
+def _composite_visible(proj, vis, rgb, width, height, settings) -> tuple[Tensor, Tensor, int]:
+    """Bin and alpha-composite the visible rows with the torch reference: ([H, W, 5] colour, depth
+    and alpha, their visibility sums [M, 2], the number of tile-Gaussian pairs)."""
     feats = torch.cat([rgb, proj.depths.index_select(0, vis)[:, None]], -1)  # [M, 4]
     means2d_vis = proj.means2d.index_select(0, vis)
     support = proj.support.index_select(0, vis)
     depths_vis = proj.depths.detach().index_select(0, vis)
     conics_vis, opac_vis = proj.conics.index_select(0, vis), proj.opacities.index_select(0, vis)
-    if compiled:
-        bins = CppBins(means2d_vis, support, depths_vis, width, height, settings.tile_size)  # it detaches
-        img, visibility = composite_cpp(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings, threads)
-        return img, visibility, bins.n_pairs
     bins = bin_gaussians(means2d_vis.detach(), support, depths_vis, width, height, settings.tile_size)
     out, visibility = composite(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings)
     ts = settings.tile_size
     img = out.view(bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 2, 1, 3, 4)
     return img.reshape(bins.tiles_y * ts, bins.tiles_x * ts, -1)[:height, :width], visibility, bins.n_pairs
+
+
+def _composite_compiled(proj, means, means_sh, sh_coeffs, colors, degree, camera_center, width, height, settings,
+                        threads) -> tuple[Tensor, Tensor, int]:
+    """Colour, bin and composite with the compiled kernels, which read the visible rows of the
+    full-size tensors: no gather of the visible rows and no scatter of their gradients back (about
+    a dozen operators a view, forward and backward). Returns ([H, W, 5] colour, depth and alpha,
+    the visibility sums [N, 2] (0 for a row not drawn), the number of tile-Gaussian pairs)."""
+    src = means if means_sh is None else means_sh
+    if degree < 0:
+        rgb = colors
+    elif src is means and not camera_center.requires_grad:
+        rgb = sh_colors_cpp(sh_coeffs, means, proj.visible, camera_center, degree, threads)
+    else:  # the branch ablation's SH path, or a camera with a gradient: torch's SH of every row
+        rgb = sh_colors(sh_coeffs, src, camera_center, degree)
+    feats = torch.cat([rgb, proj.depths[:, None]], -1)  # [N, 4]
+    bins = CppBins(proj.means2d, proj.support, proj.depths, width, height, settings.tile_size, proj.visible)
+    img, visibility = composite_cpp(proj.means2d, proj.conics, proj.opacities, feats, proj.support, bins, settings,
+                                    threads)
+    return img, visibility, bins.n_pairs
 
 
 def _finish(img: Tensor, background: Tensor | None, means: Tensor, settings: RasterSettings

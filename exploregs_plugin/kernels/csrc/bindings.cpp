@@ -10,8 +10,8 @@
 #include <vector>
 
 // composite_cpu.cpp
-std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor order, int64_t width,
-                                  int64_t height, int64_t tile_size);
+std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor order, at::Tensor visible,
+                                  int64_t width, int64_t height, int64_t tile_size);
 std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                           at::Tensor feats, at::Tensor support, at::Tensor tile_offsets,
                                           at::Tensor pair_gauss, at::Tensor pair_slot, int64_t width,
@@ -38,9 +38,9 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
                                             at::Tensor g_depths, int64_t threads);
 
 // sh_cpu.cpp
-at::Tensor sh_forward(at::Tensor coeffs, at::Tensor means, at::Tensor rows, at::Tensor camera,
+at::Tensor sh_forward(at::Tensor coeffs, at::Tensor means, at::Tensor visible, at::Tensor camera,
                          int64_t degree, int64_t threads);
-std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Tensor rows,
+std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Tensor visible,
                                        at::Tensor camera, int64_t degree, at::Tensor g_colors, int64_t threads);
 
 // photometric_cpu.cpp
@@ -50,7 +50,9 @@ at::Tensor photometric_backward(at::Tensor moments, at::Tensor grad_loss, double
                                 int64_t threads);
 
 // watch_cpu.cpp
-at::Tensor nonfinite_counts(std::vector<at::Tensor> tensors, std::vector<int64_t> by_row, int64_t threads);
+void watch_params_(std::vector<at::Tensor> tensors, std::vector<int64_t> by_row, at::Tensor record, int64_t step,
+                   int64_t num_gaussians, int64_t threads);
+void watch_loss_(std::vector<at::Tensor> values, at::Tensor record, int64_t step);
 
 PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("photometric_forward", &photometric_forward, "(1 - lambda) L1 + lambda (1 - SSIM) (forward)");
@@ -62,6 +64,7 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("bin_tiles", &bin_tiles, "Tile-Gaussian pairs, front to back per tile");
   m.def("composite_forward", &composite_forward, "Front-to-back compositing (forward)");
   m.def("composite_backward", &composite_backward, "Front-to-back compositing (backward, per-pair sums)");
-  m.def("nonfinite_counts", &nonfinite_counts, "Rows (or values) of each tensor holding a NaN or an inf");
+  m.def("watch_params_", &watch_params_, "The first step with non-finite parameters, recorded in place");
+  m.def("watch_loss_", &watch_loss_, "The first step with a non-finite loss, recorded in place");
   m.def("sum_pairs", &sum_pairs, "Per-Gaussian sums of per-pair rows in a fixed order");
 }

@@ -132,17 +132,18 @@ inline void tile_rect(scalar_t mx, scalar_t my, scalar_t rx, scalar_t ry, int64_
 
 template <typename scalar_t>
 Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Tensor& order,
-              int64_t width, int64_t height, int64_t ts) {
+              const at::Tensor& visible, int64_t width, int64_t height, int64_t ts) {
   const int64_t m = means2d.size(0);
   const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts, n_tiles = tiles_x * tiles_y;
   const auto* mean = means2d.data_ptr<scalar_t>();
   const auto* sup = support.data_ptr<scalar_t>();
   const auto* ord = order.data_ptr<int64_t>();
+  const bool* vis = visible.data_ptr<bool>();
   auto i64 = at::TensorOptions().dtype(at::kLong);
   Bins b;
   b.tile_offsets = at::zeros({n_tiles + 1}, i64);
-  b.gauss_first = at::empty({m}, i64);
-  b.gauss_count = at::empty({m}, i64);
+  b.gauss_first = at::zeros({m}, i64);  // a row not drawn has no pairs (and a zero gradient)
+  b.gauss_count = at::zeros({m}, i64);
   auto* off = b.tile_offsets.data_ptr<int64_t>();
   auto* first = b.gauss_first.data_ptr<int64_t>();
   auto* count = b.gauss_count.data_ptr<int64_t>();
@@ -150,6 +151,7 @@ Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Te
   int64_t total = 0;
   for (int64_t k = 0; k < m; ++k) {  // making order: Gaussians front to back
     const int64_t g = ord[k];
+    if (!vis[g]) continue;
     int64_t* r = &rect[4 * g];
     tile_rect<scalar_t>(mean[2 * g], mean[2 * g + 1], sup[2 * g], sup[2 * g + 1], width, height, ts, r[0], r[1],
                         r[2], r[3]);
@@ -167,6 +169,7 @@ Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Te
   std::vector<int64_t> cursor(off, off + n_tiles);
   for (int64_t k = 0; k < m; ++k) {  // front to back, so every tile's list is in depth order
     const int64_t g = ord[k];
+    if (!vis[g]) continue;
     const int64_t* r = &rect[4 * g];
     int64_t slot = first[g];
     for (int64_t ty = r[1]; ty <= r[3]; ++ty)
@@ -552,13 +555,19 @@ void sum_pairs_impl(const scalar_t* r, const int64_t* first, const int64_t* coun
 
 }  // namespace
 
-// Binning: returns (tile_offsets [T+1], pair_gauss [P] int32, pair_slot [P], gauss_first [M], gauss_count [M]).
-std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor order, int64_t width,
-                                     int64_t height, int64_t tile_size) {
-  TORCH_CHECK(means2d.is_contiguous() && support.is_contiguous() && order.is_contiguous(), "bin_tiles: contiguous");
+// Binning of the rows where `visible` [M] (bool) holds, taken in `order` [M] (front to back; the
+// others are skipped wherever they sort): returns (tile_offsets [T+1], pair_gauss [P] int32,
+// pair_slot [P], gauss_first [M], gauss_count [M], zero for a row not drawn). The rasterizer passes
+// every projected row, so the compositor reads full-size tensors and no visible subset is gathered.
+std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor order, at::Tensor visible,
+                                     int64_t width, int64_t height, int64_t tile_size) {
+  TORCH_CHECK(means2d.is_contiguous() && support.is_contiguous() && order.is_contiguous() && visible.is_contiguous(),
+              "bin_tiles: contiguous");
+  TORCH_CHECK(visible.scalar_type() == at::kBool && visible.numel() == means2d.size(0) &&
+                  order.numel() == means2d.size(0), "bin_tiles: one bool and one order entry per row");
   Bins b;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_tiles", [&] {
-    b = bin_impl<scalar_t>(means2d, support, order, width, height, tile_size);
+    b = bin_impl<scalar_t>(means2d, support, order, visible, width, height, tile_size);
   });
   return {b.tile_offsets, b.pair_gauss, b.pair_slot, b.gauss_first, b.gauss_count};
 }

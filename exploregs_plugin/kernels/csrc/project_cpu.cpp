@@ -171,30 +171,41 @@ void project_forward_impl(const Camera<scalar_t>& cam, int64_t n, const scalar_t
   }
 }
 
+// Row strides of the output gradients: the compositor's backward hands them over as columns of
+// one [N, 6 + F] block (a copy of each into its own tensor was four operators a view).
+struct RowStrides {
+  int64_t means2d, conics, opac, depths;
+};
+
+// `t` with unit stride inside a row (its rows may be apart): a copy only where it has not.
+inline at::Tensor rows_of(const at::Tensor& t) {
+  return t.dim() < 2 || t.stride(1) == 1 ? t : t.contiguous();
+}
+
 template <typename scalar_t>
 void project_backward_impl(const Camera<scalar_t>& cam, int64_t n, const scalar_t* means, const scalar_t* quats,
                            const scalar_t* scales, const scalar_t* opac, const scalar_t* g_means2d,
                            const scalar_t* g_conics, const scalar_t* g_opac, const scalar_t* g_depths,
-                           scalar_t* d_means, scalar_t* d_quats, scalar_t* d_scales, scalar_t* d_opac,
-                           int64_t threads) {
+                           const RowStrides& gs, scalar_t* d_means, scalar_t* d_quats, scalar_t* d_scales,
+                           scalar_t* d_opac, int64_t threads) {
 #pragma omp parallel for num_threads(std::max<int64_t>(1, threads)) schedule(static)
   for (int64_t i = 0; i < n; ++i) {
     const scalar_t* s = scales + 3 * i;
     const Geometry<scalar_t> g = geometry(cam, means + 3 * i, quats + 4 * i, s);
-    scalar_t dp[3] = {0, 0, g_depths[i]};  // dL/dp (camera frame)
+    scalar_t dp[3] = {0, 0, g_depths[i * gs.depths]};  // dL/dp (camera frame)
     scalar_t dz = 0;                          // dL/dz through the divisions (z = p_z when depth_ok)
     // mean2d = (fx p_x / z + cx, fy p_y / z + cy)
-    const scalar_t gu = g_means2d[2 * i], gv = g_means2d[2 * i + 1];
+    const scalar_t gu = g_means2d[i * gs.means2d], gv = g_means2d[i * gs.means2d + 1];
     dp[0] += gu * cam.fx / g.z;
     dp[1] += gv * cam.fy / g.z;
     dz -= (gu * cam.fx * g.p[0] + gv * cam.fy * g.p[1]) / (g.z * g.z);
     // conic = (c, -b, a) / det
-    const scalar_t g0 = g_conics[3 * i], g1 = g_conics[3 * i + 1], g2 = g_conics[3 * i + 2];
+    const scalar_t *gc = g_conics + i * gs.conics, g0 = gc[0], g1 = gc[1], g2 = gc[2];
     const scalar_t inv_det = scalar_t(1) / g.det;
     scalar_t d_det = -(g0 * g.c - g1 * g.b + g2 * g.a) * inv_det * inv_det;
     scalar_t da = g2 * inv_det, db = -g1 * inv_det, dc = g0 * inv_det;
     // opacity (antialiased: o sqrt(det_orig / det))
-    scalar_t go = g_opac[i];
+    scalar_t go = g_opac[i * gs.opac];
     if (cam.antialiased) {
       const scalar_t det_orig = g.c00 * g.c11 - g.b * g.b;
       const scalar_t ratio = det_orig / g.det;
@@ -339,6 +350,8 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
                                             at::Tensor g_means2d, at::Tensor g_conics, at::Tensor g_opac,
                                             at::Tensor g_depths, int64_t threads) {
   const int64_t n = means.size(0);
+  g_means2d = rows_of(g_means2d), g_conics = rows_of(g_conics);
+  const RowStrides gs{g_means2d.stride(0), g_conics.stride(0), g_opac.stride(0), g_depths.stride(0)};
   auto d_means = at::empty_like(means), d_quats = at::empty_like(quats), d_scales = at::empty_like(scales);
   auto d_opac = at::empty_like(opacities);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
@@ -347,7 +360,7 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
     project_backward_impl<scalar_t>(
         cam, n, means.data_ptr<scalar_t>(), quats.data_ptr<scalar_t>(), scales.data_ptr<scalar_t>(),
         opacities.data_ptr<scalar_t>(), g_means2d.data_ptr<scalar_t>(), g_conics.data_ptr<scalar_t>(),
-        g_opac.data_ptr<scalar_t>(), g_depths.data_ptr<scalar_t>(), d_means.data_ptr<scalar_t>(),
+        g_opac.data_ptr<scalar_t>(), g_depths.data_ptr<scalar_t>(), gs, d_means.data_ptr<scalar_t>(),
         d_quats.data_ptr<scalar_t>(), d_scales.data_ptr<scalar_t>(), d_opac.data_ptr<scalar_t>(), threads);
   });
   return {d_means, d_quats, d_scales, d_opac};

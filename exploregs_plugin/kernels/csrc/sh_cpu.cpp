@@ -90,12 +90,12 @@ inline void direction(const scalar_t* m, const scalar_t* cam, scalar_t* d, scala
 }
 
 template <typename scalar_t>
-void sh_forward_impl(int64_t m, const int64_t* rows, const scalar_t* coeffs, const scalar_t* means,
+void sh_forward_impl(int64_t n, const bool* visible, const scalar_t* coeffs, const scalar_t* means,
                      const scalar_t* cam, int64_t n_coeffs, int degree, scalar_t* colors, int64_t threads) {
   const int nb = (degree + 1) * (degree + 1);
 #pragma omp parallel for num_threads(std::max<int64_t>(1, threads)) schedule(static)
-  for (int64_t i = 0; i < m; ++i) {
-    const int64_t g = rows[i];
+  for (int64_t g = 0; g < n; ++g) {
+    if (!visible[g]) continue;  // its colour stays 0: the compositor never reads it
     scalar_t d[3], inv, Y[16];
     bool floored;
     direction(means + 3 * g, cam, d, inv, floored);
@@ -104,19 +104,19 @@ void sh_forward_impl(int64_t m, const int64_t* rows, const scalar_t* coeffs, con
     for (int c = 0; c < 3; ++c) {
       scalar_t v = 0;
       for (int b = 0; b < nb; ++b) v += Y[b] * k[3 * b + c];
-      colors[3 * i + c] = std::max(v + scalar_t(0.5), scalar_t(0));
+      colors[3 * g + c] = std::max(v + scalar_t(0.5), scalar_t(0));
     }
   }
 }
 
 template <typename scalar_t>
-void sh_backward_impl(int64_t m, const int64_t* rows, const scalar_t* coeffs, const scalar_t* means,
+void sh_backward_impl(int64_t n, const bool* visible, const scalar_t* coeffs, const scalar_t* means,
                       const scalar_t* cam, int64_t n_coeffs, int degree, const scalar_t* g_colors,
-                      scalar_t* d_coeffs, scalar_t* d_means, int64_t threads) {
+                      int64_t g_stride, scalar_t* d_coeffs, scalar_t* d_means, int64_t threads) {
   const int nb = (degree + 1) * (degree + 1);
 #pragma omp parallel for num_threads(std::max<int64_t>(1, threads)) schedule(static)
-  for (int64_t i = 0; i < m; ++i) {
-    const int64_t g = rows[i];
+  for (int64_t g = 0; g < n; ++g) {
+    if (!visible[g]) continue;
     scalar_t d[3], inv, Y[16], dY[16][3];
     bool floored;
     direction(means + 3 * g, cam, d, inv, floored);
@@ -126,7 +126,7 @@ void sh_backward_impl(int64_t m, const int64_t* rows, const scalar_t* coeffs, co
     for (int c = 0; c < 3; ++c) {  // the clamp at 0 passes the gradient where SH + 0.5 >= 0
       scalar_t v = 0;
       for (int b = 0; b < nb; ++b) v += Y[b] * k[3 * b + c];
-      gc[c] = v + scalar_t(0.5) >= scalar_t(0) ? g_colors[3 * i + c] : scalar_t(0);
+      gc[c] = v + scalar_t(0.5) >= scalar_t(0) ? g_colors[g * g_stride + c] : scalar_t(0);
     }
     scalar_t* dk = d_coeffs + g * n_coeffs * 3;
     scalar_t dd[3] = {0, 0, 0};
@@ -146,32 +146,39 @@ void sh_backward_impl(int64_t m, const int64_t* rows, const scalar_t* coeffs, co
 
 }  // namespace
 
-// colours [M, 3] of the rows `rows` [M] of coeffs [N, K, 3] and means [N, 3], seen from `camera` [3].
-at::Tensor sh_forward(at::Tensor coeffs, at::Tensor means, at::Tensor rows, at::Tensor camera,
+// colours [N, 3] of coeffs [N, K, 3] and means [N, 3] seen from `camera` [3], for the rows where
+// `visible` [N] (bool) holds, 0 elsewhere: the compositor reads the visible rows of full-size
+// tensors, so no gather of the visible rows is made before it (nor its backward's scatter).
+at::Tensor sh_forward(at::Tensor coeffs, at::Tensor means, at::Tensor visible, at::Tensor camera,
                          int64_t degree, int64_t threads) {
-  TORCH_CHECK(coeffs.is_contiguous() && means.is_contiguous() && rows.is_contiguous(), "sh_cpu: contiguous");
+  TORCH_CHECK(coeffs.is_contiguous() && means.is_contiguous() && visible.is_contiguous(), "sh_cpu: contiguous");
+  TORCH_CHECK(visible.scalar_type() == at::kBool && visible.numel() == means.size(0), "sh_cpu: one bool per row");
   TORCH_CHECK(degree >= 0 && degree <= 3 && coeffs.size(1) >= (degree + 1) * (degree + 1), "sh_cpu: degree");
-  const int64_t m = rows.size(0);
-  auto colors = at::empty({m, 3}, means.options());
+  const int64_t n = means.size(0);
+  auto colors = at::zeros({n, 3}, means.options());
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_forward", [&] {
     auto cam = camera.to(means.scalar_type()).contiguous();
-    sh_forward_impl<scalar_t>(m, rows.data_ptr<int64_t>(), coeffs.data_ptr<scalar_t>(), means.data_ptr<scalar_t>(),
+    sh_forward_impl<scalar_t>(n, visible.data_ptr<bool>(), coeffs.data_ptr<scalar_t>(), means.data_ptr<scalar_t>(),
                               cam.data_ptr<scalar_t>(), coeffs.size(1), static_cast<int>(degree),
                               colors.data_ptr<scalar_t>(), threads);
   });
   return colors;
 }
 
-// (d coeffs [N, K, 3], d means [N, 3]): zero for the rows not listed.
-std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Tensor rows,
+// (d coeffs [N, K, 3], d means [N, 3]) from d colours [N, 3]: zero for the rows not visible.
+std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Tensor visible,
                                        at::Tensor camera, int64_t degree, at::Tensor g_colors, int64_t threads) {
-  TORCH_CHECK(g_colors.is_contiguous(), "sh_cpu: contiguous");
+  TORCH_CHECK(g_colors.size(0) == means.size(0), "sh_cpu: one gradient row each");
+  // the compositor's backward hands the colours' gradient over as columns of one block: its rows
+  // are read where they are (a copy only where a row itself is strided)
+  if (g_colors.stride(1) != 1) g_colors = g_colors.contiguous();
   auto d_coeffs = at::zeros_like(coeffs), d_means = at::zeros_like(means);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_backward", [&] {
     auto cam = camera.to(means.scalar_type()).contiguous();
-    sh_backward_impl<scalar_t>(rows.size(0), rows.data_ptr<int64_t>(), coeffs.data_ptr<scalar_t>(),
+    sh_backward_impl<scalar_t>(means.size(0), visible.data_ptr<bool>(), coeffs.data_ptr<scalar_t>(),
                                means.data_ptr<scalar_t>(), cam.data_ptr<scalar_t>(), coeffs.size(1),
-                               static_cast<int>(degree), g_colors.data_ptr<scalar_t>(), d_coeffs.data_ptr<scalar_t>(),
+                               static_cast<int>(degree), g_colors.data_ptr<scalar_t>(), g_colors.stride(0),
+                               d_coeffs.data_ptr<scalar_t>(),
                                d_means.data_ptr<scalar_t>(), threads);
   });
   return {d_coeffs, d_means};
