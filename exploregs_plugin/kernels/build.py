@@ -41,6 +41,7 @@ import torch
 SOURCES = [Path(__file__).parent / "csrc" / name
            for name in ("composite_cpu.cpp", "project_cpu.cpp", "sh_cpu.cpp", "photometric_cpu.cpp", "watch_cpu.cpp",
                         "bindings.cpp")]
+HEADERS = [Path(__file__).parent / "csrc" / "tensors.h"]  # included by the units: part of the build's name
 # -ffp-contract=off: no fused multiply-adds, so a vectorised and a scalar iteration of the same
 # loop round alike (the forward and the backward's recomputation give the same T bit for bit).
 CFLAGS = ["-O3", "-march=native", "-fopenmp", "-ffp-contract=off", "-fno-math-errno"]
@@ -60,7 +61,7 @@ def _cpu_signature() -> str:
 
 def extension_name() -> str:
     h = hashlib.sha256()
-    for part in (*(p.read_bytes() for p in SOURCES), torch.__version__.encode(), _cpu_signature().encode(),
+    for part in (*(p.read_bytes() for p in SOURCES + HEADERS), torch.__version__.encode(), _cpu_signature().encode(),
                  " ".join(CFLAGS).encode()):
         h.update(part)
     return f"exploregs_cpu_kernels_{h.hexdigest()[:12]}"

@@ -20,12 +20,9 @@
 
 // ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
 // five times the CPU time to compile (docs/training.md, "Building the kernels").
+#include "tensors.h"
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
-#include <ATen/ops/empty.h>
-#include <ATen/ops/empty_like.h>
-#include <ATen/ops/zeros.h>
-#include <ATen/ops/zeros_like.h>
 
 #include <omp.h>
 
@@ -139,11 +136,10 @@ Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Te
   const auto* sup = support.data_ptr<scalar_t>();
   const auto* ord = order.data_ptr<int64_t>();
   const bool* vis = visible.data_ptr<bool>();
-  auto i64 = at::TensorOptions().dtype(at::kLong);
   Bins b;
-  b.tile_offsets = at::zeros({n_tiles + 1}, i64);
-  b.gauss_first = at::zeros({m}, i64);  // a row not drawn has no pairs (and a zero gradient)
-  b.gauss_count = at::zeros({m}, i64);
+  b.tile_offsets = eg::zeros_cpu({n_tiles + 1}, at::kLong);
+  b.gauss_first = eg::zeros_cpu({m}, at::kLong);  // a row not drawn has no pairs (and a zero gradient)
+  b.gauss_count = eg::zeros_cpu({m}, at::kLong);
   auto* off = b.tile_offsets.data_ptr<int64_t>();
   auto* first = b.gauss_first.data_ptr<int64_t>();
   auto* count = b.gauss_count.data_ptr<int64_t>();
@@ -162,8 +158,8 @@ Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Te
       for (int64_t tx = r[0]; tx <= r[2]; ++tx) off[ty * tiles_x + tx + 1] += 1;
   }
   for (int64_t t = 0; t < n_tiles; ++t) off[t + 1] += off[t];
-  b.pair_gauss = at::empty({total}, at::TensorOptions().dtype(at::kInt));
-  b.pair_slot = at::empty({total}, i64);
+  b.pair_gauss = eg::empty_cpu({total}, at::kInt);
+  b.pair_slot = eg::empty_cpu({total}, at::kLong);
   auto* pg = b.pair_gauss.data_ptr<int32_t>();
   auto* ps = b.pair_slot.data_ptr<int64_t>();
   std::vector<int64_t> cursor(off, off + n_tiles);
@@ -580,8 +576,8 @@ std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics,
                                              double t_min, bool stats, int64_t threads) {
   check_inputs(means2d, conics, opacities, feats, support, tile_size);
   const int64_t nf = feats.size(1), n_tiles = tile_offsets.size(0) - 1, n_pairs = pair_gauss.size(0);
-  auto out = at::zeros({height, width, nf + 1}, means2d.options());
-  auto pair_stats = at::zeros({stats ? n_pairs : 0, 2}, means2d.options());
+  auto out = eg::zeros_cpu({height, width, nf + 1}, means2d.scalar_type());
+  auto pair_stats = eg::zeros_cpu({stats ? n_pairs : 0, 2}, means2d.scalar_type());
   const auto order = tile_order(tile_offsets.data_ptr<int64_t>(), n_tiles);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_forward", [&] {
     const auto md = make_model<scalar_t>(width, height, tile_size, nf, alpha_max, alpha_min, t_min);
@@ -600,7 +596,7 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
   check_inputs(means2d, conics, opacities, feats, support, tile_size);
   TORCH_CHECK(out.is_contiguous() && grad_out.is_contiguous(), "composite_backward: contiguous");
   const int64_t nf = feats.size(1), n_tiles = tile_offsets.size(0) - 1, n_pairs = pair_gauss.size(0);
-  auto pair_grad = at::zeros({n_pairs, 6 + nf}, means2d.options());
+  auto pair_grad = eg::zeros_cpu({n_pairs, 6 + nf}, means2d.scalar_type());
   const auto order = tile_order(tile_offsets.data_ptr<int64_t>(), n_tiles);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_backward", [&] {
     const auto md = make_model<scalar_t>(width, height, tile_size, nf, alpha_max, alpha_min, t_min);
@@ -616,7 +612,7 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
 at::Tensor sum_pairs(at::Tensor rows, at::Tensor gauss_first, at::Tensor gauss_count, int64_t threads) {
   TORCH_CHECK(rows.is_contiguous(), "sum_pairs: contiguous");
   const int64_t m = gauss_first.size(0), c = rows.size(1);
-  auto res = at::zeros({m, c}, rows.options());
+  auto res = eg::zeros_cpu({m, c}, rows.scalar_type());
   const auto* first = gauss_first.data_ptr<int64_t>();
   const auto* count = gauss_count.data_ptr<int64_t>();
   AT_DISPATCH_FLOATING_TYPES(rows.scalar_type(), "sum_pairs", [&] {

@@ -21,9 +21,9 @@
 
 // ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
 // five times the CPU time to compile (docs/training.md, "Building the kernels").
+#include "tensors.h"
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
-#include <ATen/ops/empty.h>
 
 #include <omp.h>
 
@@ -183,9 +183,10 @@ std::vector<at::Tensor> photometric_forward(at::Tensor img, at::Tensor ref, doub
               "photometric_cpu: img and ref must be contiguous [H, W, C] of one shape and dtype");
   const int64_t h = img.size(0), w = img.size(1), c = img.size(2);
   // moments [7, C, H, W]: the five moments, then img and ref as planes (the backward reads them)
-  auto moments = at::empty({7, c, h, w}, img.options());
-  auto loss = at::empty({}, img.options()), l1 = at::empty({}, img.options()), dssim = at::empty({}, img.options());
-  auto psnr = at::empty({}, img.options().dtype(at::kDouble));
+  auto moments = eg::empty_cpu({7, c, h, w}, img.scalar_type());
+  auto loss = eg::empty_cpu({}, img.scalar_type()), l1 = eg::empty_cpu({}, img.scalar_type());
+  auto dssim = eg::empty_cpu({}, img.scalar_type());
+  auto psnr = eg::empty_cpu({}, at::kDouble);
   std::vector<double> rows(3 * c * h);
   AT_DISPATCH_FLOATING_TYPES(img.scalar_type(), "photometric_forward", [&] {
     scalar_t* mom = moments.data_ptr<scalar_t>();
@@ -218,8 +219,8 @@ at::Tensor photometric_backward(at::Tensor moments, at::Tensor grad_loss, double
               "photometric_cpu: grad_loss must be one element of the images' dtype");
   const int64_t c = moments.size(1), h = moments.size(2), w = moments.size(3), hw = h * w;
   const double n = double(std::max<int64_t>(1, c * hw));
-  auto work = at::empty({7, c, h, w}, moments.options());  // s dS/dmu_x, s dS/de_xx, s dS/de_xy; filtered; out
-  auto grad = at::empty({h, w, c}, moments.options());
+  auto work = eg::empty_cpu({7, c, h, w}, moments.scalar_type());  // s dS/dmu_x, s dS/de_xx, s dS/de_xy; filtered; out
+  auto grad = eg::empty_cpu({h, w, c}, moments.scalar_type());
   AT_DISPATCH_FLOATING_TYPES(moments.scalar_type(), "photometric_backward", [&] {
     const double g = double(*grad_loss.data_ptr<scalar_t>());
     const scalar_t* mom = moments.data_ptr<scalar_t>();

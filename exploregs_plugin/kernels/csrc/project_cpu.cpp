@@ -17,12 +17,9 @@
 
 // ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
 // five times the CPU time to compile (docs/training.md, "Building the kernels").
+#include "tensors.h"
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
-#include <ATen/ops/empty.h>
-#include <ATen/ops/empty_like.h>
-#include <ATen/ops/zeros.h>
-#include <ATen/ops/zeros_like.h>
 
 #include <omp.h>
 
@@ -283,10 +280,9 @@ template <typename scalar_t>
 Camera<scalar_t> make_camera(const at::Tensor& viewmat, const at::Tensor& K, int64_t width, int64_t height,
                              double near, double far, double eps2d, double sigma_radius, double guard_band,
                              bool antialiased) {
-  auto vm = viewmat.to(at::kDouble).contiguous();
-  auto kk = K.to(at::kDouble).contiguous();
-  const double* v = vm.data_ptr<double>();
-  const double* k = kk.data_ptr<double>();
+  double v[16], k[9];
+  eg::read_doubles(viewmat, v, 16);
+  eg::read_doubles(K, k, 9);
   Camera<scalar_t> cam;
   for (int r = 0; r < 3; ++r) {
     for (int c = 0; c < 3; ++c) cam.W[3 * r + c] = scalar_t(v[4 * r + c]);
@@ -325,10 +321,10 @@ std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::
     TORCH_CHECK(t->scalar_type() == means.scalar_type(), "project_cpu: tensors must share one dtype");
   }
   const int64_t n = means.size(0);
-  auto opts = means.options();
-  auto means2d = at::empty({n, 2}, opts), conics = at::empty({n, 3}, opts), opac = at::empty({n}, opts);
-  auto depths = at::empty({n}, opts), support = at::empty({n, 2}, opts);
-  auto radii = at::empty({n, 2}, opts.dtype(at::kInt)), visible = at::empty({n}, opts.dtype(at::kBool));
+  const auto dtype = means.scalar_type();
+  auto means2d = eg::empty_cpu({n, 2}, dtype), conics = eg::empty_cpu({n, 3}, dtype), opac = eg::empty_cpu({n}, dtype);
+  auto depths = eg::empty_cpu({n}, dtype), support = eg::empty_cpu({n, 2}, dtype);
+  auto radii = eg::empty_cpu({n, 2}, at::kInt), visible = eg::empty_cpu({n}, at::kBool);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_forward", [&] {
     const auto cam = make_camera<scalar_t>(viewmat, K, width, height, near, far, eps2d, sigma_radius, guard_band,
                                            antialiased);
@@ -352,8 +348,9 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
   const int64_t n = means.size(0);
   g_means2d = rows_of(g_means2d), g_conics = rows_of(g_conics);
   const RowStrides gs{g_means2d.stride(0), g_conics.stride(0), g_opac.stride(0), g_depths.stride(0)};
-  auto d_means = at::empty_like(means), d_quats = at::empty_like(quats), d_scales = at::empty_like(scales);
-  auto d_opac = at::empty_like(opacities);
+  const auto dtype = means.scalar_type();
+  auto d_means = eg::empty_cpu({n, 3}, dtype), d_quats = eg::empty_cpu({n, 4}, dtype);
+  auto d_scales = eg::empty_cpu({n, 3}, dtype), d_opac = eg::empty_cpu({n}, dtype);
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "project_backward", [&] {
     const auto cam = make_camera<scalar_t>(viewmat, K, width, height, near, far, eps2d, sigma_radius, guard_band,
                                            antialiased);

@@ -5,16 +5,14 @@
 
 // ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
 // five times the CPU time to compile (docs/training.md, "Building the kernels").
+#include "tensors.h"
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
-#include <ATen/ops/empty.h>
-#include <ATen/ops/empty_like.h>
-#include <ATen/ops/zeros.h>
-#include <ATen/ops/zeros_like.h>
 
 #include <omp.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <vector>
@@ -144,6 +142,14 @@ void sh_backward_impl(int64_t n, const bool* visible, const scalar_t* coeffs, co
   }
 }
 
+// The camera centre [3] in the means' dtype (rounded as a .to() would round it).
+template <typename scalar_t>
+std::array<scalar_t, 3> camera_in(const at::Tensor& camera) {
+  double c[3];
+  eg::read_doubles(camera, c, 3);
+  return {scalar_t(c[0]), scalar_t(c[1]), scalar_t(c[2])};
+}
+
 }  // namespace
 
 // colours [N, 3] of coeffs [N, K, 3] and means [N, 3] seen from `camera` [3], for the rows where
@@ -155,11 +161,11 @@ at::Tensor sh_forward(at::Tensor coeffs, at::Tensor means, at::Tensor visible, a
   TORCH_CHECK(visible.scalar_type() == at::kBool && visible.numel() == means.size(0), "sh_cpu: one bool per row");
   TORCH_CHECK(degree >= 0 && degree <= 3 && coeffs.size(1) >= (degree + 1) * (degree + 1), "sh_cpu: degree");
   const int64_t n = means.size(0);
-  auto colors = at::zeros({n, 3}, means.options());
+  auto colors = eg::zeros_cpu({n, 3}, means.scalar_type());
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_forward", [&] {
-    auto cam = camera.to(means.scalar_type()).contiguous();
+    const auto cam = camera_in<scalar_t>(camera);
     sh_forward_impl<scalar_t>(n, visible.data_ptr<bool>(), coeffs.data_ptr<scalar_t>(), means.data_ptr<scalar_t>(),
-                              cam.data_ptr<scalar_t>(), coeffs.size(1), static_cast<int>(degree),
+                              cam.data(), coeffs.size(1), static_cast<int>(degree),
                               colors.data_ptr<scalar_t>(), threads);
   });
   return colors;
@@ -172,11 +178,11 @@ std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Ten
   // the compositor's backward hands the colours' gradient over as columns of one block: its rows
   // are read where they are (a copy only where a row itself is strided)
   if (g_colors.stride(1) != 1) g_colors = g_colors.contiguous();
-  auto d_coeffs = at::zeros_like(coeffs), d_means = at::zeros_like(means);
+  auto d_coeffs = eg::zeros_cpu(coeffs.sizes(), coeffs.scalar_type()), d_means = eg::zeros_cpu(means.sizes(), means.scalar_type());
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_backward", [&] {
-    auto cam = camera.to(means.scalar_type()).contiguous();
+    const auto cam = camera_in<scalar_t>(camera);
     sh_backward_impl<scalar_t>(means.size(0), visible.data_ptr<bool>(), coeffs.data_ptr<scalar_t>(),
-                               means.data_ptr<scalar_t>(), cam.data_ptr<scalar_t>(), coeffs.size(1),
+                               means.data_ptr<scalar_t>(), cam.data(), coeffs.size(1),
                                static_cast<int>(degree), g_colors.data_ptr<scalar_t>(), g_colors.stride(0),
                                d_coeffs.data_ptr<scalar_t>(),
                                d_means.data_ptr<scalar_t>(), threads);
