@@ -86,8 +86,7 @@ class NonFiniteWatch:
             return
         record = self._loss_record
         first = ~torch.isfinite(values[0]) & (record[0] < 0)
-        now = torch.stack([torch.full((), float(step), dtype=torch.float64, device=record.device)]
-                          + [v.to(torch.float64) for v in values])
+        now = torch.stack([torch.full((), float(step), dtype=torch.float64, device=record.device), *values])
         self._loss_record = torch.where(first, now, record)
 
     def _rekeyed(self, keys: tuple[str, ...], device: torch.device) -> Tensor:
