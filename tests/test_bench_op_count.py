@@ -10,7 +10,7 @@ from exploregs_plugin.rasterizer.cpp_backend import cpp_problem
 
 PINNED_PER_STEP = {
     "exploregs-default": 98.1,
-    "exploregs-seedsplit": 189.1,
+    "exploregs-seedsplit": 156.1,
     "exploregs-mcmc": 189.1,
 }
 """Top-level operators per step, steps 20-29 of a 300-step schedule, cpp backend (``python -m

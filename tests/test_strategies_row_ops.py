@@ -261,3 +261,32 @@ def test_adam_step_after_op_equals_rebuilt_optimizer(op):
         optimizers[name].step()
         rebuilt.step()
         assert torch.equal(p.detach(), rebuilt_p.detach()), (op, name)
+
+
+def test_the_compiled_gather_of_many_tensors_equals_index_select_and_zeroes_the_tail(monkeypatch):
+    """kernels.rows.gather_rows (on the CPU one compiled call copying rows as bytes) against the
+    torch path (index_select per tensor, the tails zeroed): float32, float64, int32 and bool
+    tensors of one to three dimensions, a repeated index, a tail zeroed from its start, in the
+    middle and past the end; an index out of range is refused."""
+    import pytest
+
+    from exploregs_plugin.kernels import cpp_problem, rows
+
+    if cpp_problem() is not None:
+        pytest.skip(f"compiled kernels unavailable: {cpp_problem()}")
+    g = torch.Generator().manual_seed(3)
+    tensors = [torch.randn(9, 3, generator=g), torch.randn(9, 5, 3, generator=g, dtype=torch.float64),
+               torch.randint(-5, 5, (9,), generator=g, dtype=torch.int32), torch.rand(9, 2, generator=g) > 0.5,
+               -torch.zeros(9, 4)]
+    order = torch.tensor([8, 0, 3, 3, 1, 7, 7])
+    zero_from = [None, 0, 4, None, 7]
+    compiled = rows.gather_rows(tensors, order, zero_from)
+    monkeypatch.setattr(rows, "cpp_problem", lambda: "forced torch path")
+    by_torch = rows.gather_rows(tensors, order, zero_from)
+    for a, b in zip(compiled, by_torch):
+        assert a.dtype == b.dtype and a.shape == b.shape and a.view(-1).numpy().tobytes() == b.view(-1).numpy().tobytes()
+    assert not compiled[1].any() and not compiled[2][4:].any() and compiled[2][:4].equal(tensors[2][[8, 0, 3, 3]])
+    assert torch.signbit(compiled[4]).all()  # the rows copied as bytes: -0.0 stays -0.0
+    monkeypatch.setattr(rows, "cpp_problem", lambda: None)
+    with pytest.raises(RuntimeError, match="out of range"):
+        rows.gather_rows(tensors, torch.tensor([0, 9]), [None] * len(tensors))

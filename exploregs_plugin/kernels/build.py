@@ -3,7 +3,8 @@
 ``csrc/`` holds C++ kernels with OpenMP threads: the EWA projection (``project_cpu.cpp``), SH
 colours (``sh_cpu.cpp``), tile binning and compositing (``composite_cpu.cpp``) of the ``cpp``
 renderer backend, and the training loss, L1 and SSIM in one kernel (``photometric_cpu.cpp``),
-each forward and backward; the training step's non-finite watch (``watch_cpu.cpp``); and the
+each forward and backward; the training step's non-finite watch (``watch_cpu.cpp``); a split's rows in
+the new order (``rows_cpu.cpp``); and the
 Python module's table of them (``bindings.cpp``). The kernel units include only ATen's tensor
 headers and the binding only torch's pybind11 casters: torch/extension.h, which pulls in all of
 libtorch's C++ API, made each unit cost about five times the CPU time. They
@@ -40,7 +41,7 @@ import torch
 
 SOURCES = [Path(__file__).parent / "csrc" / name
            for name in ("composite_cpu.cpp", "project_cpu.cpp", "sh_cpu.cpp", "photometric_cpu.cpp", "watch_cpu.cpp",
-                        "bindings.cpp")]
+                        "rows_cpu.cpp", "bindings.cpp")]
 HEADERS = [Path(__file__).parent / "csrc" / "tensors.h"]  # included by the units: part of the build's name
 # -ffp-contract=off: no fused multiply-adds, so a vectorised and a scalar iteration of the same
 # loop round alike (the forward and the backward's recomputation give the same T bit for bit).

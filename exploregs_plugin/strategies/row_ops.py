@@ -24,6 +24,7 @@ from collections.abc import Callable, Iterable, Mapping, MutableMapping
 import torch
 from torch import Tensor
 
+from ..kernels.rows import gather_rows
 from ..rasterizer.projection import quats_to_rotmats
 from .relocation import relocation_update
 
@@ -162,26 +163,26 @@ def split(
     # floats however they are reached, with a few operators per tensor instead of four.
     order = torch.cat([rest, sel, sel])
     children = slice(len(rest), None)
+    # the parameters, their Adam moments (the children's start at zero) and the statistics gathered
+    # at once: on the CPU one compiled call instead of a gather per tensor and a slice per moment
+    moments = [v for name, p in params.items() if name in optimizers
+               for key, v in optimizers[name].state.get(p, {}).items()
+               if key != "step" and isinstance(v, Tensor) and v.dim() > 0]
+    kept_stats = [v for v in stats.values() if isinstance(v, Tensor)]
+    sources = [*params.values(), *moments, *kept_stats]
+    zero_from = [None] * len(params) + [len(rest)] * len(moments) + [None] * len(kept_stats)
+    gathered = {id(t): rows for t, rows in zip(sources, gather_rows(sources, order, zero_from))}
 
     def param_fn(name: str, p: Tensor) -> Tensor:
-        rows = p.index_select(0, order)
+        rows = gathered[id(p)]
         if name == "means":
             rows[children].add_(offsets)
         elif name == "scales":
             rows[children].sub_(log_factor)
         return rows
 
-    children_moments: list[Tensor] = []
-
-    def moments_fn(key: str, v: Tensor) -> Tensor:
-        rows = v.index_select(0, order)
-        children_moments.append(rows[children])
-        return rows
-
-    update_params_and_optimizers(param_fn, moments_fn, params, optimizers)
-    if children_moments:  # children start with zero moments: one operator for all (none before Adam's first step)
-        torch._foreach_zero_(children_moments)
-    _update_stats(stats, lambda v: v.index_select(0, order))
+    update_params_and_optimizers(param_fn, lambda key, v: gathered[id(v)], params, optimizers)
+    _update_stats(stats, lambda v: gathered[id(v)])
     return len(sel)
 
 

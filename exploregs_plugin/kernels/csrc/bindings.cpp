@@ -49,6 +49,9 @@ std::vector<at::Tensor> photometric_forward(at::Tensor img, at::Tensor ref, doub
 at::Tensor photometric_backward(at::Tensor moments, at::Tensor grad_loss, double lambda, double c1, double c2,
                                 int64_t threads);
 
+// rows_cpu.cpp
+std::vector<at::Tensor> gather_rows(std::vector<at::Tensor> tensors, at::Tensor order, std::vector<int64_t> zero_from);
+
 // watch_cpu.cpp
 void watch_params_(std::vector<at::Tensor> tensors, std::vector<int64_t> by_row, at::Tensor record, int64_t step,
                    int64_t num_gaussians, int64_t threads);
@@ -66,5 +69,6 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("composite_backward", &composite_backward, "Front-to-back compositing (backward, per-pair sums)");
   m.def("watch_params_", &watch_params_, "The first step with non-finite parameters, recorded in place");
   m.def("watch_loss_", &watch_loss_, "The first step with a non-finite loss, recorded in place");
+  m.def("gather_rows", &gather_rows, "Rows of many tensors in a new order, in one call");
   m.def("sum_pairs", &sum_pairs, "Per-Gaussian sums of per-pair rows in a fixed order");
 }
