@@ -76,9 +76,14 @@ def update_params_and_optimizers(
             if state is None:
                 continue  # optimizer has not stepped yet: no moments to carry
             for key, value in state.items():
-                if key != "step" and isinstance(value, Tensor) and value.dim() > 0:
+                if _is_row_state(key, value):
                     state[key] = optimizer_fn(key, value)
             optimizer.state[new] = state
+
+
+def _is_row_state(key: str, value: object) -> bool:
+    """Whether an optimizer state entry has a row per Gaussian (Adam's moments; not ``step``)."""
+    return key != "step" and isinstance(value, Tensor) and value.dim() > 0
 
 
 def _update_stats(stats: Stats, fn: Callable[[Tensor], Tensor]) -> None:
@@ -167,7 +172,7 @@ def split(
     # at once: on the CPU one compiled call instead of a gather per tensor and a slice per moment
     moments = [v for name, p in params.items() if name in optimizers
                for key, v in optimizers[name].state.get(p, {}).items()
-               if key != "step" and isinstance(v, Tensor) and v.dim() > 0]
+               if _is_row_state(key, v)]
     kept_stats = [v for v in stats.values() if isinstance(v, Tensor)]
     sources = [*params.values(), *moments, *kept_stats]
     zero_from = [None] * len(params) + [len(rest)] * len(moments) + [None] * len(kept_stats)

@@ -18,8 +18,8 @@
 // pair and added up in the order the pairs were made (tiles in row-major order), so the result
 // is the same bit for bit at any thread count.
 
-// ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
-// five times the CPU time to compile (docs/training.md, "Building the kernels").
+// ATen's tensor headers only (outputs made through tensors.h): the whole of torch/extension.h
+// costs about five times the CPU time to compile (docs/training.md, "Building the kernels").
 #include "tensors.h"
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>

@@ -19,8 +19,8 @@
 // image row (in double, in eight fixed lanes) added in row order after the parallel loop: the same
 // bits at any thread count.
 
-// ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
-// five times the CPU time to compile (docs/training.md, "Building the kernels").
+// ATen's tensor headers only (outputs made through tensors.h): the whole of torch/extension.h
+// costs about five times the CPU time to compile (docs/training.md, "Building the kernels").
 #include "tensors.h"
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>

@@ -15,8 +15,8 @@
 // and the determinant floor where they are active, as autograd gives for the torch code.
 // Every Gaussian writes only its own rows, so the result does not depend on the thread count.
 
-// ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
-// five times the CPU time to compile (docs/training.md, "Building the kernels").
+// ATen's tensor headers only (outputs made through tensors.h): the whole of torch/extension.h
+// costs about five times the CPU time to compile (docs/training.md, "Building the kernels").
 #include "tensors.h"
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
@@ -173,11 +173,6 @@ void project_forward_impl(const Camera<scalar_t>& cam, int64_t n, const scalar_t
 struct RowStrides {
   int64_t means2d, conics, opac, depths;
 };
-
-// `t` with unit stride inside a row (its rows may be apart): a copy only where it has not.
-inline at::Tensor rows_of(const at::Tensor& t) {
-  return t.dim() < 2 || t.stride(1) == 1 ? t : t.contiguous();
-}
 
 template <typename scalar_t>
 void project_backward_impl(const Camera<scalar_t>& cam, int64_t n, const scalar_t* means, const scalar_t* quats,
@@ -346,7 +341,7 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
                                             at::Tensor g_means2d, at::Tensor g_conics, at::Tensor g_opac,
                                             at::Tensor g_depths, int64_t threads) {
   const int64_t n = means.size(0);
-  g_means2d = rows_of(g_means2d), g_conics = rows_of(g_conics);
+  g_means2d = eg::rows_of(g_means2d), g_conics = eg::rows_of(g_conics);
   const RowStrides gs{g_means2d.stride(0), g_conics.stride(0), g_opac.stride(0), g_depths.stride(0)};
   const auto dtype = means.scalar_type();
   auto d_means = eg::empty_cpu({n, 3}, dtype), d_quats = eg::empty_cpu({n, 4}, dtype);

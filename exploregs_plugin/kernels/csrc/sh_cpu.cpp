@@ -3,8 +3,8 @@
 // (|m - camera|^2 floored at 1e-30), real SH up to degree 3 with the constants of sh.py.
 // Each visible Gaussian writes only its own rows: the result does not depend on the thread count.
 
-// ATen's tensor and its few factory functions only: the whole of torch/extension.h costs about
-// five times the CPU time to compile (docs/training.md, "Building the kernels").
+// ATen's tensor headers only (outputs made through tensors.h): the whole of torch/extension.h
+// costs about five times the CPU time to compile (docs/training.md, "Building the kernels").
 #include "tensors.h"
 #include <ATen/Dispatch.h>
 #include <ATen/core/Tensor.h>
@@ -176,8 +176,8 @@ std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Ten
                                        at::Tensor camera, int64_t degree, at::Tensor g_colors, int64_t threads) {
   TORCH_CHECK(g_colors.size(0) == means.size(0), "sh_cpu: one gradient row each");
   // the compositor's backward hands the colours' gradient over as columns of one block: its rows
-  // are read where they are (a copy only where a row itself is strided)
-  if (g_colors.stride(1) != 1) g_colors = g_colors.contiguous();
+  // are read where they are
+  g_colors = eg::rows_of(g_colors);
   auto d_coeffs = eg::zeros_cpu(coeffs.sizes(), coeffs.scalar_type()), d_means = eg::zeros_cpu(means.sizes(), means.scalar_type());
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_backward", [&] {
     const auto cam = camera_in<scalar_t>(camera);

@@ -37,4 +37,10 @@ inline void read_doubles(const at::Tensor& t, double* out, int64_t n) {
   });
 }
 
+// `t` with unit stride inside a row (its rows may lie apart, as the columns of one gradient block
+// do): a copy only where a row itself is strided.
+inline at::Tensor rows_of(const at::Tensor& t) {
+  return t.dim() < 2 || t.stride(1) == 1 ? t : t.contiguous();
+}
+
 }  // namespace eg
