@@ -148,6 +148,7 @@ class _Item:
     depth: Tensor | None  # float32 [H, W, 1], normalised units
     labels: Tensor | None  # uint8 [H, W]
     alpha: Tensor | None = None  # uint8 [H, W, 1] for images with an alpha channel
+    masks: dict[str, Tensor] | None = None  # bool [H, W] per region, made once from labels
 
 
 class DataManager:
@@ -182,6 +183,8 @@ class DataManager:
         moving = REGION_LABELS["moving"]
         has_moving = any(bool((it.labels == moving).any()) for it in self._train + self._test if it.labels is not None)
         self.regions = {name: value for name, value in REGION_LABELS.items() if name != "moving" or has_moving}
+        for item in self._train + self._test:
+            self._add_masks(item)
         self.train_cameras: list[Camera] = [it.camera for it in self._train]
         self.test_cameras: list[Camera] = [it.camera for it in self._test]
         points, points_rgb = self.parsed.points, self.parsed.points_rgb
@@ -270,6 +273,13 @@ class DataManager:
         """The views are frames of a dynamic scene (their cameras carry times)."""
         return any(camera.time is not None for camera in self.train_cameras)
 
+    def _add_masks(self, item: _Item) -> _Item:
+        """Sets ``item.masks`` from its region labels, once per image (not per step: a comparison
+        per region is an operator each time a view is drawn)."""
+        if item.labels is not None:
+            item.masks = {name: item.labels == value for name, value in self.regions.items()}
+        return item
+
     def _item(self, item: _Item, device: torch.device | None = None) -> tuple[Camera, Tensor, dict[str, Any]]:
         image = item.image
         if device is not None and device.type == "cuda":
@@ -277,16 +287,17 @@ class DataManager:
             # and from pinned memory the copy is queued instead of waited for (the caching host
             # allocator keeps the pinned block until the copy is done)
             image = image.pin_memory().to(device, non_blocking=True)
-        elif device is not None:
+        elif device is not None and image.device != device:
             image = image.to(device)
         extras: dict[str, Any] = {}
         if item.depth is not None:
             extras["depth"] = item.depth
-        if item.labels is not None:
-            extras["masks"] = {name: item.labels == value for name, value in self.regions.items()}
+        if item.masks is not None:
+            extras["masks"] = item.masks
         if item.alpha is not None:
-            extras["alpha"] = item.alpha.to(torch.float32) / 255.0
-        return item.camera, image.to(torch.float32) / 255.0, extras
+            extras["alpha"] = item.alpha / 255.0
+        # uint8 / 255.0 divides in float32 (the default dtype) with no separate conversion
+        return item.camera, image / 255.0, extras
 
     @property
     def has_alpha(self) -> bool:
@@ -303,7 +314,7 @@ class DataManager:
             return self._item(self._train[index], device)
         key = (index, downscale)
         if key not in self._coarse:
-            self._coarse[key] = _downscaled(self._train[index], downscale)
+            self._coarse[key] = self._add_masks(_downscaled(self._train[index], downscale))
         return self._item(self._coarse[key], device)
 
     def test_item(self, index: int, device: torch.device | None = None) -> tuple[Camera, Tensor, dict[str, Any]]:
