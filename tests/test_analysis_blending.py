@@ -186,8 +186,9 @@ def test_blending_by_visibility_bins_each_gaussian_by_its_best_transmittance():
     assert out["hi"][-1] == 1.0
 
 
+@pytest.mark.parametrize("backend", ["torch", "cpp"])
 @pytest.mark.parametrize("workers", [1, 2])
-def test_rasterizer_visibility_sums_equal_the_blended_pairs(workers):
+def test_rasterizer_visibility_sums_equal_the_blended_pairs(workers, backend):
     from exploregs_plugin.rasterizer import RasterSettings, rasterize
 
     s = random_scene(80, 40, 32, torch.Generator().manual_seed(5), scale_range=(0.05, 0.3), dtype=F64)
@@ -196,10 +197,20 @@ def test_rasterizer_visibility_sums_equal_the_blended_pairs(workers):
     pairs = composited_pairs(params, s.camera)
     weight = torch.zeros(80, dtype=F64).index_add_(0, pairs["ids"], pairs["T_before"] * pairs["alphas"])
     alpha = torch.zeros(80, dtype=F64).index_add_(0, pairs["ids"], pairs["alphas"])
-    settings = RasterSettings(visibility_stats=True, workers=workers, chunk_elements=2048)
+    peak = torch.zeros(80, dtype=F64).scatter_reduce_(0, pairs["ids"], pairs["T_before"] * pairs["alphas"], "amax")
+    if backend == "cpp":
+        from exploregs_plugin.kernels import cpp_problem
+
+        if cpp_problem():
+            pytest.skip(cpp_problem())
+    settings = RasterSettings(backend=backend, visibility_stats=True, workers=workers, chunk_elements=2048)
     image, _, _, info = rasterize(*s.args(), settings=settings)
-    assert info["visibility"].shape == (80, 2) and (weight > 0).sum() > 20
+    assert info["visibility"].shape == (80, 3) and (weight > 0).sum() > 20
     assert torch.allclose(info["visibility"][:, 0], weight, rtol=1e-9, atol=1e-12)
     assert torch.allclose(info["visibility"][:, 1], alpha, rtol=1e-9, atol=1e-12)
-    plain, _, _, plain_info = rasterize(*s.args(), settings=RasterSettings(workers=workers, chunk_elements=2048))
+    # the peak: the largest weight at one pixel, spread over several tiles and (torch) workers' chunks
+    assert torch.allclose(info["visibility"][:, 2], peak, rtol=1e-9, atol=1e-12)
+    assert (peak < weight - 1e-6).sum() > 20 and (peak > 0.5).sum() > 3  # neither the sum nor trivial
+    plain, _, _, plain_info = rasterize(*s.args(), settings=RasterSettings(backend=backend, workers=workers,
+                                                                           chunk_elements=2048))
     assert torch.equal(plain, image) and "visibility" not in plain_info  # the image does not change

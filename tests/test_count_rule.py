@@ -369,7 +369,7 @@ def test_too_few_training_views_to_hold_out_fall_back_to_a_rule_that_reads_none(
                                    pipeline=replace(config.pipeline, strategy=strategy)))
     trainer = seedsplit.setup()
     assert trainer.pipeline.strategy.cap_max is None and trainer.pipeline.datamanager.held_out == []
-    assert "the end-of-run cut by significance (--strategy.final-weight-share 0.001) decides it instead" in \
+    assert "the end-of-run cut by significance (--strategy.final-weight-share 0.003) decides it instead" in \
         capsys.readouterr().out
     m = trainer.train()
     assert m["num_gaussians"] > 0 and m["count_decision"].startswith("count: ")

@@ -1,5 +1,5 @@
-"""A smaller splat: significance = total compositing weight over the training views, the N most
-significant kept (with their Adam moments), optional fine-tuning without densification."""
+"""A smaller splat: significance = total compositing weight over the training views, the N of
+largest weight x peak kept (with their Adam moments), optional fine-tuning without densification."""
 
 import math
 
@@ -10,7 +10,7 @@ from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.gaussians import render_params, rgb_to_sh0
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.runs import load_run
-from exploregs_plugin.model.significance import most_significant, visibility_totals
+from exploregs_plugin.model.significance import cut_order, most_significant, visibility_totals
 from exploregs_plugin.runs.simplify import simplify
 
 
@@ -52,6 +52,31 @@ def test_the_weights_of_a_view_add_up_to_its_accumulated_alpha():
     # two views: the sums add
     twice = _weights(params, [camera, camera], RasterSettings())
     torch.testing.assert_close(twice, 2 * weights)
+
+
+def test_the_peak_is_the_largest_weight_at_one_pixel_over_the_views():
+    params = _scene([3.0, 2.0], [-1.5, -2.5], [0.0, 9.0], [(0.0, 0.0), (0.3, 0.2)])
+    near, far = _camera(), _camera(focal=25.0)
+    one, other = (visibility_totals(params, [c], RasterSettings()) for c in (near, far))
+    both = visibility_totals(params, [near, far], RasterSettings())
+    assert both.shape == (2, 3)
+    torch.testing.assert_close(both[:, :2], one[:, :2] + other[:, :2])  # the sums add over the views
+    torch.testing.assert_close(both[:, 2], torch.maximum(one[:, 2], other[:, 2]))  # the peak is the larger
+    # the opaque one in front paints the pixel at its centre almost alone; the other's peak is about its
+    # opacity, 0.5, at its own centre (the opaque one, 7 pixels away, covers little of it)
+    assert 0.9 < float(both[1, 2]) <= RasterSettings().alpha_max
+    assert 0.45 < float(both[0, 2]) <= 0.5
+
+
+def test_the_cut_keeps_a_small_opaque_gaussian_over_a_wide_faint_one_that_paints_more():
+    # texture is small Gaussians that paint their few pixels alone; a wide faint one spreads a little
+    # weight over many pixels: its summed weight is larger, but removing it costs each pixel little
+    params = _scene([3.0, 3.0], [-0.8, -3.5], [-3.5, 6.0], [(0.0, 0.0), (0.3, 0.2)])
+    totals = visibility_totals(params, [_camera()], RasterSettings())
+    weight, peak = totals[:, 0], totals[:, 2]
+    assert weight[0] > 2 * weight[1] and peak[1] > 10 * peak[0]
+    assert most_significant(weight, 1).tolist() == [True, False]  # the weight alone keeps the faint one
+    assert most_significant(cut_order(totals), 1).tolist() == [False, True]
 
 
 def test_a_gaussian_hidden_behind_an_opaque_one_is_not_significant():
@@ -98,9 +123,11 @@ def test_pruning_keeps_the_rows_and_their_adam_moments(run_dir):
     params = run.pipeline.params
     n = int(params["means"].shape[0])
     full_psnr = _train_psnr(run)
-    significance = _weights({k: v.detach() for k, v in params.items()}, run.pipeline.datamanager.train_cameras,
-                            run.pipeline.model.config.raster, run.pipeline.background)
-    keep = most_significant(significance, n // 2)
+    totals = visibility_totals({k: v.detach() for k, v in params.items()}, run.pipeline.datamanager.train_cameras,
+                               run.pipeline.model.config.raster, run.pipeline.background)
+    significance = totals[:, 0]
+    keep = most_significant(cut_order(totals), n // 2)
+    assert not torch.equal(keep, most_significant(significance, n // 2))  # the peak changes the choice here
     expected_means = params["means"].detach()[keep].clone()
     expected_moment = run.pipeline.optimizers["means"].state[params["means"]]["exp_avg"][keep].clone()
     result = simplify(run.pipeline, run.step, n // 2)

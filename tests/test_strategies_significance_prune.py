@@ -12,7 +12,7 @@ from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.strategies import DefaultStrategy, OcclusionSplittingStrategy, SeedSplitStrategy, StrategyError
 from exploregs_plugin.strategies.default import ndc_gradient_norms
 from exploregs_plugin.strategies.requirements import VISIBILITY_STATS
-from exploregs_plugin.strategies.significance_prune import (WEIGHT, WEIGHT_VIEWS, accumulate_weights,
+from exploregs_plugin.strategies.significance_prune import (WEIGHT, WEIGHT_PEAK, WEIGHT_VIEWS, accumulate_weights,
                                                             least_significant, window_follows_reset)
 from exploregs_plugin.strategies.synthetic import make_gaussians, make_optimizers, synthetic_views
 
@@ -42,6 +42,17 @@ def test_least_significant_keeps_at_least_the_unpruned_share_and_breaks_ties_by_
     assert ties.tolist() == [True, True, False, False]
 
 
+def test_least_significant_cuts_in_the_order_of_the_score_within_the_weights_share():
+    weights = torch.tensor([5.0, 1.0, 0.5, 3.0, 0.2])
+    views = torch.ones(5)
+    score = torch.tensor([9.0, 0.1, 4.0, 0.05, 0.2])  # rows 3, 1, 4 first, then 2
+    # total 9.7: 3.0 + 1.0 = 4.0 <= 0.45 x 9.7 = 4.365, + 0.2 = 4.2 also, + 0.5 = 4.7 not
+    assert least_significant(weights, views, 0.45, score).tolist() == [False, True, False, True, True]
+    # a non-finite score ranks as 0: cut first, still within the share
+    assert least_significant(weights, views, 0.03, torch.tensor([1.0, 1.0, 1.0, 1.0, float("nan")])).tolist() == \
+        [False, False, False, False, True]
+
+
 def test_least_significant_prunes_nothing_where_the_drawn_rows_paint_nothing():
     assert not least_significant(torch.zeros(5), torch.ones(5), 0.5).any()
     assert not least_significant(torch.zeros(0), torch.zeros(0), 0.5).any()
@@ -58,9 +69,13 @@ def test_a_window_that_began_at_an_opacity_reset_is_not_judged():
 
 def test_accumulated_weights_skip_non_finite_values_and_count_the_drawing_views():
     stats: dict[str, torch.Tensor] = {}
-    accumulate_weights(stats, torch.tensor([1.0, float("nan"), 2.0]), torch.tensor([True, True, False]))
-    accumulate_weights(stats, torch.tensor([0.5, 4.0, float("inf")]), torch.tensor([True, True, True]))
+    nan, inf = float("nan"), float("inf")
+    accumulate_weights(stats, torch.tensor([[1.0, 2.0, 0.5], [nan, 1.0, 0.25], [2.0, 3.0, 0.75]]),
+                       torch.tensor([True, True, False]))
+    accumulate_weights(stats, torch.tensor([[0.5, 1.0, 0.125], [4.0, 5.0, 0.5], [inf, 1.0, inf]]),
+                       torch.tensor([True, True, True]))
     assert stats[WEIGHT].tolist() == [1.5, 4.0, 2.0]
+    assert stats[WEIGHT_PEAK].tolist() == [0.5, 0.5, 0.75]  # the largest of the views', not their sum
     assert stats[WEIGHT_VIEWS].tolist() == [2.0, 2.0, 1.0]
 
 
@@ -127,21 +142,39 @@ def test_a_renderer_without_the_sums_runs_the_strategy_without_the_prune():
 
 def test_the_end_of_run_cut_removes_the_least_significant_rows_and_says_the_count():
     g = torch.Generator().manual_seed(0)
-    params = make_gaussians(5, g)
+    params = make_gaussians(6, g)
     optimizers = make_optimizers(params)
     strategy = DefaultStrategy(final_weight_share=0.1)
     state = strategy.initialize_state()
     kept_means = params["means"].detach()[[0, 2, 4]].clone()
-    weights = torch.tensor([10.0, 0.5, 5.0, 0.01, 4.0], dtype=torch.float64)  # total 19.51: 0.51 <= 10%
-    drawn = torch.tensor([3.0, 1.0, 2.0, 1.0, 0.0])  # row 4 drawn by no view: not judged
-    assert strategy.final_cut(params, optimizers, state, weights, drawn, step=99) == 2
+    weights = torch.tensor([10.0, 0.5, 5.0, 0.01, 4.0, 0.0], dtype=torch.float64)  # total 19.51: 0.51 <= 10%
+    # row 5: drawn by no training view, so it paints nothing training sees: cut at no cost to the share
+    drawn = torch.tensor([3.0, 1.0, 2.0, 1.0, 2.0, 0.0], dtype=torch.float64)
+    peaks = torch.tensor([0.5, 0.5, 0.5, 0.5, 0.5, 0.0], dtype=torch.float64)
+    visibility = torch.stack([weights, drawn, peaks], dim=1)
+    assert strategy.final_cut(params, optimizers, state, visibility, step=99) == 3
     assert torch.equal(params["means"].detach(), kept_means)
     assert optimizers["means"].param_groups[0]["params"][0] is params["means"]  # the optimizer follows
-    assert strategy.count_decision(state).startswith("count: 3 of 5 Gaussians kept after the last step (100)")
+    assert strategy.count_decision(state).startswith("count: 3 of 6 Gaussians kept after the last step (100)")
     for off in (DefaultStrategy(final_weight_share=0.0), DefaultStrategy(cap_max=100)):  # off, or the user's count
         assert off.final_cut_share() == 0.0
-        assert off.final_cut(params, optimizers, off.initialize_state(), weights[:3], drawn[:3], 99) == 0
-    assert DefaultStrategy().final_cut_share() == 0.001 == SeedSplitStrategy().final_cut_share()
+        assert off.final_cut(params, optimizers, off.initialize_state(), visibility[:3], 99) == 0
+    assert DefaultStrategy().final_cut_share() == 0.003 == SeedSplitStrategy().final_cut_share()
+
+
+def test_the_end_of_run_cut_spends_its_share_on_faint_rows_and_keeps_a_row_that_paints_pixels_alone():
+    params = make_gaussians(6, torch.Generator().manual_seed(1))
+    optimizers = make_optimizers(params)
+    strategy = DefaultStrategy(final_weight_share=0.1)
+    weights = torch.tensor([10.0, 0.6, 5.0, 1.2, 4.0, 0.7], dtype=torch.float64)  # total 21.5: budget 2.15
+    peaks = torch.tensor([0.5, 0.9, 0.5, 0.02, 0.5, 0.03], dtype=torch.float64)
+    visibility = torch.stack([weights, torch.ones(6, dtype=torch.float64), peaks], dim=1)
+    kept_means = params["means"].detach()[[0, 1, 2, 4]].clone()
+    # by weight alone rows 1 and 5 (0.6 + 0.7) would go; by weight x peak rows 5 and 3 (0.7 + 1.2),
+    # and row 1, which paints its pixels almost alone, stays
+    assert least_significant(weights, torch.ones(6), 0.1).tolist() == [False, True, False, False, False, True]
+    assert strategy.final_cut(params, optimizers, strategy.initialize_state(), visibility, step=9) == 2
+    assert torch.equal(params["means"].detach(), kept_means)
 
 
 def test_a_run_cuts_after_its_last_step_and_evaluates_the_cut_set(tmp_path):

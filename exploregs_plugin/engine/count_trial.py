@@ -18,7 +18,7 @@ from typing import Any
 
 from torch import Tensor
 
-from exploregs_plugin.model.significance import most_significant, visibility_totals
+from exploregs_plugin.model.significance import cut_order, most_significant, visibility_totals
 from exploregs_plugin.engine.nonfinite import NonFiniteWatch
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.base import CountTrial, Strategy
@@ -35,8 +35,9 @@ class HoldingStrategy(Strategy):
 
 
 def training_visibility(pipeline: Pipeline) -> Tensor:
-    """[N, 2] float64: each Gaussian's compositing weight and alpha, summed over the training views
-    that are still trained on (a held-out view must not choose what is kept); one pass."""
+    """[N, 3] float64: each Gaussian's compositing weight and alpha, summed over the training views
+    that are still trained on (a held-out view must not choose what is kept), and its peak weight;
+    one pass."""
     dm = pipeline.datamanager
     held = set(dm.held_out)
     cameras = [camera for i, camera in enumerate(dm.train_cameras) if i not in held]
@@ -44,21 +45,23 @@ def training_visibility(pipeline: Pipeline) -> Tensor:
     return visibility_totals(params, cameras, pipeline.model.config.raster, pipeline.background)
 
 
-def significance(pipeline: Pipeline) -> Tensor:
-    """[N] float64: each Gaussian's compositing weight over the training views
-    (:func:`training_visibility`'s first column)."""
-    return training_visibility(pipeline)[:, 0]
+def cut_scores(pipeline: Pipeline) -> Tensor:
+    """[N] float64: the order in which a cut keeps the rows (the largest first): weight x peak over
+    the training views (:func:`~exploregs_plugin.model.significance.cut_order` of
+    :func:`training_visibility`)."""
+    return cut_order(training_visibility(pipeline))
 
 
 def cut(pipeline: Pipeline, weights: Tensor, count: int, stats: dict[str, Tensor]) -> None:
-    """Keep the ``count`` rows of largest ``weights`` (their Adam moments and ``stats`` follow)."""
+    """Keep the ``count`` rows of largest ``weights`` (:func:`cut_scores`; their Adam moments and
+    ``stats`` follow)."""
     keep = most_significant(weights, count)
     row_ops.remove(pipeline.params, pipeline.optimizers, stats, ~keep)
 
 
 def paired_cut(pipeline: Pipeline, step: int, counts: list[int], steps: int) -> tuple[list[list[float]], Tensor]:
     """Each candidate's PSNR on every held-out view (in the datamanager's order), and the
-    significance the cuts used; the pipeline is left as it was. Each candidate trains under its
+    scores the cuts used (:func:`cut_scores`); the pipeline is left as it was. Each candidate trains under its
     own non-finite watch: one whose loss or parameters went non-finite scores NaN on every view
     (so :func:`count_rule.pick_count` never keeps it), and the run's own watch, which the trainer
     reads and raises on, never sees a candidate that is thrown away."""
@@ -69,7 +72,7 @@ def paired_cut(pipeline: Pipeline, step: int, counts: list[int], steps: int) -> 
         raise ValueError(f"{type(pipeline.strategy).__name__} asked for a count trial with no views held out")
     snapshot = copy.deepcopy(pipeline.state_dict())
     strategy = pipeline.strategy
-    weights = significance(pipeline)
+    weights = cut_scores(pipeline)
     stand_in = HoldingStrategy().setup(pipeline.schedule)
     run_watch = pipeline.nonfinite
     scores: list[list[float]] = []

@@ -310,9 +310,7 @@ class Pipeline:
             return 0, [f"note: the end-of-run cut (--strategy.final-weight-share {share:g}) is off: gsplat's "
                        f"kernels do not sum each Gaussian's compositing weight"]
         totals = count_trial.training_visibility(self)  # rendered without gradients
-        # the alpha sums are > 0 exactly where a view drew the row: they mark the rows judged
-        cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals[:, 0], totals[:, 1],
-                                      step)
+        cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals, step)
         return cut, [self.strategy.count_decision(self.strategy_state)]
 
     def _count_note(self, before: str) -> list[str]:

@@ -26,22 +26,42 @@ from torch import Tensor
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.gaussians import render_params
 from exploregs_plugin.rasterizer import RasterSettings
+from exploregs_plugin.rasterizer.settings import VISIBILITY_COLUMNS
 
 
 @torch.no_grad()
 def visibility_totals(params: Mapping[str, Tensor], cameras: Iterable[Camera], settings: RasterSettings | None,
                       background: Tensor | None = None) -> Tensor:
-    """[N, 2] float64: over ``cameras`` and their pixels, each Gaussian's summed alpha_j T_j (its
-    significance, see the module) and summed alpha_j (the same without the occlusion in front).
+    """[N, 3] float64: over ``cameras`` and their pixels, each Gaussian's summed alpha_j T_j (its
+    significance, see the module), its summed alpha_j (the same without the occlusion in front)
+    and its peak, the largest alpha_j T_j at any one pixel (``VISIBILITY_COLUMNS``).
 
     Rendered at SH degree 0: the weights do not depend on colour, and degree 0 is the cheapest."""
     settings = replace(settings or RasterSettings(), visibility_stats=True)
     means = params["means"]
-    totals = torch.zeros(means.shape[0], 2, dtype=torch.float64, device=means.device)
+    totals = torch.zeros(means.shape[0], len(VISIBILITY_COLUMNS), dtype=torch.float64, device=means.device)
     for camera in cameras:
         _, _, _, info = render_params(params, camera, 0, background, settings)
-        totals += info["visibility"].to(torch.float64)
+        view = info["visibility"].to(torch.float64)
+        totals[:, :2] += view[:, :2]
+        torch.maximum(totals[:, 2], view[:, 2], out=totals[:, 2])
     return totals
+
+
+def cut_order(visibility: Tensor) -> Tensor:
+    """[N] float64: the order in which a cut removes rows (the smallest first) and keeps them (the
+    largest), from visibility statistics [N, 3] (:func:`visibility_totals`, or a window's):
+
+        score_j = S_j P_j,        P_j = max_views max_pixels alpha_j(p) T_j(p)   (the peak).
+
+    S alone ranks a Gaussian by the pixels it covers times its weight there, so the small, opaque
+    rows that carry texture (a few pixels each, painted almost alone: P near 1) rank with the faint
+    ones that spread a little weight over many pixels (P near 0) and are cut first. The product
+    keeps the first and cuts the second. Measured on three finished 1500-step runs of the re-posed
+    beer (docs/strategies.md): at the same count the product loses less LPIPS than S alone (half
+    the set: +0.0065 to +0.0074 against +0.0101 to +0.0114), and at the same share of S cut (the
+    rules' budget) it keeps more of the texture."""
+    return visibility[:, 0].to(torch.float64) * visibility[:, 2].to(torch.float64)
 
 
 def most_significant(significance: Tensor, count: int) -> Tensor:

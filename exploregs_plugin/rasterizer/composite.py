@@ -32,7 +32,7 @@ from contextlib import contextmanager
 import torch
 from torch import Tensor
 
-from .settings import RasterSettings
+from .settings import VISIBILITY_COLUMNS, RasterSettings
 from .tiling import TileBins, gather_table, plan_chunks
 
 LOG2E = 1.4426950408889634
@@ -242,9 +242,11 @@ def _inside_image(bins: TileBins, tiles: Tensor, dtype: torch.dtype) -> Tensor:
 
 def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used, cache) -> Tensor | None:
     """Composites chunks ``ids`` into ``out``; with ``s.visibility_stats``, returns this worker's
-    per-Gaussian [M + 1, 2] sums of the weight alpha T and of alpha over its pixels."""
+    per-Gaussian [M + 1, 3]: the sums of the weight alpha T and of alpha over its pixels, and the
+    largest weight (``VISIBILITY_COLUMNS``)."""
     pix = _pixel_offsets(bins.tile_size, geom.dtype, geom.device)
-    stats = torch.zeros(geom.shape[0], 2, dtype=geom.dtype, device=geom.device) if s.visibility_stats else None
+    stats = torch.zeros(geom.shape[0], len(VISIBILITY_COLUMNS), dtype=geom.dtype, device=geom.device) \
+        if s.visibility_stats else None
     for i in ids:
         tiles, k = chunks[i]
         c = _Chunk.gather(geom, feat_t, bins, tiles, k)
@@ -254,11 +256,23 @@ def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used, cache) -> Ten
         out[tiles] = torch.bmm(w, c.f.transpose(1, 2))
         if stats is not None:
             rows = c.gidx.reshape(-1)
-            stats[:, 0].index_add_(0, rows, (w * inside).sum(1).reshape(-1))
+            w_inside = w * inside
+            stats[:, 0].index_add_(0, rows, w_inside.sum(1).reshape(-1))
             stats[:, 1].index_add_(0, rows, alpha_sum.reshape(-1))
+            stats[:, 2].scatter_reduce_(0, rows, w_inside.amax(1).reshape(-1), "amax")
         if cache is not None:
             cache[i] = c.first(used[i])
     return stats
+
+
+def _merged_visibility(parts: list[Tensor | None]) -> Tensor:
+    """The workers' visibility statistics as one: sums added, peaks the largest."""
+    stats = [p for p in parts if p is not None]
+    merged = stats[0].clone()
+    for p in stats[1:]:
+        merged[:, :2] += p[:, :2]
+        torch.maximum(merged[:, 2], p[:, 2], out=merged[:, 2])
+    return merged
 
 
 def _backward_chunks(geom, cache, ids, tile_size, s, grad_out) -> Tensor:
@@ -356,7 +370,7 @@ class _Composite(torch.autograd.Function):
             len(chunks), _workers(settings, means2d.device),
         )  # fmt: skip
         # workers keep their own sums (no two threads add into one tensor); the padding row goes
-        visibility = sum(p for p in parts if p is not None)[:-1] if settings.visibility_stats else out.new_zeros(0, 2)
+        visibility = _merged_visibility(parts)[:-1] if settings.visibility_stats else out.new_zeros(0, len(VISIBILITY_COLUMNS))
         ctx.mark_non_differentiable(visibility)
         ctx.save_for_backward(geom)
         ctx.cache, ctx.tile_size, ctx.settings = cache, bins.tile_size, settings

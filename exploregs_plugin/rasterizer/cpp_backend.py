@@ -13,7 +13,7 @@ from torch import Tensor
 from exploregs_plugin.kernels import cpp_problem, extension
 
 from .projection import Projected
-from .settings import RasterSettings
+from .settings import VISIBILITY_COLUMNS, RasterSettings
 
 __all__ = ["cpp_problem", "CppBins", "composite_cpp", "project_cpp", "sh_colors_cpp"]
 
@@ -63,9 +63,10 @@ class _CompositeCpp(torch.autograd.Function):
             bins.tile_size, *_thresholds(settings), settings.visibility_stats, threads,
         )  # fmt: skip
         if settings.visibility_stats:
-            visibility = ext.sum_pairs(pair_stats, bins.gauss_first, bins.gauss_count, threads)
+            # the weight and alpha columns are summed over the Gaussian's tiles, the peak is the largest
+            visibility = ext.sum_pairs(pair_stats, bins.gauss_first, bins.gauss_count, 2, threads)
         else:
-            visibility = out.new_zeros(0, 2)
+            visibility = out.new_zeros(0, len(VISIBILITY_COLUMNS))
         ctx.mark_non_differentiable(visibility)
         ctx.save_for_backward(*tensors, sup, out)
         ctx.bins, ctx.settings, ctx.threads = bins, settings, threads
@@ -80,7 +81,7 @@ class _CompositeCpp(torch.autograd.Function):
             means2d, conics, opacities, feats, sup, b.tile_offsets, b.pair_gauss, b.pair_slot, out,
             grad_out.contiguous(), b.width, b.height, b.tile_size, *_thresholds(s), ctx.threads,
         )  # fmt: skip
-        g = ext.sum_pairs(pair_grad, b.gauss_first, b.gauss_count, ctx.threads)
+        g = ext.sum_pairs(pair_grad, b.gauss_first, b.gauss_count, pair_grad.shape[1], ctx.threads)
         return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], None, None, None, None
 
 
@@ -89,7 +90,8 @@ def composite_cpp(
     settings: RasterSettings, threads: int,
 ) -> tuple[Tensor, Tensor]:
     """Composites binned Gaussians: [H, W, F + 1] (features, then the accumulated alpha) and, with
-    ``settings.visibility_stats``, [M, 2] per-Gaussian sums of w = alpha T and of alpha (else [0, 2])."""
+    ``settings.visibility_stats``, [M, 3] per Gaussian: the sums of w = alpha T and of alpha, and
+    the largest w (``VISIBILITY_COLUMNS``; else [0, 3])."""
     return _CompositeCpp.apply(means2d, conics, opacities, feats, support, bins, settings, threads)
 
 

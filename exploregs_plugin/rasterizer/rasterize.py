@@ -16,7 +16,7 @@ from .composite import (composite, enter_single_threaded, exit_single_threaded, 
 from .cpp_backend import CppBins, composite_cpp, project_cpp, sh_colors_cpp
 from .gsplat_backend import BackendError, rasterize_gsplat
 from .projection import project_gaussians
-from .settings import RasterSettings
+from .settings import VISIBILITY_COLUMNS, RasterSettings
 from .sh import sh_colors
 from .tiling import bin_gaussians
 
@@ -211,7 +211,8 @@ def _rasterize(
         rgb = _colours(means, means_sh, sh_coeffs, colors, degree, vis, camera_center)
         img, visibility, n_pairs = _composite_visible(proj, vis, rgb, width, height, settings)
         if settings.visibility_stats:
-            visibility = torch.zeros(means.shape[0], 2, dtype=means.dtype, device=means.device).index_copy_(
+            visibility = torch.zeros(means.shape[0], len(VISIBILITY_COLUMNS), dtype=means.dtype,
+                                     device=means.device).index_copy_(
                 0, vis, visibility)
     image, acc, depth = _finish(img, background, means, settings)
     info: dict[str, Any] = {

@@ -6,6 +6,12 @@ from dataclasses import dataclass
 from typing import Literal
 
 
+VISIBILITY_COLUMNS = ("weight", "alpha", "peak")
+"""The columns of a render's ``info["visibility"]`` [N, 3]: over the view's pixels, the summed
+compositing weight w = alpha T, the summed alpha, and the largest w (the peak: a Gaussian that
+paints one pixel on its own has a peak near 1 however few pixels it covers)."""
+
+
 @dataclass(frozen=True)
 class RasterSettings:
     """Constants of the 3D Gaussian Splatting image model (defaults = the original renderer)."""
@@ -41,8 +47,9 @@ class RasterSettings:
     the compositor still uses ``workers`` threads. Faster on small shared machines."""
     visibility_stats: bool = False
     """Also return, per Gaussian, the sums over pixels of its compositing weight alpha T and of
-    its alpha (info["visibility"] [N, 2]; occlusion-aware splitting reads them). Costs one more
-    pass over each chunk in the forward."""
+    its alpha, and its largest weight at any pixel (info["visibility"] [N, 3], the columns of
+    ``VISIBILITY_COLUMNS``; occlusion-aware splitting and the significance cuts read them). Costs
+    one more accumulation per pixel in the forward."""
     workers: int = 0
     """Compositing threads, each running single-threaded torch ops on its own chunks (0 = the
     caller's torch thread count, which eg-train's --num-threads sets). Results agree across

@@ -1,6 +1,6 @@
 """A smaller splat from a trained run: keep the Gaussians that make the training images (the
-largest total compositing weight over the training views, :mod:`exploregs_plugin.model.significance`),
-and optionally fine-tune what is left.
+largest total compositing weight over the training views times the largest weight at one pixel,
+:func:`exploregs_plugin.model.significance.cut_order`), and optionally fine-tune what is left.
 
 Removing Gaussians changes T for the ones behind them, so a pruned scene is not exactly the sum of
 what is kept; ``finetune`` lets the kept Gaussians take up the slack at the run's final learning
@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from exploregs_plugin.engine import count_trial
-from exploregs_plugin.model.significance import most_significant
+from exploregs_plugin.model.significance import cut_order, most_significant
 from exploregs_plugin.engine.pipeline import Pipeline
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.base import Strategy
@@ -51,15 +51,17 @@ def finetune(pipeline: Pipeline, step: int, steps: int) -> None:
 
 
 def simplify(pipeline: Pipeline, step: int, max_gaussians: int, finetune_steps: int = 0) -> Simplified:
-    """Keep the ``max_gaussians`` most significant Gaussians of a loaded run's ``pipeline`` (its
-    Adam moments follow the rows), then fine-tune ``finetune_steps`` steps; in place."""
+    """Keep the ``max_gaussians`` Gaussians of a loaded run's ``pipeline`` with the largest weight x
+    peak (:func:`cut_order`; their Adam moments follow the rows), then fine-tune ``finetune_steps``
+    steps; in place."""
     if pipeline.model.parts:
         raise ValueError("--max-gaussians is for static scenes: a dynamic run's Gaussians move with time, "
                          "and one view's weights do not say what every time needs")
     params = pipeline.params
     before = int(params["means"].shape[0])
-    significance = count_trial.significance(pipeline)  # the training views, as the count rule's cut
-    keep = most_significant(significance, max_gaussians)
+    totals = count_trial.training_visibility(pipeline)  # the training views, as the count rule's cut
+    keep = most_significant(cut_order(totals), max_gaussians)
+    significance = totals[:, 0]
     total = float(significance.sum())
     share = float(significance[keep].sum()) / total if total > 0.0 else 1.0
     row_ops.remove(params, pipeline.optimizers, {}, ~keep)

@@ -53,7 +53,8 @@ class ExportArgs:
     writer's, compresses to about half that and loses most small view-dependent colour (beer: -0.55 dB)."""
     max_gaussians: int | None = None
     """Keep only this many Gaussians: those with the largest compositing weight (alpha x
-    transmittance) summed over the training views' pixels. Unset: all."""
+    transmittance) summed over the training views' pixels times their largest weight at one pixel
+    (so small Gaussians that paint texture alone are kept). Unset: all."""
     finetune_steps: int = 0
     """With --max-gaussians: train the kept Gaussians this many steps more (the run's final
     learning rates, no densification) so they take up what the removed ones painted."""

@@ -357,12 +357,13 @@ class Strategy:
         :meth:`final_cut` removes after the run's last step (0: none; the base keeps every row)."""
         return 0.0
 
-    def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], weights: Tensor,
-                  drawn: Tensor, step: int) -> int:
-        """After the last step, before the final evaluation: remove rows by their compositing weight
-        over every training view (``weights`` [N]; ``drawn`` [N], > 0 where a view drew the row: the
-        pipeline passes the rows' alpha sums; it renders both with
-        :func:`exploregs_plugin.model.significance.visibility_totals`). Returns the rows removed.
+    def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], visibility: Tensor,
+                  step: int) -> int:
+        """After the last step, before the final evaluation: remove rows by their visibility
+        statistics over every training view (``visibility`` [N, 3] float64: the summed compositing
+        weight, the summed alpha, > 0 where a view drew the row, and the peak weight; the pipeline
+        renders them with :func:`exploregs_plugin.model.significance.visibility_totals`). Returns
+        the rows removed.
         Default's rule: :class:`DefaultStrategy.final_weight_share`."""
         return 0
 

@@ -31,8 +31,9 @@ from .base import StepContext, Strategy, StrategyError, require_generator
 from .geometry import max_world_scale
 from .requirements import VISIBILITY_STATS
 from .row_ops import Optimizers, Params, Stats, num_gaussians
-from .significance_prune import (WEIGHT, WEIGHT_STATS, WEIGHT_VIEWS, accumulate_weights, least_significant,
-                                 window_follows_reset)
+from ..model.significance import cut_order
+from .significance_prune import (WEIGHT, WEIGHT_PEAK, WEIGHT_STATS, WEIGHT_VIEWS, accumulate_weights,
+                                 least_significant, window_follows_reset)
 
 
 GRAD_STATS = ("grad2d", "count")
@@ -203,13 +204,14 @@ class DefaultStrategy(Strategy):
     default: every share measured cost more than 0.1 dB). Off too when cap_max is a count (the
     user's count) and on a renderer without the sums (gsplat's)."""
 
-    final_weight_share: float = 0.001
-    """After the last step, before the final evaluation, remove the least significant Gaussians
-    that together painted at most this share of every training view's compositing weight (one
-    pass over the training views; the count and why in one line). On the re-posed beer it kept
-    76% of the set at +0.00 dB and +0.0005 LPIPS, on builtin:farside 88% with every region within
-    0.02 dB (docs/strategies.md). 0: off. Off too when cap_max is a count (the user's), on gsplat's
-    kernels (no weight sums) and for a dynamic model."""
+    final_weight_share: float = 0.003
+    """After the last step, before the final evaluation, remove the Gaussians of least weight x
+    peak (their compositing weight summed over every training view times their largest weight at
+    one pixel) that together painted at most this share of the training views' compositing weight,
+    and every Gaussian that no training view draws (one pass over the training views; the count and
+    why in one line). Measured on the re-posed beer and builtin:farside in docs/strategies.md. 0:
+    off. Off too when cap_max is a count (the user's), on gsplat's kernels (no weight sums) and for
+    a dynamic model."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -251,7 +253,8 @@ class DefaultStrategy(Strategy):
         if (not self.prunes_by_significance() or WEIGHT not in stats
                 or window_follows_reset(step, window, self.reset_every)):
             return None
-        return least_significant(stats[WEIGHT], stats[WEIGHT_VIEWS], self.prune_weight_share)
+        return least_significant(stats[WEIGHT], stats[WEIGHT_VIEWS], self.prune_weight_share,
+                                 stats[WEIGHT] * stats[WEIGHT_PEAK])
 
     def count_decision(self, state: dict[str, Any]) -> str:
         return super().count_decision(state) or state.get(SIGNIFICANCE_NOTE, "")
@@ -259,16 +262,21 @@ class DefaultStrategy(Strategy):
     def final_cut_share(self) -> float:
         return 0.0 if isinstance(self.cap_max, int) else self.final_weight_share
 
-    def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], weights: Tensor,
-                  drawn: Tensor, step: int) -> int:
+    def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], visibility: Tensor,
+                  step: int) -> int:
         share = self.final_cut_share()
         if share <= 0.0 or num_gaussians(params) == 0:
             return 0
         before = num_gaussians(params)
-        n = row_ops.remove(params, optimizers, state["stats"], least_significant(weights, drawn, share))
+        # Every row is judged: over every training view, a row that none draws paints nothing that
+        # training sees (outside every view, or behind what stops the compositing) and is cut first,
+        # for free. (The prune while growing judges only the rows its window's few views drew.)
+        judged = torch.ones_like(visibility[:, 0])
+        cut = least_significant(visibility[:, 0], judged, share, cut_order(visibility))
+        n = row_ops.remove(params, optimizers, state["stats"], cut)
         state[SIGNIFICANCE_NOTE] = (
-            f"count: {before - n:,} of {before:,} Gaussians kept after the last step ({step + 1}): the {n:,} least "
-            f"significant, which together painted at most {share:.1%} of the training views' blend weight, were "
+            f"count: {before - n:,} of {before:,} Gaussians kept after the last step ({step + 1}): the {n:,} of least "
+            f"weight x peak, which together painted at most {share:.1%} of the training views' blend weight, were "
             f"cut (--strategy.final-weight-share 0 keeps them)")
         return n
 
@@ -365,7 +373,7 @@ class DefaultStrategy(Strategy):
             )
         visible = view.visible()
         if self.prunes_by_significance() and view.visibility is not None:
-            accumulate_weights(state["stats"], view.visibility[:, 0], visible)
+            accumulate_weights(state["stats"], view.visibility, visible)
         return accumulate_grad_stats(
             state["stats"], grad, visible, view.width, view.height, view.n_cameras, view.downscale,
             self.grow_grad2d_height,

@@ -8,8 +8,8 @@ from .errors import StrategyError
 VIEW_ERRORS = "view_errors"
 """Each view's ``ViewObservation.error``: its index, camera, target and error map."""
 VISIBILITY_STATS = "visibility_stats"
-"""``ViewObservation.visibility`` [N, 2]: each Gaussian's summed compositing weight alpha T and
-alpha over the view's pixels."""
+"""``ViewObservation.visibility`` [N, 3]: each Gaussian's summed compositing weight alpha T and
+alpha over the view's pixels, and its largest alpha T at one pixel (the peak)."""
 REQUIREMENTS = frozenset({VIEW_ERRORS, VISIBILITY_STATS})
 """Everything a strategy or operator can declare in its ``requires``."""
 

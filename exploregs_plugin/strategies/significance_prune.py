@@ -26,30 +26,35 @@ from torch import Tensor
 
 from .row_ops import Stats
 
-WEIGHT, WEIGHT_VIEWS = "weight", "weight_views"
-"""Per-Gaussian statistics of the window: summed compositing weight (pixels) and the number of
-views that drew the Gaussian. Cleared at every refinement, with the gradient statistics."""
-WEIGHT_STATS = (WEIGHT, WEIGHT_VIEWS)
+WEIGHT, WEIGHT_PEAK, WEIGHT_VIEWS = "weight", "weight_peak", "weight_views"
+"""Per-Gaussian statistics of the window: summed compositing weight (pixels), the largest weight at
+one pixel (the peak) and the number of views that drew the Gaussian. Cleared at every refinement,
+with the gradient statistics."""
+WEIGHT_STATS = (WEIGHT, WEIGHT_PEAK, WEIGHT_VIEWS)
 
 
-def accumulate_weights(stats: Stats, weights: Tensor, visible: Tensor) -> None:
-    """Add one view's per-Gaussian compositing weights [N] (sum over its pixels of alpha T) and
-    its drawn mask [N] to the window's statistics (created, zeros, on first use). A non-finite
-    weight adds nothing (the view still counts as having drawn the row: it is judged on the rest)."""
-    n = weights.shape[0]
+def accumulate_weights(stats: Stats, visibility: Tensor, visible: Tensor) -> None:
+    """Add one view's visibility statistics [N, 3] (per Gaussian, over the view's pixels: the sum of
+    alpha T, the sum of alpha, the largest alpha T) and its drawn mask [N] to the window's
+    statistics (created, zeros, on first use). A non-finite value adds nothing (the view still
+    counts as having drawn the row: it is judged on the rest)."""
+    n = visibility.shape[0]
     if WEIGHT not in stats:
-        stats[WEIGHT] = torch.zeros(n, dtype=torch.float32, device=weights.device)
-        stats[WEIGHT_VIEWS] = torch.zeros(n, dtype=torch.float32, device=weights.device)
-    weights = weights.detach().to(torch.float32)
-    stats[WEIGHT] += torch.where(torch.isfinite(weights), weights, 0.0)
+        for key in WEIGHT_STATS:
+            stats[key] = torch.zeros(n, dtype=torch.float32, device=visibility.device)
+    values = visibility.detach().to(torch.float32)
+    values = torch.where(torch.isfinite(values), values, 0.0)
+    stats[WEIGHT] += values[:, 0]
+    torch.maximum(stats[WEIGHT_PEAK], values[:, 2], out=stats[WEIGHT_PEAK])
     stats[WEIGHT_VIEWS] += visible
 
 
-def least_significant(weights: Tensor, views: Tensor, share: float) -> Tensor:
-    """[N] bool: of the rows drawn at least once (``views`` > 0), the least significant ones whose
-    ``weights`` add up to at most ``share`` of theirs all (float64 sums; ties in index order, a
-    stable sort, so the same sums give the same rows on any thread count). Nothing when the drawn
-    rows paint nothing at all, or ``share`` <= 0."""
+def least_significant(weights: Tensor, views: Tensor, share: float, score: Tensor | None = None) -> Tensor:
+    """[N] bool: of the rows drawn at least once (``views`` > 0), the ones of least ``score``
+    (default: ``weights``; the cuts pass :func:`~exploregs_plugin.model.significance.cut_order`'s
+    weight x peak) whose ``weights`` add up to at most ``share`` of theirs all (float64 sums; ties
+    in index order, a stable sort, so the same sums give the same rows on any thread count).
+    Nothing when the drawn rows paint nothing at all, or ``share`` <= 0."""
     n = weights.shape[0]
     prune = torch.zeros(n, dtype=torch.bool, device=weights.device)
     judged = views > 0
@@ -57,8 +62,9 @@ def least_significant(weights: Tensor, views: Tensor, share: float) -> Tensor:
         return prune
     w = torch.where(judged, weights.to(torch.float64).clamp_min(0.0), 0.0)
     total = w.sum()
+    rank = w if score is None else torch.where(torch.isfinite(score), score.to(torch.float64), 0.0)
     # unjudged rows sort last (+inf) and can never fall under the share
-    order = torch.sort(torch.where(judged, w, torch.inf), stable=True).indices
+    order = torch.sort(torch.where(judged, rank, torch.inf), stable=True).indices
     below = (torch.cumsum(w[order], 0) <= share * total) & judged[order] & (total > 0)
     prune[order] = below
     return prune

@@ -73,13 +73,16 @@ def synthetic_views(
 
     pixel_grads: [N, 2] dL/d(mean2d) in pixels; visible: [N] bool (radii are 3 where visible);
     weights: [N] each Gaussian's compositing weight summed over the view's pixels (the view's
-    ``visibility`` [N, 2], alpha summed as the same), None for a view without them.
+    ``visibility`` [N, 3]: alpha summed as the same, and a peak weight of 1 where the weight is
+    positive, so that the cuts' weight x peak orders the rows as the weight does), None for a view
+    without them.
     """
     n = pixel_grads.shape[0]
     means2d = torch.zeros(n, 2, requires_grad=True)
     means2d.grad = pixel_grads.clone()
     radii = torch.where(visible, 3, 0).to(torch.int32).unsqueeze(-1).expand(n, 2).contiguous()
     center = torch.zeros(3) if camera_center is None else camera_center
-    visibility = None if weights is None else torch.stack([weights, weights], dim=-1).to(torch.float32)
+    visibility = None if weights is None else \
+        torch.stack([weights, weights, (weights > 0).to(weights.dtype)], dim=-1).to(torch.float32)
     return [ViewObservation(width=width, height=height, radii=radii, camera_center=center, means2d=means2d,
                             visibility=visibility)]

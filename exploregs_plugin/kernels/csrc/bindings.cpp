@@ -22,7 +22,8 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
                               at::Tensor pair_slot, at::Tensor out, at::Tensor grad_out, int64_t width,
                               int64_t height, int64_t tile_size, double alpha_max, double alpha_min, double t_min,
                               int64_t threads);
-at::Tensor sum_pairs(at::Tensor rows, at::Tensor gauss_first, at::Tensor gauss_count, int64_t threads);
+at::Tensor sum_pairs(at::Tensor rows, at::Tensor gauss_first, at::Tensor gauss_count, int64_t c_sum,
+                     int64_t threads);
 
 // project_cpu.cpp
 std::vector<at::Tensor> project_forward(at::Tensor means, at::Tensor quats, at::Tensor scales,
@@ -70,5 +71,5 @@ PYBIND11_MODULE(TORCH_EXTENSION_NAME, m) {
   m.def("watch_params_", &watch_params_, "The first step with non-finite parameters, recorded in place");
   m.def("watch_loss_", &watch_loss_, "The first step with a non-finite loss, recorded in place");
   m.def("gather_rows", &gather_rows, "Rows of many tensors in a new order, in one call");
-  m.def("sum_pairs", &sum_pairs, "Per-Gaussian sums of per-pair rows in a fixed order");
+  m.def("sum_pairs", &sum_pairs, "Per-Gaussian sums (and peaks) of per-pair rows in a fixed order");
 }

@@ -283,8 +283,8 @@ struct PixelStep {
 // Composites one tile. State per pixel p = y * rs + x: T[p] (transmittance), live[p] (1 until
 // the stop), acc[k * np + p] (accumulated features, alpha last). A Gaussian is applied to the
 // rows its box reaches, a vector of pixels at a time. With STATS, each pair's sums over the
-// tile's pixels of w and of alpha go to stats[2 * slot] (per-lane sums, then over the columns in
-// order: a fixed order).
+// tile's pixels of w and of alpha, and the largest w, go to stats[3 * slot] (per-lane sums, then
+// over the columns in order: a fixed order).
 template <int NF, bool STATS, typename scalar_t>
 void forward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, const int32_t* pg, const int64_t* ps,
                   const scalar_t* mean, const scalar_t* con, const scalar_t* opa, const scalar_t* sup,
@@ -315,9 +315,9 @@ void forward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, c
     const Splat<scalar_t> s = load_splat(g, mean, con, opa, sup);
     int64_t y0, y1, c0, c1;
     enter_splat(s, feat + g * nf, nf, px0, py0, rows, cols, rs, f, dxs, y0, y1, c0, c1);
-    V w_sum[16], a_sum[16];  // per vector of columns (rs / L <= 16 for tiles up to 64 px wide)
+    V w_sum[16], a_sum[16], w_max[16];  // per vector of columns (rs / L <= 16 for tiles up to 64 px wide)
     M n_stop = M{};
-    for (int64_t c = 0; c < rs / L; ++c) w_sum[c] = a_sum[c] = V{};
+    for (int64_t c = 0; c < rs / L; ++c) w_sum[c] = a_sum[c] = w_max[c] = V{};
     for (int64_t y = y0; y <= y1; ++y) {
       const scalar_t dy = scalar_t(py0) + scalar_t(y) + scalar_t(0.5) - s.my;
       const scalar_t cdy = s.c * dy * dy, bdy = s.b * dy;
@@ -333,19 +333,22 @@ void forward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, c
         if (STATS) {
           w_sum[c] += w;
           a_sum[c] += st.used ? st.alpha : V{};
+          w_max[c] = w > w_max[c] ? w : w_max[c];
         }
       }
     }
     for (int l = 0; l < L; ++l) n_live -= n_stop[l];
     if (STATS) {
-      scalar_t ws = 0, as = 0;
+      scalar_t ws = 0, as = 0, wm = 0;
       for (int64_t c = 0; c < rs / L; ++c)
         for (int l = 0; l < L; ++l) {
           ws += w_sum[c][l];
           as += a_sum[c][l];
+          wm = std::max(wm, w_max[c][l]);
         }
-      stats[2 * ps[j]] = ws;
-      stats[2 * ps[j] + 1] = as;
+      stats[3 * ps[j]] = ws;
+      stats[3 * ps[j] + 1] = as;
+      stats[3 * ps[j] + 2] = wm;
     }
   }
   for (int64_t y = 0; y < rows; ++y)
@@ -540,13 +543,16 @@ void backward_all(const Model<scalar_t>& md, const Inputs<scalar_t>& in, const s
   }
 }
 
+// Columns k < c_sum are summed, the others take their largest value (from 0: they are >= 0).
 template <typename scalar_t>
 void sum_pairs_impl(const scalar_t* r, const int64_t* first, const int64_t* count, int64_t m, int64_t c,
-                    int64_t threads, scalar_t* dst) {
+                    int64_t c_sum, int64_t threads, scalar_t* dst) {
 #pragma omp parallel for num_threads(std::max<int64_t>(1, threads)) schedule(static)
   for (int64_t g = 0; g < m; ++g)
-    for (int64_t i = first[g]; i < first[g] + count[g]; ++i)
-      for (int64_t k = 0; k < c; ++k) dst[g * c + k] += r[i * c + k];
+    for (int64_t i = first[g]; i < first[g] + count[g]; ++i) {
+      for (int64_t k = 0; k < c_sum; ++k) dst[g * c + k] += r[i * c + k];
+      for (int64_t k = c_sum; k < c; ++k) dst[g * c + k] = std::max(dst[g * c + k], r[i * c + k]);
+    }
 }
 
 }  // namespace
@@ -568,7 +574,8 @@ std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Te
   return {b.tile_offsets, b.pair_gauss, b.pair_slot, b.gauss_first, b.gauss_count};
 }
 
-// Forward: out [H, W, F+1] (features, then alpha) and, with stats, per-pair sums [P, 2] of w and alpha.
+// Forward: out [H, W, F+1] (features, then alpha) and, with stats, per-pair [P, 3]: the sums of w
+// and of alpha over the tile's pixels, and the largest w.
 std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                              at::Tensor feats, at::Tensor support, at::Tensor tile_offsets,
                                              at::Tensor pair_gauss, at::Tensor pair_slot, int64_t width,
@@ -577,7 +584,7 @@ std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics,
   check_inputs(means2d, conics, opacities, feats, support, tile_size);
   const int64_t nf = feats.size(1), n_tiles = tile_offsets.size(0) - 1, n_pairs = pair_gauss.size(0);
   auto out = eg::zeros_cpu({height, width, nf + 1}, means2d.scalar_type());
-  auto pair_stats = eg::zeros_cpu({stats ? n_pairs : 0, 2}, means2d.scalar_type());
+  auto pair_stats = eg::zeros_cpu({stats ? n_pairs : 0, 3}, means2d.scalar_type());
   const auto order = tile_order(tile_offsets.data_ptr<int64_t>(), n_tiles);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_forward", [&] {
     const auto md = make_model<scalar_t>(width, height, tile_size, nf, alpha_max, alpha_min, t_min);
@@ -608,15 +615,18 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
 }
 
 // Per-Gaussian sums of per-pair rows [P, C] (making order): out[g] = sum of rows first[g] ..
-// first[g] + count[g] - 1, in that order (a fixed order: the same bits at any thread count).
-at::Tensor sum_pairs(at::Tensor rows, at::Tensor gauss_first, at::Tensor gauss_count, int64_t threads) {
+// first[g] + count[g] - 1, in that order (a fixed order: the same bits at any thread count); the
+// last C - c_sum columns take the largest value instead (a peak, from 0).
+at::Tensor sum_pairs(at::Tensor rows, at::Tensor gauss_first, at::Tensor gauss_count, int64_t c_sum,
+                     int64_t threads) {
   TORCH_CHECK(rows.is_contiguous(), "sum_pairs: contiguous");
   const int64_t m = gauss_first.size(0), c = rows.size(1);
+  TORCH_CHECK(c_sum >= 0 && c_sum <= c, "sum_pairs: c_sum in [0, C]");
   auto res = eg::zeros_cpu({m, c}, rows.scalar_type());
   const auto* first = gauss_first.data_ptr<int64_t>();
   const auto* count = gauss_count.data_ptr<int64_t>();
   AT_DISPATCH_FLOATING_TYPES(rows.scalar_type(), "sum_pairs", [&] {
-    sum_pairs_impl<scalar_t>(rows.data_ptr<scalar_t>(), first, count, m, c, threads, res.data_ptr<scalar_t>());
+    sum_pairs_impl<scalar_t>(rows.data_ptr<scalar_t>(), first, count, m, c, c_sum, threads, res.data_ptr<scalar_t>());
   });
   return res;
 }
