@@ -1,8 +1,8 @@
 """The paired cut that decides a strategy's count during training (MCMC's ``cap_max 'validated'``).
 
 When the strategy asks (:meth:`Strategy.count_trial_due`), the pipeline tries the set cut to each
-candidate count: the most significant rows (:mod:`exploregs_plugin.model.significance`, over the
-training views still trained on), fine-tuned ``steps`` steps at the step's learning rates with no
+candidate count: the rows of largest weight x peak (:func:`exploregs_plugin.model.significance.cut_order`,
+over the training views still trained on), fine-tuned ``steps`` steps at the step's learning rates with no
 densification, then scored on every held-out view. Every candidate starts from the same snapshot
 and draws the same views in the same order, so two candidates differ in their count alone: the
 comparison is paired, and the held-out views' per-view differences measure the count's cost with
