@@ -77,6 +77,10 @@ def test_accumulated_weights_skip_non_finite_values_and_count_the_drawing_views(
     assert stats[WEIGHT].tolist() == [1.5, 4.0, 2.0]
     assert stats[WEIGHT_PEAK].tolist() == [0.5, 0.5, 0.75]  # the largest of the views', not their sum
     assert stats[WEIGHT_VIEWS].tolist() == [2.0, 2.0, 1.0]
+    # a window saved before the peak was kept (no WEIGHT_PEAK) goes on from its sums
+    old = {WEIGHT: torch.tensor([1.0, 2.0]), WEIGHT_VIEWS: torch.tensor([1.0, 1.0])}
+    accumulate_weights(old, torch.tensor([[0.5, 1.0, 0.25], [0.0, 0.0, 0.0]]), torch.tensor([True, False]))
+    assert old[WEIGHT].tolist() == [1.5, 2.0] and old[WEIGHT_PEAK].tolist() == [0.25, 0.0]
 
 
 def _strategy(**kw) -> DefaultStrategy:

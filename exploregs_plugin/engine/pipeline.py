@@ -31,7 +31,7 @@ def gather_observations(world: World, views: list[ViewObservation], n: int) -> l
 
     Each observation keeps what the densification statistics need: the gradient of its 2D means
     (``means2d_grad`` [N, 2], None where none reached them), ``radii`` and (when the renderer
-    made it) ``visibility`` [N, 2], ``camera_center`` [3], its size, ``n_cameras`` and, for
+    made it) ``visibility`` [N, 3], ``camera_center`` [3], its size, ``n_cameras`` and, for
     guided exploration, its error map. Every rank gets the same bits, own views included, so
     every rank's strategy makes the same decisions. Tensors travel in all-gathers; only the
     error maps (guided exploration) are pickled."""

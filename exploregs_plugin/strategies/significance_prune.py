@@ -39,8 +39,8 @@ def accumulate_weights(stats: Stats, visibility: Tensor, visible: Tensor) -> Non
     statistics (created, zeros, on first use). A non-finite value adds nothing (the view still
     counts as having drawn the row: it is judged on the rest)."""
     n = visibility.shape[0]
-    if WEIGHT not in stats:
-        for key in WEIGHT_STATS:
+    for key in WEIGHT_STATS:  # each on first use (a window resumed from before the peak lacks it)
+        if key not in stats:
             stats[key] = torch.zeros(n, dtype=torch.float32, device=visibility.device)
     values = visibility.detach().to(torch.float32)
     values = torch.where(torch.isfinite(values), values, 0.0)
