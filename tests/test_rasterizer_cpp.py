@@ -198,6 +198,35 @@ def test_float64_gradcheck_of_the_compositor():
     assert torch.autograd.gradcheck(comp, args, eps=1e-6, atol=1e-7)
 
 
+@needs_cpp
+@pytest.mark.parametrize("dtype", [torch.float32, F64])
+def test_the_binning_takes_the_drawn_rows_in_the_order_of_torchs_stable_argsort(dtype):
+    """The kernel sorts the drawn rows by depth itself (a radix sort of the floats' bits): each
+    tile's list is their order in torch.argsort(depths, stable=True), ties by row, for depths with
+    many ties, of both signs and of every size; rows not drawn are in no list."""
+    from exploregs_plugin.rasterizer.cpp_backend import CppBins
+
+    g = torch.Generator().manual_seed(4)
+    n = 3000
+    means2d = (torch.rand(n, 2, generator=g, dtype=F64) * torch.tensor([40.0, 30.0], dtype=F64)).to(dtype)
+    support = torch.full((n, 2), 6.0, dtype=dtype)
+    depths = torch.cat([
+        torch.randint(1, 6, (n // 3,), generator=g).to(F64),  # ties: five values
+        torch.rand(n // 3, generator=g, dtype=F64) * 1e-3,  # small, and their float32 rounding ties some
+        (torch.rand(n - 2 * (n // 3), generator=g, dtype=F64) - 0.5) * 2e6,  # both signs, large
+    ]).to(dtype)
+    visible = torch.rand(n, generator=g) < 0.8
+    bins = CppBins(means2d, support, depths, 40, 30, 8, visible)
+    rank = torch.empty(n, dtype=torch.long)
+    rank[torch.argsort(depths, stable=True)] = torch.arange(n)
+    off, pairs = bins.tile_offsets, bins.pair_gauss.long()
+    assert not visible[pairs].logical_not().any() and pairs.numel() > n
+    for t in range(off.numel() - 1):
+        tile = pairs[off[t]:off[t + 1]]
+        assert torch.equal(rank[tile], rank[tile].sort().values)  # front to back, ties by row
+    assert torch.equal(bins.gauss_count > 0, visible)
+
+
 def test_a_machine_without_a_compiler_gets_one_line_and_auto_falls_back(monkeypatch):
     reason = "no C++ compiler found (looked for 'c++'; install g++ or set CXX)"
     monkeypatch.setattr(backends, "cpp_problem", lambda: reason)

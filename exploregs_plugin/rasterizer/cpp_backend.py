@@ -35,14 +35,15 @@ class CppBins:
 
     def __init__(self, means2d: Tensor, support: Tensor, depths: Tensor, width: int, height: int, tile_size: int,
                  visible: Tensor | None = None):
-        # pairs are made front to back; the rows not drawn are skipped wherever they sort, so the
-        # order of the drawn ones is that of a sort of their depths alone (stable: ties by row)
-        order = torch.argsort(depths, stable=True)  # indices: nothing to detach
+        # pairs are made front to back: the kernel sorts the drawn rows by depth (stable, ties by
+        # row: the order of torch.argsort(depths, stable=True) restricted to them)
         if visible is None:
             visible = torch.ones(means2d.shape[0], dtype=torch.bool, device=means2d.device)
-        m2, sup = means2d.detach().contiguous(), _as_dtype(support, means2d.dtype).contiguous()
+        # no detach: the binning reads the values only, and records nothing for autograd
+        m2, sup = means2d.contiguous(), _as_dtype(support, means2d.dtype).contiguous()
+        z = _as_dtype(depths, means2d.dtype).contiguous()
         self.tile_offsets, self.pair_gauss, self.pair_slot, self.gauss_first, self.gauss_count = extension().bin_tiles(
-            m2, sup, order, visible.contiguous(), width, height, tile_size)
+            m2, sup, z, visible.contiguous(), width, height, tile_size)
         self.width, self.height, self.tile_size = width, height, tile_size
 
     @property

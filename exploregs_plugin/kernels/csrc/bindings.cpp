@@ -10,7 +10,7 @@
 #include <vector>
 
 // composite_cpu.cpp
-std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor order, at::Tensor visible,
+std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor depths, at::Tensor visible,
                                   int64_t width, int64_t height, int64_t tile_size);
 std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                           at::Tensor feats, at::Tensor support, at::Tensor tile_offsets,

@@ -127,15 +127,62 @@ inline void tile_rect(scalar_t mx, scalar_t my, scalar_t rx, scalar_t ry, int64_
   ty1 = y1 / ts;
 }
 
+// Unsigned keys that order floats as their values do (IEEE 754: flip every bit of a negative
+// value, the sign bit of a positive one); -0.0 sorts before +0.0, which no drawn row has (its depth
+// is past the near plane).
+inline uint32_t sort_key(float v) {
+  uint32_t u;
+  std::memcpy(&u, &v, sizeof u);
+  return (u & 0x80000000u) ? ~u : (u | 0x80000000u);
+}
+inline uint64_t sort_key(double v) {
+  uint64_t u;
+  std::memcpy(&u, &v, sizeof u);
+  return (u & 0x8000000000000000ull) ? ~u : (u | 0x8000000000000000ull);
+}
+
+// The drawn rows (visible) in order of depth, ties by row: an LSD radix sort of their keys, 8 bits
+// a pass, each pass stable, so the order is the stable argsort's of their depths (about a tenth
+// of the time of torch.argsort at 20,000 rows, and one operator fewer a view).
 template <typename scalar_t>
-Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Tensor& order,
+std::vector<int64_t> depth_order(const scalar_t* depth, const bool* vis, int64_t m) {
+  using Key = decltype(sort_key(scalar_t(0)));
+  std::vector<int64_t> order, next;
+  std::vector<Key> keys, next_keys;
+  order.reserve(m);
+  for (int64_t g = 0; g < m; ++g)
+    if (vis[g]) order.push_back(g);
+  const int64_t n = static_cast<int64_t>(order.size());
+  keys.resize(n);
+  for (int64_t i = 0; i < n; ++i) keys[i] = sort_key(depth[order[i]]);
+  next.resize(n);
+  next_keys.resize(n);
+  for (int shift = 0; shift < int(8 * sizeof(Key)); shift += 8) {
+    int64_t count[257] = {};
+    for (int64_t i = 0; i < n; ++i) ++count[((keys[i] >> shift) & 0xFF) + 1];
+    if (count[((keys.empty() ? Key(0) : keys[0]) >> shift & 0xFF) + 1] == n) continue;  // one bucket: nothing moves
+    for (int d = 0; d < 256; ++d) count[d + 1] += count[d];
+    for (int64_t i = 0; i < n; ++i) {
+      const int64_t at = count[(keys[i] >> shift) & 0xFF]++;
+      next[at] = order[i];
+      next_keys[at] = keys[i];
+    }
+    order.swap(next);
+    keys.swap(next_keys);
+  }
+  return order;
+}
+
+template <typename scalar_t>
+Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Tensor& depths,
               const at::Tensor& visible, int64_t width, int64_t height, int64_t ts) {
   const int64_t m = means2d.size(0);
   const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts, n_tiles = tiles_x * tiles_y;
   const auto* mean = means2d.data_ptr<scalar_t>();
   const auto* sup = support.data_ptr<scalar_t>();
-  const auto* ord = order.data_ptr<int64_t>();
   const bool* vis = visible.data_ptr<bool>();
+  const std::vector<int64_t> drawn = depth_order<scalar_t>(depths.data_ptr<scalar_t>(), vis, m);
+  const int64_t n_drawn = static_cast<int64_t>(drawn.size());
   Bins b;
   b.tile_offsets = eg::zeros_cpu({n_tiles + 1}, at::kLong);
   b.gauss_first = eg::zeros_cpu({m}, at::kLong);  // a row not drawn has no pairs (and a zero gradient)
@@ -145,9 +192,8 @@ Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Te
   auto* count = b.gauss_count.data_ptr<int64_t>();
   std::vector<int64_t> rect(4 * m);
   int64_t total = 0;
-  for (int64_t k = 0; k < m; ++k) {  // making order: Gaussians front to back
-    const int64_t g = ord[k];
-    if (!vis[g]) continue;
+  for (int64_t k = 0; k < n_drawn; ++k) {  // making order: Gaussians front to back
+    const int64_t g = drawn[k];
     int64_t* r = &rect[4 * g];
     tile_rect<scalar_t>(mean[2 * g], mean[2 * g + 1], sup[2 * g], sup[2 * g + 1], width, height, ts, r[0], r[1],
                         r[2], r[3]);
@@ -163,9 +209,8 @@ Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Te
   auto* pg = b.pair_gauss.data_ptr<int32_t>();
   auto* ps = b.pair_slot.data_ptr<int64_t>();
   std::vector<int64_t> cursor(off, off + n_tiles);
-  for (int64_t k = 0; k < m; ++k) {  // front to back, so every tile's list is in depth order
-    const int64_t g = ord[k];
-    if (!vis[g]) continue;
+  for (int64_t k = 0; k < n_drawn; ++k) {  // front to back, so every tile's list is in depth order
+    const int64_t g = drawn[k];
     const int64_t* r = &rect[4 * g];
     int64_t slot = first[g];
     for (int64_t ty = r[1]; ty <= r[3]; ++ty)
@@ -557,19 +602,20 @@ void sum_pairs_impl(const scalar_t* r, const int64_t* first, const int64_t* coun
 
 }  // namespace
 
-// Binning of the rows where `visible` [M] (bool) holds, taken in `order` [M] (front to back; the
-// others are skipped wherever they sort): returns (tile_offsets [T+1], pair_gauss [P] int32,
+// Binning of the rows where `visible` [M] (bool) holds, front to back by `depths` [M] (ties by
+// row; the other rows are not sorted): returns (tile_offsets [T+1], pair_gauss [P] int32,
 // pair_slot [P], gauss_first [M], gauss_count [M], zero for a row not drawn). The rasterizer passes
 // every projected row, so the compositor reads full-size tensors and no visible subset is gathered.
-std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor order, at::Tensor visible,
+std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor depths, at::Tensor visible,
                                      int64_t width, int64_t height, int64_t tile_size) {
-  TORCH_CHECK(means2d.is_contiguous() && support.is_contiguous() && order.is_contiguous() && visible.is_contiguous(),
+  TORCH_CHECK(means2d.is_contiguous() && support.is_contiguous() && depths.is_contiguous() && visible.is_contiguous(),
               "bin_tiles: contiguous");
   TORCH_CHECK(visible.scalar_type() == at::kBool && visible.numel() == means2d.size(0) &&
-                  order.numel() == means2d.size(0), "bin_tiles: one bool and one order entry per row");
+                  depths.numel() == means2d.size(0) && depths.scalar_type() == means2d.scalar_type(),
+              "bin_tiles: one bool and one depth (of the means' dtype) per row");
   Bins b;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_tiles", [&] {
-    b = bin_impl<scalar_t>(means2d, support, order, visible, width, height, tile_size);
+    b = bin_impl<scalar_t>(means2d, support, depths, visible, width, height, tile_size);
   });
   return {b.tile_offsets, b.pair_gauss, b.pair_slot, b.gauss_first, b.gauss_count};
 }
