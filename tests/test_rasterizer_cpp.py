@@ -198,6 +198,34 @@ def test_float64_gradcheck_of_the_compositor():
     assert torch.autograd.gradcheck(comp, args, eps=1e-6, atol=1e-7)
 
 
+@pytest.mark.parametrize("backend", ["torch", "cpp"])
+def test_the_coefficients_as_the_models_pair_render_and_differentiate_as_their_concatenation(backend):
+    """rasterize takes (sh0, shN) as the model keeps them: the same image and the same gradients,
+    bit for bit, as with the [N, 16, 3] concatenation; on the compiled path each gradient is made in
+    its parameter's layout (contiguous: autograd takes it without a copy)."""
+    if backend == "cpp" and not HAS_COMPILER:
+        pytest.skip("no C++ compiler on this machine")
+    scene = random_scene(60, 48, 40, torch.Generator().manual_seed(11), sh_degree=3)
+    settings = RasterSettings(backend=backend)
+    sh0 = scene.sh_coeffs[:, :1].clone().requires_grad_()
+    shN = scene.sh_coeffs[:, 1:].clone().requires_grad_()
+    joined = scene.sh_coeffs.clone().requires_grad_()
+    weights = torch.randn(40, 48, 3, generator=torch.Generator().manual_seed(3))
+    pair_image, *_ = rasterize(scene.means, scene.quats, scene.scales, scene.opacities, (sh0, shN), scene.camera,
+                               settings=settings)
+    joined_image, *_ = rasterize(scene.means, scene.quats, scene.scales, scene.opacities, joined, scene.camera,
+                                 settings=settings)
+    (pair_image * weights).sum().backward()
+    (joined_image * weights).sum().backward()
+    assert torch.equal(pair_image, joined_image) and joined.grad.abs().sum() > 0
+    assert torch.equal(sh0.grad, joined.grad[:, :1]) and torch.equal(shN.grad, joined.grad[:, 1:])
+    if backend == "cpp":
+        assert sh0.grad.is_contiguous() and shN.grad.is_contiguous()
+    with pytest.raises(ValueError, match="shN"):
+        rasterize(scene.means, scene.quats, scene.scales, scene.opacities, (sh0, shN[:, :, :2]), scene.camera,
+                  settings=settings)
+
+
 @needs_cpp
 @pytest.mark.parametrize("dtype", [torch.float32, F64])
 def test_the_binning_takes_the_drawn_rows_in_the_order_of_torchs_stable_argsort(dtype):

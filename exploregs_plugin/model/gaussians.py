@@ -174,8 +174,12 @@ def activate(params: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tens
     axis; means and quats pass through (the rasterizer normalises quaternions). The results stay in
     the autograd graph: a caller that only reads them calls this under ``torch.no_grad()``.
     """
-    sh = torch.cat([params["sh0"], params["shN"]], dim=1)
-    return params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"]), sh
+    return (*activate_geometry(params), torch.cat([params["sh0"], params["shN"]], dim=1))
+
+
+def activate_geometry(params: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor]:
+    """(means, quats, scales, opacities) of :func:`activate`, without the SH coefficients."""
+    return params["means"], params["quats"], torch.exp(params["scales"]), torch.sigmoid(params["opacities"])
 
 
 def activate_detached(params: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:
@@ -194,8 +198,12 @@ def render_params(
     background: Tensor | None,
     settings: RasterSettings | None = None,
 ) -> tuple[Tensor, Tensor, Tensor, dict]:
-    """Activate raw parameters and rasterize them (shared by the model, viewer and exports)."""
-    return rasterize(*activate(params), camera, sh_degree=sh_degree, background=background, settings=settings)
+    """Activate raw parameters and rasterize them (shared by the model, viewer and exports). The SH
+    coefficients go as the pair (sh0, shN): the compiled kernels read both where they are, and only
+    the other renderers concatenate them (about 1.5 ms of a 60 ms step at 20,000 Gaussians of degree
+    3: the [N, 16, 3] copy and the copies of its gradient's two slices)."""
+    return rasterize(*activate_geometry(params), (params["sh0"], params["shN"]), camera, sh_degree=sh_degree,
+                     background=background, settings=settings)
 
 
 def render_camera(

@@ -133,20 +133,25 @@ def project_cpp(
 
 class _ShCpp(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, coeffs, means, visible, camera_center, degree, threads):  # type: ignore[override]
-        inputs = (coeffs.contiguous(), means.contiguous(), visible.contiguous(), camera_center.detach())  # see _CompositeCpp
+    def forward(ctx, sh0, shN, means, visible, camera_center, degree, threads):  # type: ignore[override]
+        inputs = (sh0.contiguous(), shN.contiguous(), means.contiguous(), visible.contiguous(),
+                  camera_center.detach())  # see _CompositeCpp
         ctx.save_for_backward(*inputs)
         ctx.degree, ctx.threads = degree, threads
         return extension().sh_forward(*inputs, degree, threads)
 
     @staticmethod
     def backward(ctx, g_colors):  # type: ignore[override]
-        d_coeffs, d_means = extension().sh_backward(*ctx.saved_tensors, ctx.degree, g_colors, ctx.threads)  # strided rows read as they are
-        return d_coeffs, d_means, None, None, None, None
+        # strided rows read as they are; each gradient in its parameter's layout (nothing to copy)
+        d_sh0, d_shN, d_means = extension().sh_backward(*ctx.saved_tensors, ctx.degree, g_colors, ctx.threads)
+        return d_sh0, d_shN, d_means, None, None, None, None
 
 
-def sh_colors_cpp(coeffs: Tensor, means: Tensor, visible: Tensor, camera_center: Tensor, degree: int,
-                  threads: int) -> Tensor:
-    """:func:`sh.sh_colors` of coeffs [N, K, 3] and means [N, 3] where ``visible`` [N] (bool) holds,
-    0 in the other rows: [N, 3] (the compositor reads the visible rows of full-size tensors)."""
-    return _ShCpp.apply(coeffs, means, visible, camera_center, degree, threads)
+def sh_colors_cpp(coeffs: Tensor | tuple[Tensor, Tensor], means: Tensor, visible: Tensor, camera_center: Tensor,
+                  degree: int, threads: int) -> Tensor:
+    """:func:`sh.sh_colors` of the coefficients and means [N, 3] where ``visible`` [N] (bool) holds, 0
+    in the other rows: [N, 3] (the compositor reads the visible rows of full-size tensors). The
+    coefficients are [N, K, 3] or, as the model keeps them, the pair (sh0 [N, 1, 3], shN [N, K - 1,
+    3]), read where they are: no concatenation, and each gradient lands in its parameter's layout."""
+    sh0, shN = coeffs if isinstance(coeffs, tuple) else (coeffs[:, :1], coeffs[:, 1:])
+    return _ShCpp.apply(sh0, shN, means, visible, camera_center, degree, threads)

@@ -54,12 +54,22 @@ def _check(name: str, t: Tensor | None, shape: tuple[int | None, ...]) -> None:
         raise ValueError(f"rasterize: argument '{name}' must have shape {want}, got {list(t.shape)}")
 
 
+SHCoeffs = Tensor | tuple[Tensor, Tensor]
+"""SH coefficients [N, K, 3], or the model's pair (sh0 [N, 1, 3], shN [N, K - 1, 3]), which the
+compiled kernels read as they are and the other paths join (:func:`_joined`)."""
+
+
+def _joined(sh_coeffs: SHCoeffs | None) -> Tensor | None:
+    """[N, K, 3]: the pair (sh0, shN) concatenated, a tensor as it is."""
+    return torch.cat(sh_coeffs, dim=1) if isinstance(sh_coeffs, tuple) else sh_coeffs
+
+
 def _validate(
     means: Tensor,
     quats: Tensor,
     scales: Tensor,
     opacities: Tensor,
-    sh_coeffs: Tensor | None,
+    sh_coeffs: SHCoeffs | None,
     colors: Tensor | None,
     viewmat: Tensor,
     K: Tensor,
@@ -89,8 +99,15 @@ def _validate(
     if colors is not None:
         _check("colors", colors, (n, 3))
         return -1
-    _check("sh_coeffs", sh_coeffs, (n, None, 3))
-    n_coeffs = sh_coeffs.shape[1]
+    if isinstance(sh_coeffs, tuple):
+        if len(sh_coeffs) != 2:
+            raise ValueError("rasterize: 'sh_coeffs' as a tuple is the pair (sh0 [N, 1, 3], shN [N, K - 1, 3])")
+        _check("sh_coeffs[0] (sh0)", sh_coeffs[0], (n, 1, 3))
+        _check("sh_coeffs[1] (shN)", sh_coeffs[1], (n, None, 3))
+        n_coeffs = 1 + sh_coeffs[1].shape[1]
+    else:
+        _check("sh_coeffs", sh_coeffs, (n, None, 3))
+        n_coeffs = sh_coeffs.shape[1]
     full = math.isqrt(n_coeffs) - 1
     if (full + 1) ** 2 != n_coeffs or full > 3:
         raise ValueError(f"rasterize: sh_coeffs must have 1, 4, 9 or 16 coefficients per Gaussian, got {n_coeffs}")
@@ -105,7 +122,7 @@ def rasterize(
     quats: Tensor,
     scales: Tensor,
     opacities: Tensor,
-    sh_coeffs: Tensor | None,
+    sh_coeffs: SHCoeffs | None,
     camera: Camera,
     *,
     sh_degree: int | None = None,
@@ -116,7 +133,9 @@ def rasterize(
     """Renders Gaussians with the 3DGS image model.
 
     means: [N, 3]; quats: [N, 4] wxyz (unnormalised; zero = identity); scales: [N, 3] activated;
-    opacities: [N] in [0, 1]; sh_coeffs: [N, K, 3] (K = 1, 4, 9, 16) or None with colors [N, 3];
+    opacities: [N] in [0, 1]; sh_coeffs: [N, K, 3] (K = 1, 4, 9, 16), or the pair (sh0 [N, 1, 3],
+    shN [N, K - 1, 3]) as the model keeps them (the compiled kernels read them where they are), or
+    None with colors [N, 3];
     camera: its viewmat [4, 4] world-to-camera (OpenCV), K [3, 3], width, height and depth range
     (near, far); background: [3] (None = black).
 
@@ -132,7 +151,7 @@ def rasterize_branched(
     quats: Tensor,
     scales: Tensor,
     opacities: Tensor,
-    sh_coeffs: Tensor | None,
+    sh_coeffs: SHCoeffs | None,
     camera: Camera,
     *,
     means_cov: Tensor,
@@ -175,7 +194,7 @@ def _render(means, quats, scales, opacities, sh_coeffs, camera, sh_degree, color
                                "--model.raster.backend torch or cpp")
         backend = "torch"  # auto on a GPU: gsplat has one means input, so the branches render with the reference
     if backend == "gsplat":
-        return rasterize_gsplat(means, quats, scales, opacities, sh_coeffs, colors, degree, viewmat, K, int(width),
+        return rasterize_gsplat(means, quats, scales, opacities, _joined(sh_coeffs), colors, degree, viewmat, K, int(width),
                                 int(height), background, near_plane, far_plane, settings)
     problem = backend_problem(settings, means.device) if settings.backend == "cpp" else None
     if problem is not None:
@@ -208,7 +227,7 @@ def _rasterize(
             proj, means, means_sh, sh_coeffs, colors, degree, camera_center, width, height, settings, threads)
     else:
         vis = torch.nonzero(proj.visible).squeeze(1)
-        rgb = _colours(means, means_sh, sh_coeffs, colors, degree, vis, camera_center)
+        rgb = _colours(means, means_sh, _joined(sh_coeffs), colors, degree, vis, camera_center)
         img, visibility, n_pairs = _composite_visible(proj, vis, rgb, width, height, settings)
         if settings.visibility_stats:
             visibility = torch.zeros(means.shape[0], len(VISIBILITY_COLUMNS), dtype=means.dtype,
@@ -268,7 +287,7 @@ def _composite_compiled(proj, means, means_sh, sh_coeffs, colors, degree, camera
     elif src is means and not camera_center.requires_grad:
         rgb = sh_colors_cpp(sh_coeffs, means, proj.visible, camera_center, degree, threads)
     else:  # the branch ablation's SH path, or a camera with a gradient: torch's SH of every row
-        rgb = sh_colors(sh_coeffs, src, camera_center, degree)
+        rgb = sh_colors(_joined(sh_coeffs), src, camera_center, degree)
     feats = torch.cat([rgb, proj.depths[:, None]], -1)  # [N, 4]
     bins = CppBins(proj.means2d, proj.support, proj.depths, width, height, settings.tile_size, proj.visible)
     img, visibility = composite_cpp(proj.means2d, proj.conics, proj.opacities, feats, proj.support, bins, settings,

@@ -39,9 +39,9 @@ std::vector<at::Tensor> project_backward(at::Tensor means, at::Tensor quats, at:
                                             at::Tensor g_depths, int64_t threads);
 
 // sh_cpu.cpp
-at::Tensor sh_forward(at::Tensor coeffs, at::Tensor means, at::Tensor visible, at::Tensor camera,
+at::Tensor sh_forward(at::Tensor sh0, at::Tensor shN, at::Tensor means, at::Tensor visible, at::Tensor camera,
                          int64_t degree, int64_t threads);
-std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Tensor visible,
+std::vector<at::Tensor> sh_backward(at::Tensor sh0, at::Tensor shN, at::Tensor means, at::Tensor visible,
                                        at::Tensor camera, int64_t degree, at::Tensor g_colors, int64_t threads);
 
 // photometric_cpu.cpp

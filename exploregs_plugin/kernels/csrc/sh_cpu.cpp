@@ -87,9 +87,21 @@ inline void direction(const scalar_t* m, const scalar_t* cam, scalar_t* d, scala
   for (int k = 0; k < 3; ++k) d[k] = v[k] * inv;
 }
 
+// The coefficients are two tensors, as the model keeps them: sh0 [N, 1, 3] (the base colour) and
+// shN [N, K - 1, 3] (the higher bands): row g's coefficient b is sh0's for b = 0, shN's b - 1 after.
+// Reading them where they are spares the [N, K, 3] concatenation and, in the backward, the copies
+// of its gradient's two slices into each parameter's gradient.
 template <typename scalar_t>
-void sh_forward_impl(int64_t n, const bool* visible, const scalar_t* coeffs, const scalar_t* means,
-                     const scalar_t* cam, int64_t n_coeffs, int degree, scalar_t* colors, int64_t threads) {
+inline void gather_coeffs(const scalar_t* sh0, const scalar_t* shN, int64_t g, int64_t n_rest, int nb, scalar_t* k) {
+  for (int c = 0; c < 3; ++c) k[c] = sh0[3 * g + c];
+  const scalar_t* rest = shN + g * n_rest * 3;
+  for (int b = 1; b < nb; ++b)
+    for (int c = 0; c < 3; ++c) k[3 * b + c] = rest[3 * (b - 1) + c];
+}
+
+template <typename scalar_t>
+void sh_forward_impl(int64_t n, const bool* visible, const scalar_t* sh0, const scalar_t* shN, const scalar_t* means,
+                     const scalar_t* cam, int64_t n_rest, int degree, scalar_t* colors, int64_t threads) {
   const int nb = (degree + 1) * (degree + 1);
 #pragma omp parallel for num_threads(std::max<int64_t>(1, threads)) schedule(static)
   for (int64_t g = 0; g < n; ++g) {
@@ -98,7 +110,8 @@ void sh_forward_impl(int64_t n, const bool* visible, const scalar_t* coeffs, con
     bool floored;
     direction(means + 3 * g, cam, d, inv, floored);
     basis<scalar_t>(d[0], d[1], d[2], degree, Y, nullptr);
-    const scalar_t* k = coeffs + g * n_coeffs * 3;
+    scalar_t k[48];
+    gather_coeffs(sh0, shN, g, n_rest, nb, k);
     for (int c = 0; c < 3; ++c) {
       scalar_t v = 0;
       for (int b = 0; b < nb; ++b) v += Y[b] * k[3 * b + c];
@@ -108,9 +121,9 @@ void sh_forward_impl(int64_t n, const bool* visible, const scalar_t* coeffs, con
 }
 
 template <typename scalar_t>
-void sh_backward_impl(int64_t n, const bool* visible, const scalar_t* coeffs, const scalar_t* means,
-                      const scalar_t* cam, int64_t n_coeffs, int degree, const scalar_t* g_colors,
-                      int64_t g_stride, scalar_t* d_coeffs, scalar_t* d_means, int64_t threads) {
+void sh_backward_impl(int64_t n, const bool* visible, const scalar_t* sh0, const scalar_t* shN, const scalar_t* means,
+                      const scalar_t* cam, int64_t n_rest, int degree, const scalar_t* g_colors,
+                      int64_t g_stride, scalar_t* d_sh0, scalar_t* d_shN, scalar_t* d_means, int64_t threads) {
   const int nb = (degree + 1) * (degree + 1);
 #pragma omp parallel for num_threads(std::max<int64_t>(1, threads)) schedule(static)
   for (int64_t g = 0; g < n; ++g) {
@@ -119,19 +132,21 @@ void sh_backward_impl(int64_t n, const bool* visible, const scalar_t* coeffs, co
     bool floored;
     direction(means + 3 * g, cam, d, inv, floored);
     basis<scalar_t>(d[0], d[1], d[2], degree, Y, dY);
-    const scalar_t* k = coeffs + g * n_coeffs * 3;
+    scalar_t k[48];
+    gather_coeffs(sh0, shN, g, n_rest, nb, k);
     scalar_t gc[3];
     for (int c = 0; c < 3; ++c) {  // the clamp at 0 passes the gradient where SH + 0.5 >= 0
       scalar_t v = 0;
       for (int b = 0; b < nb; ++b) v += Y[b] * k[3 * b + c];
       gc[c] = v + scalar_t(0.5) >= scalar_t(0) ? g_colors[g * g_stride + c] : scalar_t(0);
     }
-    scalar_t* dk = d_coeffs + g * n_coeffs * 3;
+    scalar_t* d_rest = d_shN + g * n_rest * 3;
     scalar_t dd[3] = {0, 0, 0};
     for (int b = 0; b < nb; ++b) {
+      scalar_t* dk = b == 0 ? d_sh0 + 3 * g : d_rest + 3 * (b - 1);
       scalar_t kb = 0;
       for (int c = 0; c < 3; ++c) {
-        dk[3 * b + c] = Y[b] * gc[c];
+        dk[c] = Y[b] * gc[c];
         kb += k[3 * b + c] * gc[c];
       }
       for (int q = 0; q < 3; ++q) dd[q] += dY[b][q] * kb;
@@ -152,40 +167,47 @@ std::array<scalar_t, 3> camera_in(const at::Tensor& camera) {
 
 }  // namespace
 
-// colours [N, 3] of coeffs [N, K, 3] and means [N, 3] seen from `camera` [3], for the rows where
-// `visible` [N] (bool) holds, 0 elsewhere: the compositor reads the visible rows of full-size
-// tensors, so no gather of the visible rows is made before it (nor its backward's scatter).
-at::Tensor sh_forward(at::Tensor coeffs, at::Tensor means, at::Tensor visible, at::Tensor camera,
+// colours [N, 3] of the coefficients sh0 [N, 1, 3] and shN [N, K - 1, 3] and the means [N, 3] seen
+// from `camera` [3], for the rows where `visible` [N] (bool) holds, 0 elsewhere: the compositor
+// reads the visible rows of full-size tensors, so no gather of the visible rows is made before it
+// (nor its backward's scatter).
+at::Tensor sh_forward(at::Tensor sh0, at::Tensor shN, at::Tensor means, at::Tensor visible, at::Tensor camera,
                          int64_t degree, int64_t threads) {
-  TORCH_CHECK(coeffs.is_contiguous() && means.is_contiguous() && visible.is_contiguous(), "sh_cpu: contiguous");
+  TORCH_CHECK(sh0.is_contiguous() && shN.is_contiguous() && means.is_contiguous() && visible.is_contiguous(),
+              "sh_cpu: contiguous");
   TORCH_CHECK(visible.scalar_type() == at::kBool && visible.numel() == means.size(0), "sh_cpu: one bool per row");
-  TORCH_CHECK(degree >= 0 && degree <= 3 && coeffs.size(1) >= (degree + 1) * (degree + 1), "sh_cpu: degree");
+  TORCH_CHECK(sh0.size(0) == means.size(0) && shN.size(0) == means.size(0) && sh0.size(1) == 1 && sh0.size(2) == 3 &&
+                  shN.size(2) == 3, "sh_cpu: sh0 [N, 1, 3] and shN [N, K - 1, 3]");
+  TORCH_CHECK(degree >= 0 && degree <= 3 && 1 + shN.size(1) >= (degree + 1) * (degree + 1), "sh_cpu: degree");
   const int64_t n = means.size(0);
   auto colors = eg::zeros_cpu({n, 3}, means.scalar_type());
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_forward", [&] {
     const auto cam = camera_in<scalar_t>(camera);
-    sh_forward_impl<scalar_t>(n, visible.data_ptr<bool>(), coeffs.data_ptr<scalar_t>(), means.data_ptr<scalar_t>(),
-                              cam.data(), coeffs.size(1), static_cast<int>(degree),
+    sh_forward_impl<scalar_t>(n, visible.data_ptr<bool>(), sh0.data_ptr<scalar_t>(), shN.data_ptr<scalar_t>(),
+                              means.data_ptr<scalar_t>(), cam.data(), shN.size(1), static_cast<int>(degree),
                               colors.data_ptr<scalar_t>(), threads);
   });
   return colors;
 }
 
-// (d coeffs [N, K, 3], d means [N, 3]) from d colours [N, 3]: zero for the rows not visible.
-std::vector<at::Tensor> sh_backward(at::Tensor coeffs, at::Tensor means, at::Tensor visible,
+// (d sh0 [N, 1, 3], d shN [N, K - 1, 3], d means [N, 3]) from d colours [N, 3]: zero for the rows
+// not visible; each the shape and layout of its parameter, so autograd takes it as the gradient
+// as it is.
+std::vector<at::Tensor> sh_backward(at::Tensor sh0, at::Tensor shN, at::Tensor means, at::Tensor visible,
                                        at::Tensor camera, int64_t degree, at::Tensor g_colors, int64_t threads) {
   TORCH_CHECK(g_colors.size(0) == means.size(0), "sh_cpu: one gradient row each");
   // the compositor's backward hands the colours' gradient over as columns of one block: its rows
   // are read where they are
   g_colors = eg::rows_of(g_colors);
-  auto d_coeffs = eg::zeros_cpu(coeffs.sizes(), coeffs.scalar_type()), d_means = eg::zeros_cpu(means.sizes(), means.scalar_type());
+  auto d_sh0 = eg::zeros_cpu(sh0.sizes(), sh0.scalar_type()), d_shN = eg::zeros_cpu(shN.sizes(), shN.scalar_type());
+  auto d_means = eg::zeros_cpu(means.sizes(), means.scalar_type());
   AT_DISPATCH_FLOATING_TYPES(means.scalar_type(), "sh_backward", [&] {
     const auto cam = camera_in<scalar_t>(camera);
-    sh_backward_impl<scalar_t>(means.size(0), visible.data_ptr<bool>(), coeffs.data_ptr<scalar_t>(),
-                               means.data_ptr<scalar_t>(), cam.data(), coeffs.size(1),
+    sh_backward_impl<scalar_t>(means.size(0), visible.data_ptr<bool>(), sh0.data_ptr<scalar_t>(),
+                               shN.data_ptr<scalar_t>(), means.data_ptr<scalar_t>(), cam.data(), shN.size(1),
                                static_cast<int>(degree), g_colors.data_ptr<scalar_t>(), g_colors.stride(0),
-                               d_coeffs.data_ptr<scalar_t>(),
-                               d_means.data_ptr<scalar_t>(), threads);
+                               d_sh0.data_ptr<scalar_t>(), d_shN.data_ptr<scalar_t>(), d_means.data_ptr<scalar_t>(),
+                               threads);
   });
-  return {d_coeffs, d_means};
+  return {d_sh0, d_shN, d_means};
 }
