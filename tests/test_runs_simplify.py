@@ -10,7 +10,7 @@ from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.gaussians import render_params, rgb_to_sh0
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.runs import load_run
-from exploregs_plugin.model.significance import cut_order, most_significant, visibility_totals
+from exploregs_plugin.model.significance import most_significant, visibility_cut_order, visibility_totals
 from exploregs_plugin.runs.simplify import simplify
 
 
@@ -76,7 +76,7 @@ def test_the_cut_keeps_a_small_opaque_gaussian_over_a_wide_faint_one_that_paints
     weight, peak = totals[:, 0], totals[:, 2]
     assert weight[0] > 2 * weight[1] and peak[1] > 10 * peak[0]
     assert most_significant(weight, 1).tolist() == [True, False]  # the weight alone keeps the faint one
-    assert most_significant(cut_order(totals), 1).tolist() == [False, True]
+    assert most_significant(visibility_cut_order(totals), 1).tolist() == [False, True]
 
 
 def test_a_gaussian_hidden_behind_an_opaque_one_is_not_significant():
@@ -126,7 +126,7 @@ def test_pruning_keeps_the_rows_and_their_adam_moments(run_dir):
     totals = visibility_totals({k: v.detach() for k, v in params.items()}, run.pipeline.datamanager.train_cameras,
                                run.pipeline.model.config.raster, run.pipeline.background)
     significance = totals[:, 0]
-    keep = most_significant(cut_order(totals), n // 2)
+    keep = most_significant(visibility_cut_order(totals), n // 2)
     assert not torch.equal(keep, most_significant(significance, n // 2))  # the peak changes the choice here
     expected_means = params["means"].detach()[keep].clone()
     expected_moment = run.pipeline.optimizers["means"].state[params["means"]]["exp_avg"][keep].clone()

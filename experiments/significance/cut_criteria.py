@@ -24,7 +24,7 @@ import copy
 import torch
 
 from exploregs_plugin.evaluation.metrics import evaluate
-from exploregs_plugin.model.significance import cut_order, most_significant, visibility_totals
+from exploregs_plugin.model.significance import most_significant, visibility_cut_order, visibility_totals
 from exploregs_plugin.runs.load import load_run
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.significance_prune import least_significant
@@ -61,11 +61,11 @@ def main(path: str, shares: tuple[float, ...] = (0.001, 0.003, 0.01), fractions:
     print("undrawn", scored(run, a == 0), flush=True)
     print("before the peak", scored(run, least_significant(s, a, 0.001)), flush=True)
     for q in shares:
-        print(f"share {q}", scored(run, least_significant(s, every, q, cut_order(totals))), flush=True)
+        print(f"share {q}", scored(run, least_significant(s, every, q, visibility_cut_order(totals))), flush=True)
         print(f"share {q} by S", scored(run, least_significant(s, every, q)), flush=True)
     for f in fractions:
         count = max(1, int(f * n))
-        print(f"kept {f}", scored(run, ~most_significant(cut_order(totals), count)), flush=True)
+        print(f"kept {f}", scored(run, ~most_significant(visibility_cut_order(totals), count)), flush=True)
         print(f"kept {f} by S", scored(run, ~most_significant(s, count)), flush=True)
     if not hidden:
         return

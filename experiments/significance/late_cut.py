@@ -18,7 +18,7 @@ import torch
 
 from exploregs_plugin.engine import count_trial
 from exploregs_plugin.evaluation.metrics import evaluate
-from exploregs_plugin.model.significance import cut_order
+from exploregs_plugin.model.significance import visibility_cut_order
 from exploregs_plugin.runs.load import load_run
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.significance_prune import least_significant
@@ -31,7 +31,7 @@ def late_cut(run_dir: Path, step: int, end: int, order: str, share: float) -> st
     if share > 0.0:
         totals = count_trial.training_visibility(pipeline)
         every = torch.ones(totals.shape[0], dtype=torch.float64)
-        score = cut_order(totals) if order == "SP" else None
+        score = visibility_cut_order(totals) if order == "SP" else None
         cut = least_significant(totals[:, 0], every, share, score)
         row_ops.remove(pipeline.params, pipeline.optimizers, pipeline.strategy_state.get("stats", {}), cut)
     kept = pipeline.model.num_gaussians

@@ -18,7 +18,7 @@ from typing import Any
 
 from torch import Tensor
 
-from exploregs_plugin.model.significance import cut_order, most_significant, visibility_totals
+from exploregs_plugin.model.significance import most_significant, visibility_cut_order, visibility_totals
 from exploregs_plugin.engine.nonfinite import NonFiniteWatch
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.base import CountTrial, Strategy
@@ -49,7 +49,7 @@ def cut_scores(pipeline: Pipeline) -> Tensor:
     """[N] float64: the order in which a cut keeps the rows (the largest first): weight x peak over
     the training views (:func:`~exploregs_plugin.model.significance.cut_order` of
     :func:`training_visibility`)."""
-    return cut_order(training_visibility(pipeline))
+    return visibility_cut_order(training_visibility(pipeline))
 
 
 def cut(pipeline: Pipeline, weights: Tensor, count: int, stats: dict[str, Tensor]) -> None:

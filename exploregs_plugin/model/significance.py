@@ -26,7 +26,8 @@ from torch import Tensor
 from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.gaussians import render_params
 from exploregs_plugin.rasterizer import RasterSettings
-from exploregs_plugin.rasterizer.settings import VISIBILITY_COLUMNS
+from exploregs_plugin.rasterizer.composite import add_visibility_
+from exploregs_plugin.rasterizer.settings import VISIBILITY_COLUMNS, VISIBILITY_PEAK
 
 
 @torch.no_grad()
@@ -42,15 +43,14 @@ def visibility_totals(params: Mapping[str, Tensor], cameras: Iterable[Camera], s
     totals = torch.zeros(means.shape[0], len(VISIBILITY_COLUMNS), dtype=torch.float64, device=means.device)
     for camera in cameras:
         _, _, _, info = render_params(params, camera, 0, background, settings)
-        view = info["visibility"].to(torch.float64)
-        totals[:, :2] += view[:, :2]
-        torch.maximum(totals[:, 2], view[:, 2], out=totals[:, 2])
+        add_visibility_(totals, info["visibility"].to(torch.float64))
     return totals
 
 
-def cut_order(visibility: Tensor) -> Tensor:
-    """[N] float64: the order in which a cut removes rows (the smallest first) and keeps them (the
-    largest), from visibility statistics [N, 3] (:func:`visibility_totals`, or a window's):
+def cut_order(weight: Tensor, peak: Tensor) -> Tensor:
+    """[N], in the statistics' dtype: the order in which a cut removes rows (the smallest first) and
+    keeps them (the largest), from each row's summed weight and peak (the columns of
+    :func:`visibility_totals`, or a training window's sums):
 
         score_j = S_j P_j,        P_j = max_views max_pixels alpha_j(p) T_j(p)   (the peak).
 
@@ -61,7 +61,12 @@ def cut_order(visibility: Tensor) -> Tensor:
     beer (docs/strategies.md): at the same count the product loses less LPIPS than S alone (half
     the set: +0.0065 to +0.0074 against +0.0101 to +0.0114), and at the same share of S cut (the
     rules' budget) it keeps more of the texture."""
-    return visibility[:, 0].to(torch.float64) * visibility[:, 2].to(torch.float64)
+    return weight * peak
+
+
+def visibility_cut_order(visibility: Tensor) -> Tensor:
+    """:func:`cut_order` of visibility statistics [N, 3] (``VISIBILITY_COLUMNS``)."""
+    return cut_order(visibility[:, 0], visibility[:, VISIBILITY_PEAK])
 
 
 def most_significant(significance: Tensor, count: int) -> Tensor:

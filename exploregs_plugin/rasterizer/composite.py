@@ -32,7 +32,7 @@ from contextlib import contextmanager
 import torch
 from torch import Tensor
 
-from .settings import VISIBILITY_COLUMNS, RasterSettings
+from .settings import VISIBILITY_COLUMNS, VISIBILITY_PEAK, RasterSettings
 from .tiling import TileBins, gather_table, plan_chunks
 
 LOG2E = 1.4426950408889634
@@ -265,13 +265,20 @@ def _forward_chunks(geom, feat_t, bins, chunks, ids, s, out, used, cache) -> Ten
     return stats
 
 
+def add_visibility_(total: Tensor, more: Tensor) -> Tensor:
+    """``total`` [N, 3] with the visibility statistics ``more`` [N, 3] of more pixels (another
+    worker's, another view's) taken in, in place: the sums added, the peak the larger."""
+    total[:, :VISIBILITY_PEAK] += more[:, :VISIBILITY_PEAK]
+    torch.maximum(total[:, VISIBILITY_PEAK], more[:, VISIBILITY_PEAK], out=total[:, VISIBILITY_PEAK])
+    return total
+
+
 def _merged_visibility(parts: list[Tensor | None]) -> Tensor:
-    """The workers' visibility statistics as one: sums added, peaks the largest."""
+    """The workers' visibility statistics as one (:func:`add_visibility_`)."""
     stats = [p for p in parts if p is not None]
     merged = stats[0].clone()
     for p in stats[1:]:
-        merged[:, :2] += p[:, :2]
-        torch.maximum(merged[:, 2], p[:, 2], out=merged[:, 2])
+        add_visibility_(merged, p)
     return merged
 
 

@@ -13,7 +13,7 @@ from torch import Tensor
 from exploregs_plugin.kernels import cpp_problem, extension
 
 from .projection import Projected
-from .settings import VISIBILITY_COLUMNS, RasterSettings
+from .settings import VISIBILITY_COLUMNS, VISIBILITY_PEAK, RasterSettings
 
 __all__ = ["cpp_problem", "CppBins", "composite_cpp", "project_cpp", "sh_colors_cpp"]
 
@@ -64,8 +64,8 @@ class _CompositeCpp(torch.autograd.Function):
             bins.tile_size, *_thresholds(settings), settings.visibility_stats, threads,
         )  # fmt: skip
         if settings.visibility_stats:
-            # the weight and alpha columns are summed over the Gaussian's tiles, the peak is the largest
-            visibility = ext.sum_pairs(pair_stats, bins.gauss_first, bins.gauss_count, 2, threads)
+            # the columns before the peak are summed over the Gaussian's tiles, the peak is the largest
+            visibility = ext.sum_pairs(pair_stats, bins.gauss_first, bins.gauss_count, VISIBILITY_PEAK, threads)
         else:
             visibility = out.new_zeros(0, len(VISIBILITY_COLUMNS))
         ctx.mark_non_differentiable(visibility)

@@ -262,7 +262,7 @@ def _colours(means, means_sh, sh_coeffs, colors, degree, vis, camera_center) -> 
 
 def _composite_visible(proj, vis, rgb, width, height, settings) -> tuple[Tensor, Tensor, int]:
     """Bin and alpha-composite the visible rows with the torch reference: ([H, W, 5] colour, depth
-    and alpha, their visibility sums [M, 2], the number of tile-Gaussian pairs)."""
+    and alpha, their visibility statistics [M, 3], the number of tile-Gaussian pairs)."""
     feats = torch.cat([rgb, proj.depths.index_select(0, vis)[:, None]], -1)  # [M, 4]
     means2d_vis = proj.means2d.index_select(0, vis)
     support = proj.support.index_select(0, vis)
@@ -280,7 +280,7 @@ def _composite_compiled(proj, means, means_sh, sh_coeffs, colors, degree, camera
     """Colour, bin and composite with the compiled kernels, which read the visible rows of the
     full-size tensors: no gather of the visible rows and no scatter of their gradients back (about
     a dozen operators a view, forward and backward). Returns ([H, W, 5] colour, depth and alpha,
-    the visibility sums [N, 2] (0 for a row not drawn), the number of tile-Gaussian pairs)."""
+    the visibility statistics [N, 3] (0 for a row not drawn), the number of tile-Gaussian pairs)."""
     src = means if means_sh is None else means_sh
     if degree < 0:
         rgb = colors

@@ -10,6 +10,9 @@ VISIBILITY_COLUMNS = ("weight", "alpha", "peak")
 """The columns of a render's ``info["visibility"]`` [N, 3]: over the view's pixels, the summed
 compositing weight w = alpha T, the summed alpha, and the largest w (the peak: a Gaussian that
 paints one pixel on its own has a peak near 1 however few pixels it covers)."""
+VISIBILITY_PEAK = VISIBILITY_COLUMNS.index("peak")
+"""The peak's column. The columns before it add up over pixels, tiles and views; the peak takes the
+largest (:func:`exploregs_plugin.rasterizer.composite.add_visibility_`, the compiled ``sum_pairs``)."""
 
 
 @dataclass(frozen=True)

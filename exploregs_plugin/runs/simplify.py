@@ -14,7 +14,7 @@ from dataclasses import dataclass
 import torch
 
 from exploregs_plugin.engine import count_trial
-from exploregs_plugin.model.significance import cut_order, most_significant
+from exploregs_plugin.model.significance import most_significant, visibility_cut_order
 from exploregs_plugin.engine.pipeline import Pipeline
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.base import Strategy
@@ -60,7 +60,7 @@ def simplify(pipeline: Pipeline, step: int, max_gaussians: int, finetune_steps: 
     params = pipeline.params
     before = int(params["means"].shape[0])
     totals = count_trial.training_visibility(pipeline)  # the training views, as the count rule's cut
-    keep = most_significant(cut_order(totals), max_gaussians)
+    keep = most_significant(visibility_cut_order(totals), max_gaussians)
     significance = totals[:, 0]
     total = float(significance.sum())
     share = float(significance[keep].sum()) / total if total > 0.0 else 1.0

@@ -31,7 +31,7 @@ from .base import StepContext, Strategy, StrategyError, require_generator
 from .geometry import max_world_scale
 from .requirements import VISIBILITY_STATS
 from .row_ops import Optimizers, Params, Stats, num_gaussians
-from ..model.significance import cut_order
+from ..model.significance import cut_order, visibility_cut_order
 from .significance_prune import (WEIGHT, WEIGHT_PEAK, WEIGHT_STATS, WEIGHT_VIEWS, accumulate_weights,
                                  least_significant, window_follows_reset)
 
@@ -254,7 +254,7 @@ class DefaultStrategy(Strategy):
                 or window_follows_reset(step, window, self.reset_every)):
             return None
         return least_significant(stats[WEIGHT], stats[WEIGHT_VIEWS], self.prune_weight_share,
-                                 stats[WEIGHT] * stats[WEIGHT_PEAK])
+                                 cut_order(stats[WEIGHT], stats[WEIGHT_PEAK]))
 
     def count_decision(self, state: dict[str, Any]) -> str:
         return super().count_decision(state) or state.get(SIGNIFICANCE_NOTE, "")
@@ -272,7 +272,7 @@ class DefaultStrategy(Strategy):
         # training sees (outside every view, or behind what stops the compositing) and is cut first,
         # for free. (The prune while growing judges only the rows its window's few views drew.)
         judged = torch.ones_like(visibility[:, 0])
-        cut = least_significant(visibility[:, 0], judged, share, cut_order(visibility))
+        cut = least_significant(visibility[:, 0], judged, share, visibility_cut_order(visibility))
         n = row_ops.remove(params, optimizers, state["stats"], cut)
         state[SIGNIFICANCE_NOTE] = (
             f"count: {before - n:,} of {before:,} Gaussians kept after the last step ({step + 1}): the {n:,} of least "

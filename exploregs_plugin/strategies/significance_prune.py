@@ -24,6 +24,7 @@ from __future__ import annotations
 import torch
 from torch import Tensor
 
+from ..rasterizer.settings import VISIBILITY_PEAK
 from .row_ops import Stats
 
 WEIGHT, WEIGHT_PEAK, WEIGHT_VIEWS = "weight", "weight_peak", "weight_views"
@@ -45,7 +46,7 @@ def accumulate_weights(stats: Stats, visibility: Tensor, visible: Tensor) -> Non
     values = visibility.detach().to(torch.float32)
     values = torch.where(torch.isfinite(values), values, 0.0)
     stats[WEIGHT] += values[:, 0]
-    torch.maximum(stats[WEIGHT_PEAK], values[:, 2], out=stats[WEIGHT_PEAK])
+    torch.maximum(stats[WEIGHT_PEAK], values[:, VISIBILITY_PEAK], out=stats[WEIGHT_PEAK])
     stats[WEIGHT_VIEWS] += visible
 
 
