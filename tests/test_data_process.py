@@ -470,15 +470,16 @@ def test_two_videos_get_one_camera_each_and_register_together(capture, tmp_path)
     assert len(rec.cameras) == 2 and cameras["first"] != cameras["second"]
 
 
-THREADS_OF_EACH_RUN = (1, 2, 2)
+THREADS_OF_EACH_RUN = (1, 2)
 
 
 @pytest.fixture(scope="module")
-def posed_three_times(capture, tmp_path_factory) -> tuple[Path, list[Path]]:
-    """The same photos (12 views, 10 degrees apart) posed in three runs, on 1, 2 and again 2
-    threads, with the global mapper: (photos, the three datasets). 12 views, not fewer: on 8 or
-    10 the incremental mapper gives the same bits even without ``deterministic``."""
-    root = tmp_path_factory.mktemp("posed-three-times")
+def posed_twice(capture, tmp_path_factory) -> tuple[Path, list[Path]]:
+    """The same photos (12 views, 10 degrees apart) posed in two runs, on 1 and on 2 threads, with
+    the global mapper: (photos, the two datasets). A run whose bits depended on the order of its
+    threads would differ from the one-thread run. 12 views, not fewer: on 8 or 10 the incremental
+    mapper gives the same bits even without ``deterministic``."""
+    root = tmp_path_factory.mktemp("posed-twice")
     photos = _subset(capture, root / "photos", step=2)
     datasets = []
     for run, threads in enumerate(THREADS_OF_EACH_RUN):
@@ -489,8 +490,8 @@ def posed_three_times(capture, tmp_path_factory) -> tuple[Path, list[Path]]:
 
 
 @pytest.mark.parametrize("mapper", ["incremental", "global"])
-def test_the_same_photos_give_the_same_model_bit_for_bit_on_one_or_two_threads(posed_three_times, tmp_path, mapper):
-    photos, datasets = posed_three_times
+def test_the_same_photos_give_the_same_model_bit_for_bit_on_one_or_two_threads(posed_twice, tmp_path, mapper):
+    photos, datasets = posed_twice
     models = []
     for posed, threads in zip(datasets, THREADS_OF_EACH_RUN):
         out = posed
@@ -502,7 +503,7 @@ def test_the_same_photos_give_the_same_model_bit_for_bit_on_one_or_two_threads(p
             assert mapped["attempts"][0]["mapper"] == mapper  # mapped again, not the global model kept
         models.append({p.name: p.read_bytes() for p in sorted((out / "sparse" / "0").iterdir())})
     assert set(models[0]) >= {"cameras.bin", "images.bin", "points3D.bin"}
-    assert models[0] == models[1] == models[2]
+    assert models[0] == models[1]
 
 
 def _with_gps(capture, folder: Path, step: int = 2, count: int | None = None) -> Path:

@@ -81,6 +81,21 @@ def two_rank_runs(tmp_path_factory, tiny_scene_dir):
     return root
 
 
+@pytest.fixture(scope="module")
+def one_process_runs(tmp_path_factory):
+    """``run(method)``: the method's tiny run in one process with 2 views a step (the trainer and its
+    metrics), trained once for every test that compares ranks with it."""
+    root, runs = tmp_path_factory.mktemp("one-process"), {}
+
+    def run(method: str):
+        if method not in runs:
+            trainer = parse_config(tiny_argv(method, root / method, "--batch-size", "2")).setup()
+            runs[method] = (trainer, trainer.train())
+        return runs[method]
+
+    return run
+
+
 def load_rank(root: Path, name: str, rank: int) -> dict:
     return torch.load(root / "out" / name / f"rank{rank}.pt")
 
@@ -173,9 +188,8 @@ def test_single_process_world_is_free_and_launch_helpers():
 
 # ----------------------------------------------------------------------------- several processes
 @pytest.mark.parametrize("method", METHODS)
-def test_two_ranks_equal_one_process_with_two_views(two_rank_runs, tmp_path, method):
-    trainer = parse_config(tiny_argv(method, tmp_path / "one", "--batch-size", "2")).setup()
-    trainer.train()
+def test_two_ranks_equal_one_process_with_two_views(two_rank_runs, one_process_runs, method):
+    trainer, _ = one_process_runs(method)
     reference = {k: v.detach() for k, v in trainer.pipeline.params.items()}
     ranks = load_rank(two_rank_runs, method, 0)
     assert ranks["num_gaussians"] == trainer.pipeline.model.num_gaussians
@@ -215,7 +229,7 @@ def test_two_rank_checkpoint_resumes_in_one_process(two_rank_runs, tmp_path):
                  load_rank(two_rank_runs, "exploregs-seedsplit", 0)["params"])
 
 
-def test_two_machines_on_loopback_train_together(tmp_path, tiny_scene_dir):
+def test_two_machines_on_loopback_train_together(tmp_path, tiny_scene_dir, one_process_runs):
     port = free_port()
     run_dir = tmp_path / "run"
     argv = tiny_argv("exploregs-default", run_dir, "--machine.num-machines", "2", "--machine.master-port", str(port),
@@ -233,7 +247,7 @@ def test_two_machines_on_loopback_train_together(tmp_path, tiny_scene_dir):
     metrics = json.loads((run_dir / "metrics.json").read_text())
     assert len(list(run_dir.glob("events.out.tfevents.*"))) == 1  # rank 0 alone logs
     assert metrics["world_size"] == 2 and metrics["batch_size"] == 2 and metrics["images_seen"] == 2 * STEPS
-    reference = parse_config(tiny_argv("exploregs-default", tmp_path / "one", "--batch-size", "2")).setup().train()
+    _, reference = one_process_runs("exploregs-default")
     assert metrics["num_gaussians"] == reference["num_gaussians"]
     assert metrics["psnr"] == pytest.approx(reference["psnr"], abs=1e-4)
 
