@@ -186,7 +186,14 @@ def test_every_commands_mistakes_give_one_true_line_and_exit_code_2(run, ply, ti
     import importlib
     import signal
 
+    import torch
+
+    from exploregs_plugin.runtime import threads
+
     sigterm = signal.getsignal(signal.SIGTERM)  # eg-train and eg-view set their own
+    # every command measures the idle CPUs for 0.2 s before it reads its arguments: 42 commands here
+    # would wait 8 s for a thread count that no mistake depends on
+    monkeypatch.setattr(threads, "default_threads", lambda measure_seconds=0.2: torch.get_num_threads())
     wrong = []
     cases = _mistakes(run, ply, tiny_scene_dir, tmp_path / "missing")
     assert {command for command, _, _ in cases} == set(ENTRYPOINTS)  # every command
