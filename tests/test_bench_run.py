@@ -126,7 +126,7 @@ def test_table_numbers_equal_each_runs_metrics(bench):
     assert summary["seed"]["paired"]["psnr"]["n"] == 1
 
 
-def test_rerun_reuses_finished_runs_and_resumes_unfinished(bench):
+def test_rerun_reuses_finished_runs_and_resumes_unfinished(bench, workers_in_this_process):
     out, payload, _ = bench
     default_dir, seed_dir = run_dir_for(out, "tiny", "default", 0), run_dir_for(out, "tiny", "seed", 0)
     stamp = (default_dir / "metrics.json").stat().st_mtime_ns
@@ -149,7 +149,7 @@ def test_rerun_reuses_finished_runs_and_resumes_unfinished(bench):
     assert [r["psnr"] for r in again["runs"]] == [r["psnr"] for r in payload["runs"]]
 
 
-def test_failing_runs_appear_as_failed(bench, tmp_path):
+def test_failing_runs_appear_as_failed(bench, tmp_path, workers_in_this_process):
     out, _, _ = bench
     named = named_entries()
     bad = BenchEntry("bad-override", "exploregs-default", ("--strategy.no-such-field", "1"))
@@ -161,7 +161,7 @@ def test_failing_runs_appear_as_failed(bench, tmp_path):
     assert len(runs) == 4  # nothing dropped
     bad_run = runs[("tiny", "bad-override")]
     assert bad_run["status"] == "failed" and "no-such-field" in bad_run["error"]
-    # a crash inside the training process: tried, retried from scratch, then recorded
+    # a crash inside the run's worker: tried, retried from scratch, then recorded
     gone = runs[("gone", "default")]
     assert gone["status"] == "failed" and gone["attempts"] == 2 and "missing" in gone["error"]
     state = json.loads((run_dir_for(out, "gone", "default", 0) / "bench_state.json").read_text())
