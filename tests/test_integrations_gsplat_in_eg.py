@@ -27,10 +27,11 @@ from exploregs_plugin.integrations.gsplat_info import gsplat_info  # noqa: E402
 from exploregs_plugin.schedule import ScheduleConfig  # noqa: E402
 from exploregs_plugin.strategies import DefaultStrategy, StrategyError, available_strategies  # noqa: E402
 from exploregs_plugin.strategies.observation import ViewObservation  # noqa: E402
+from exploregs_plugin.strategies.requirements import ABSOLUTE_GRADIENT  # noqa: E402
 from exploregs_plugin.strategies.synthetic import adam_steps, make_gaussians, make_optimizers  # noqa: E402
 
 SCHEDULE_FIELDS = {"refine_start_iter", "refine_stop_iter", "refine_every", "reset_every"}
-NOT_EXPOSED = {"absgrad", "key_for_gradient"}  # no absolute gradients in our renderers; 2DGS
+NOT_EXPOSED = {"key_for_gradient"}  # 2DGS
 
 
 pytestmark = pytest.mark.usefixtures("one_thread")
@@ -198,6 +199,37 @@ def test_gsplat_accumulates_our_defaults_statistic(sizes, n_cameras, exact):
         assert torch.equal(their_state["grad2d"], ours_grad)
     else:
         assert torch.allclose(their_state["grad2d"], ours_grad, rtol=1e-6, atol=0)
+
+
+def test_gsplat_accumulates_our_defaults_absolute_statistic():
+    g = torch.Generator().manual_seed(4)
+    n = 500
+    params = make_gaussians(n, g)
+    views = _views(n, g, [(64, 48)] * 2, 2)
+    for view in views:  # the absolute sums: at least the summed gradient's size, larger where pixels disagree
+        grad = view.screen_gradient()
+        sums = grad.abs() * (1.0 + 3.0 * torch.rand(n, 2, generator=g))
+        if view.means2d is not None:
+            view.means2d.absgrad = sums
+        else:
+            view.means2d_absgrad = sums
+
+    ours = DefaultStrategy(refine_start_iter=0, refine_stop_iter=10, refine_every=5, reset_every=100, absgrad=True)
+    our_state = ours.initialize_state()
+    for view in views:
+        ours.observe(params, our_state, view)
+    theirs = gs.DefaultStrategy(absgrad=True)
+    their_state = theirs.initialize_state()
+    theirs._update_state(params, their_state, gsplat_info(views), packed=False)
+    plain_state = DefaultStrategy().initialize_state()
+    for view in views:
+        DefaultStrategy().observe(params, plain_state, view)
+
+    assert torch.equal(their_state["count"], our_state["stats"]["count"])
+    assert torch.equal(their_state["grad2d"], our_state["stats"]["grad2d"])
+    assert float(our_state["stats"]["grad2d"].sum()) > 1.5 * float(plain_state["stats"]["grad2d"].sum())
+    assert ABSOLUTE_GRADIENT in GsplatDefaultStrategy(absgrad=True).requirements()
+    assert ABSOLUTE_GRADIENT not in GsplatDefaultStrategy().requirements()
 
 
 # ------------------------------------------------------------------------------ one step = gsplat's step

@@ -23,21 +23,28 @@ from exploregs_plugin.rasterizer.composite import single_threaded_ops
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
 from exploregs_plugin.strategies.count_rule import MIN_VIEWS, VALIDATED, held_out_indices
-from exploregs_plugin.strategies.requirements import VIEW_ERRORS, VISIBILITY_STATS
+from exploregs_plugin.strategies.requirements import ABSOLUTE_GRADIENT, VIEW_ERRORS, VISIBILITY_STATS
 
 
-def gather_observations(world: World, views: list[ViewObservation], n: int) -> list[ViewObservation]:
+def gather_observations(world: World, views: list[ViewObservation], n: int,
+                        absolute: bool = False) -> list[ViewObservation]:
     """Every rank's views, in the order of the global batch, as the strategies read them.
 
     Each observation keeps what the densification statistics need: the gradient of its 2D means
     (``means2d_grad`` [N, 2], None where none reached them), ``radii`` and (when the renderer
     made it) ``visibility`` [N, 3], ``camera_center`` [3], its size, ``n_cameras`` and, for
-    guided exploration, its error map. Every rank gets the same bits, own views included, so
-    every rank's strategy makes the same decisions. Tensors travel in all-gathers; only the
-    error maps (guided exploration) are pickled."""
+    guided exploration, its error map; with ``absolute`` (the strategy requires
+    ``ABSOLUTE_GRADIENT``) also the absolute gradient sums [N, 2]. Every rank gets the same bits,
+    own views included, so every rank's strategy makes the same decisions. Tensors travel in
+    all-gathers; only the error maps (guided exploration) are pickled."""
     device = views[0].radii.device
     kept = [view.screen_gradient() if view.gradient_kept() else None for view in views]
     grads = torch.stack([g if g is not None else torch.zeros(n, 2, device=device) for g in kept]).to(torch.float32)
+    sums = None
+    if absolute:
+        own = [view.screen_gradient(absolute=True) if g is not None else None for view, g in zip(views, kept)]
+        sums = torch.cat(world.all_gather(torch.stack(
+            [a if a is not None else torch.zeros(n, 2, device=device) for a in own]).to(torch.float32)))
     # per view: has_grad, width, height, n_cameras, camera centre (float64 keeps the centre's bits)
     header = torch.stack([torch.cat([
         torch.tensor([float(g is not None), view.width, view.height, view.n_cameras], dtype=torch.float64, device=device),
@@ -57,6 +64,7 @@ def gather_observations(world: World, views: list[ViewObservation], n: int) -> l
         ViewObservation(
             width=int(width), height=int(height), radii=radii[i], camera_center=centers[i],
             means2d_grad=grads[i] if has_grad else None, n_cameras=int(n_cameras),
+            means2d_absgrad=sums[i] if sums is not None and has_grad else None,
             downscale=views[0].downscale,  # one step, one coarse-to-fine level on every rank
             visibility=None if visibility is None else visibility[i], error=None if errors is None else errors[i],
         )
@@ -77,10 +85,13 @@ def resolve_batch_size(batch_size: int | None, world_size: int = 1) -> int:
 
 def renderer_for(model: GaussianModelConfig, requires: frozenset[str]) -> GaussianModelConfig:
     """The model's config with its renderer asked for what the strategy requires (its
-    ``requirements()``): visibility statistics cost a second accumulation per pixel, so
-    they are computed only for a strategy that reads them."""
+    ``requirements()``): visibility statistics cost a second accumulation per pixel and the
+    absolute gradient sums two more in the backward, so they are computed only for a strategy
+    that reads them."""
     if VISIBILITY_STATS in requires and not model.raster.visibility_stats:
-        return replace(model, raster=replace(model.raster, visibility_stats=True))
+        model = replace(model, raster=replace(model.raster, visibility_stats=True))
+    if ABSOLUTE_GRADIENT in requires and not model.raster.absgrad:
+        model = replace(model, raster=replace(model.raster, absgrad=True))
     return model
 
 
@@ -411,7 +422,8 @@ class Pipeline:
         if self.world.is_distributed:
             totals.setdefault("reg", torch.zeros((), dtype=torch.float64))  # rank 0 adds it: same keys everywhere
             self._all_reduce_gradients(totals)
-            return gather_observations(self.world, views, self.model.num_gaussians)
+            return gather_observations(self.world, views, self.model.num_gaussians,
+                                       absolute=ABSOLUTE_GRADIENT in self.requires)
         return views
 
     def _optimizer_step(self, step: int) -> float:

@@ -10,8 +10,8 @@ scene, seed and schedule.
   (``refine_start_iter``, ``refine_stop_iter``, ``refine_every``, ``reset_every``) default to None
   and come from the run's schedule, which maps gsplat's 30k-step numbers (500, 15k, 100, 3k) to the
   same fractions of any run (docs/training.md); MCMC refines until 25/30 of the run (gsplat: 25k of
-  30k). Not exposed: ``absgrad`` (our renderers compute no per-pixel absolute gradient) and
-  ``key_for_gradient`` (2DGS).
+  30k). ``absgrad`` asks our renderers for the absolute gradient sums (``ABSOLUTE_GRADIENT``), which
+  :func:`~.gsplat_info.gsplat_info` hands to gsplat. Not exposed: ``key_for_gradient`` (2DGS).
 - Observations: :func:`~.gsplat_info.gsplat_info` turns the step's views into the ``info`` dict gsplat reads.
 - Randomness: gsplat draws from torch's global generator (its split's children, MCMC's sampling
   and noise). Its step runs under ``torch.random.fork_rng`` with the global generator set to the
@@ -46,6 +46,7 @@ from ..schedule import Schedule
 from ..strategies.base import StepContext, Strategy, StrategyError
 from ..strategies.mcmc import MCMC_STOP_FRACTION, MCMCStrategy
 from ..strategies.observation import ViewObservation
+from ..strategies.requirements import ABSOLUTE_GRADIENT
 from ..strategies.row_ops import Optimizers, Params, num_gaussians
 from .from_gsplat_cpu import cpu_stand_ins
 from .gsplat_info import gsplat_info
@@ -149,8 +150,8 @@ class GsplatStrategy(Strategy):
         gsplat_strategies()
 
     def gsplat_fields(self) -> dict[str, Any]:
-        """Our values of the fields gsplat's class has (the others, ``absgrad`` and
-        ``key_for_gradient``, keep gsplat's defaults; ``reset_every`` is ours only for MCMC)."""
+        """Our values of the fields gsplat's class has (the other, ``key_for_gradient``, keeps
+        gsplat's default; ``reset_every`` is ours only for MCMC)."""
         theirs = {f.name for f in dataclasses.fields(getattr(gsplat_strategies(), self.GSPLAT_CLASS))}
         return {f.name: getattr(self, f.name) for f in dataclasses.fields(self) if f.name in theirs}
 
@@ -165,6 +166,9 @@ class GsplatDefaultStrategy(GsplatStrategy):
     """Prune Gaussians whose opacity is below this (gsplat's default)."""
     grow_grad2d: float = 0.0002
     """Clone/split Gaussians whose view-averaged NDC gradient norm exceeds this."""
+    absgrad: bool = False
+    """gsplat's AbsGS statistic: the sums over the pixels of |dL/dx| and |dL/dy| of each pixel
+    instead of the summed gradient (gsplat pairs it with grow_grad2d 0.0008)."""
     grow_scale3d: float = 0.01
     """Clone when the largest scale is at most this x scene scale, else split."""
     grow_scale2d: float = 0.05
@@ -185,6 +189,10 @@ class GsplatDefaultStrategy(GsplatStrategy):
         super().__post_init__()
         if self.cap_max is not None:
             raise StrategyError("gsplat's DefaultStrategy has no cap on the number of Gaussians: leave cap_max unset")
+
+    def requirements(self) -> frozenset[str]:
+        required = super().requirements()
+        return required | {ABSOLUTE_GRADIENT} if self.absgrad else required
 
     def gsplat_strategy(self) -> Any:
         strategy = _counting_classes()[0](**self.gsplat_fields())

@@ -144,7 +144,9 @@ def gsplat_info(views: list[ViewObservation]) -> dict[str, Any]:
     values in the dict: gsplat then computes exactly g_v * (W_v / 2, H_v / 2) * n_v, our Default's
     statistic (factor 1 when the views agree, the common case, so the bits are the same). Radii
     are scaled by max(W_0, H_0) / max(W_v, H_v) for the same reason. A view whose 2D means got
-    no gradient contributes zeros (gsplat needs a tensor)."""
+    no gradient contributes zeros (gsplat needs a tensor). Views that carry the absolute gradient
+    sums (``ABSOLUTE_GRADIENT``) hand them over as ``means2d.absgrad``, scaled alike (gsplat's
+    ``absgrad`` reads them there)."""
     if not views:
         raise StrategyError("gsplat_info needs the step's views (a non-empty list)")
     first = views[0]
@@ -152,19 +154,27 @@ def gsplat_info(views: list[ViewObservation]) -> dict[str, Any]:
     device = first.radii.device
     ref = torch.tensor([float(first.width), float(first.height)], dtype=torch.float64) * float(first.n_cameras)
     ref_size = float(max(first.width, first.height))
-    grads, radii = [], []
+    grads, radii, sums = [], [], []
+    absolute = all(view.has_absolute_gradient() for view in views)
     for view in views:
         view.check_rows(n)
         grad = view.screen_gradient()
         grad = torch.zeros(n, 2, device=device) if grad is None else grad.detach().reshape(n, 2).to(torch.float32)
+        if absolute:
+            total = view.screen_gradient(absolute=True)
+            sums.append(torch.zeros(n, 2, device=device) if total is None else total.detach().reshape(n, 2).to(torch.float32))
         own = torch.tensor([float(view.width), float(view.height)], dtype=torch.float64) * float(view.n_cameras)
         # ref > 0: image sizes and n_cameras are positive integers.
         factor = (own / ref.clamp_min(1.0)).to(torch.float32).to(device)
         grads.append(grad * factor)
+        if absolute:
+            sums[-1] = sums[-1] * factor
         size_factor = ref_size / max(float(max(view.width, view.height)), 1.0)
         radii.append(view.radii.detach().to(torch.float32) * size_factor)
     means2d = torch.zeros(len(views), n, 2, device=device)  # only a carrier of the gradient
     means2d.grad = torch.stack(grads)
+    if absolute:
+        means2d.absgrad = torch.stack(sums)
     return {
         "means2d": means2d,
         "radii": torch.stack(radii),

@@ -298,17 +298,33 @@ def _backward_chunks(geom, cache, ids, tile_size, s, grad_out) -> Tensor:
         w, g_power = _backward_kernel(c.g, c.mxr, c.myr, pix, gf, *_thresholds(s))
         dfeat = torch.bmm(gpix.transpose(1, 2).contiguous(), w)  # [B, F+1, K]
         mom = torch.matmul(fm, g_power)  # [B, 6, K]: sums of g_power * (1, x, y, x^2, xy, y^2)
-        row = torch.cat([mom, torch.stack([c.mxr, c.myr], 1), dfeat[:, :nf]], 1)  # [B, 8 + F, K]
-        rows.append(row.transpose(1, 2).reshape(-1, 8 + nf))
+        parts = [mom, torch.stack([c.mxr, c.myr], 1), dfeat[:, :nf]]  # [B, 8 + F, K]
+        if s.absgrad:
+            parts.append(_absolute_sums(c, fm, g_power))
+        row = torch.cat(parts, 1)
+        rows.append(row.transpose(1, 2).reshape(-1, row.shape[1]))
         gids.append(c.gidx.reshape(-1))
     if not rows:
-        return torch.zeros(geom.shape[0], 6 + nf, dtype=dtype, device=geom.device)
+        return torch.zeros(geom.shape[0], 6 + nf + 2 * s.absgrad, dtype=dtype, device=geom.device)
     return _pair_gradients(geom, torch.cat(gids), torch.cat(rows))
 
 
+def _absolute_sums(c: _Chunk, fm: Tensor, g_power: Tensor) -> Tensor:
+    """[B, 2, K]: each pair's sums over its tile's pixels of |dL/dmx| and |dL/dmy| of each pixel
+    (AbsGS), with dL/dmx = g (a dx + b dy) and dL/dmy = g (b dx + c dy) at that pixel. No moment
+    trick here: the absolute value is taken per pixel, so this forms [B, P, K] twice."""
+    dx = fm[1][None, :, None] - c.mxr[:, None, :]  # [B, P, K]
+    dy = fm[2][None, :, None] - c.myr[:, None, :]
+    a, b, cc = (c.g[:, None, :, col] for col in (_A, _B, _C))
+    gmx = (a * dx).addcmul_(b, dy).mul_(g_power).abs_().sum(1)
+    gmy = (b * dx).addcmul_(cc, dy).mul_(g_power).abs_().sum(1)
+    return torch.stack([gmx, gmy], 1)
+
+
 def _pair_gradients(geom: Tensor, gidx: Tensor, rows: Tensor) -> Tensor:
-    """Per-Gaussian gradients [M + 1, 6 + F] (mx, my, a, b, c, o, features) from per-pair rows
-    [moments of dL/dpower (6), mean relative to the tile centre (2), dL/dfeatures (F)].
+    """Per-Gaussian gradients [M + 1, 6 + F (+ 2)] (mx, my, a, b, c, o, features, and the
+    absolute sums when asked) from per-pair rows [moments of dL/dpower (6), mean relative to the
+    tile centre (2), dL/dfeatures (F), the absolute sums (2, :func:`_absolute_sums`)].
 
     With dx = x - mxr: sum g dx = s1 - mxr s0, sum g dx^2 = s3 - 2 mxr s1 + mxr^2 s0, and so on;
     dpower/dmx = a dx + b dy, dpower/dmy = b dx + c dy, dpower/d(a, b, c) = -(dx^2/2, dx dy, dy^2/2).
@@ -361,7 +377,7 @@ def _chunk_elements(s: RasterSettings, device: torch.device) -> int:
 
 class _Composite(torch.autograd.Function):
     @staticmethod
-    def forward(ctx, means2d, conics, opacities, feats, support, bins, settings):  # type: ignore[override]
+    def forward(ctx, means2d, conics, opacities, feats, support, bins, settings, absgrad_into):  # type: ignore[override]
         dtype = means2d.dtype
         nf = feats.shape[1]
         geom, feat_t = _tables(means2d, conics, opacities, support, feats)
@@ -381,6 +397,7 @@ class _Composite(torch.autograd.Function):
         ctx.mark_non_differentiable(visibility)
         ctx.save_for_backward(geom)
         ctx.cache, ctx.tile_size, ctx.settings = cache, bins.tile_size, settings
+        ctx.absgrad_into = (absgrad_into or (means2d, None)) if settings.absgrad else None
         return out, visibility
 
     @staticmethod
@@ -395,7 +412,12 @@ class _Composite(torch.autograd.Function):
         for p in parts[1:]:
             gbuf += p
         gbuf = gbuf[:-1]
-        return gbuf[:, 0:2], gbuf[:, 2:5], gbuf[:, 5], gbuf[:, 6:], None, None, None
+        nf = grad_out.shape[-1] - 1
+        if ctx.absgrad_into is not None:
+            target, rows = ctx.absgrad_into
+            sums = gbuf[:, 6 + nf:]
+            target.absgrad = sums if rows is None else sums.new_zeros(target.shape).index_copy_(0, rows, sums)
+        return gbuf[:, 0:2], gbuf[:, 2:5], gbuf[:, 5], gbuf[:, 6:6 + nf], None, None, None, None
 
 
 def _tables(
@@ -428,6 +450,7 @@ def composite(
     support: Tensor,
     bins: TileBins,
     settings: RasterSettings,
+    absgrad_into: tuple[Tensor, Tensor] | None = None,
 ) -> Tensor:
     """Composites the binned Gaussians.
 
@@ -436,5 +459,8 @@ def composite(
     composited features and, last, the accumulated alpha sum_m w_m = 1 - T_final, per tile pixel;
     and, with ``settings.visibility_stats``, [M, 2] per Gaussian: the sum over pixels of its
     weight alpha T and of its alpha (their ratio is the mean transmittance in front of it), else [0, 2].
+    With ``settings.absgrad`` the backward leaves the absolute sums [M, 2] (:func:`_absolute_sums`)
+    on ``means2d.absgrad``, or, given ``absgrad_into`` = (a tensor [N, 2], the rows [M] of it that
+    ``means2d`` holds), on that tensor's, zero on the rows not drawn.
     """
-    return _Composite.apply(means2d, conics, opacities, feats, support.detach(), bins, settings)
+    return _Composite.apply(means2d, conics, opacities, feats, support.detach(), bins, settings, absgrad_into)

@@ -71,6 +71,7 @@ class _CompositeCpp(torch.autograd.Function):
         ctx.mark_non_differentiable(visibility)
         ctx.save_for_backward(*tensors, sup, out)
         ctx.bins, ctx.settings, ctx.threads = bins, settings, threads
+        ctx.means2d = means2d if settings.absgrad else None  # the tensor the caller reads .absgrad of
         return out, visibility
 
     @staticmethod
@@ -80,10 +81,13 @@ class _CompositeCpp(torch.autograd.Function):
         ext = extension()
         pair_grad = ext.composite_backward(
             means2d, conics, opacities, feats, sup, b.tile_offsets, b.pair_gauss, b.pair_slot, out,
-            grad_out.contiguous(), b.width, b.height, b.tile_size, *_thresholds(s), ctx.threads,
+            grad_out.contiguous(), b.width, b.height, b.tile_size, *_thresholds(s), s.absgrad, ctx.threads,
         )  # fmt: skip
         g = ext.sum_pairs(pair_grad, b.gauss_first, b.gauss_count, pair_grad.shape[1], ctx.threads)
-        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:], None, None, None, None
+        nf = feats.shape[1]
+        if ctx.means2d is not None:
+            ctx.means2d.absgrad = g[:, 6 + nf:]
+        return g[:, 0:2], g[:, 2:5], g[:, 5], g[:, 6:6 + nf], None, None, None, None
 
 
 def composite_cpp(

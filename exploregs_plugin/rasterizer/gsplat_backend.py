@@ -117,6 +117,7 @@ def rasterize_gsplat(
         near_plane=near_plane, far_plane=far_plane, eps2d=settings.eps2d,
         sh_degree=None if degree < 0 else degree, packed=False, tile_size=settings.tile_size,
         render_mode="RGB+ED", rasterize_mode="antialiased" if settings.antialiased else "classic",
+        absgrad=settings.absgrad,  # gsplat leaves the sums on meta["means2d"].absgrad, as our renderers do
     )  # fmt: skip
     image, depth, acc = renders[0, ..., :3], renders[0, ..., 3:4], alphas[0]
     if background is not None:

@@ -269,7 +269,8 @@ def _composite_visible(proj, vis, rgb, width, height, settings) -> tuple[Tensor,
     depths_vis = proj.depths.detach().index_select(0, vis)
     conics_vis, opac_vis = proj.conics.index_select(0, vis), proj.opacities.index_select(0, vis)
     bins = bin_gaussians(means2d_vis.detach(), support, depths_vis, width, height, settings.tile_size)
-    out, visibility = composite(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings)
+    out, visibility = composite(means2d_vis, conics_vis, opac_vis, feats, support, bins, settings,
+                                absgrad_into=(proj.means2d, vis))
     ts = settings.tile_size
     img = out.view(bins.tiles_y, bins.tiles_x, ts, ts, -1).permute(0, 2, 1, 3, 4)
     return img.reshape(bins.tiles_y * ts, bins.tiles_x * ts, -1)[:height, :width], visibility, bins.n_pairs

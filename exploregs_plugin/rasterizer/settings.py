@@ -53,6 +53,12 @@ class RasterSettings:
     its alpha, and its largest weight at any pixel (info["visibility"] [N, 3], the columns of
     ``VISIBILITY_COLUMNS``; occlusion-aware splitting and the significance cuts read them). Costs
     one more accumulation per pixel in the forward."""
+    absgrad: bool = False
+    """Also sum, per Gaussian and axis, the absolute values of each pixel's dL/d(mean2d) in the
+    backward (AbsGS; gsplat's ``absgrad``), left on ``info["means2d"].absgrad`` [N, 2] in pixels
+    after ``loss.backward()``: where the pixels pull a Gaussian's centre in opposite directions
+    (a blur over texture) the gradient cancels and these sums do not. Costs two more
+    accumulations per pixel in the backward."""
     workers: int = 0
     """Compositing threads, each running single-threaded torch ops on its own chunks (0 = the
     caller's torch thread count, which eg-train's --num-threads sets). Results agree across

@@ -58,6 +58,9 @@ class ViewObservation:
     """[N, 2] the render's 2D means (non-leaf; None for a view rendered by another rank)."""
     means2d_grad: Tensor | None = None
     """[N, 2] dL/d(mean2d) given explicitly (a gathered view); None: read ``means2d.grad``."""
+    means2d_absgrad: Tensor | None = None
+    """[N, 2] the absolute sums (``ABSOLUTE_GRADIENT``) given explicitly (a gathered view); None:
+    read ``means2d.absgrad``."""
     n_cameras: int = 1
     """How many views the loss averages: the gradient carries 1/n_cameras, which the NDC
     statistic undoes (as gsplat does)."""
@@ -79,8 +82,12 @@ class ViewObservation:
         """[N] bool: the Gaussians the view drew (both radii positive, the 3DGS test)."""
         return (self.radii > 0).all(dim=-1)
 
-    def screen_gradient(self) -> Tensor | None:
-        """[N, 2] dL/d(mean2d) in pixels, or None when no gradient reached the 2D means."""
+    def screen_gradient(self, absolute: bool = False) -> Tensor | None:
+        """[N, 2] dL/d(mean2d) in pixels, or None when no gradient reached the 2D means. With
+        ``absolute``, the sums over the view's pixels of each pixel's |dL/dx| and |dL/dy| instead
+        (AbsGS; the renderer makes them when asked for ``ABSOLUTE_GRADIENT``)."""
+        if absolute:
+            return self._absolute_gradient()
         if self.means2d is None or self.means2d_grad is not None:
             return self.means2d_grad
         if not self.gradient_kept():
@@ -91,6 +98,23 @@ class ViewObservation:
         grad = self.means2d.grad
         # gsplat's rasterization differentiates a [1, N, 2] tensor (one camera)
         return grad if grad is None or grad.dim() == 2 else grad.reshape(grad.shape[-2:])
+
+    def _absolute_gradient(self) -> Tensor | None:
+        if self.means2d is None or self.means2d_absgrad is not None:
+            return self.means2d_absgrad
+        if self.means2d.grad is None:
+            return None  # no gradient reached the means: nor did the absolute sums
+        sums = getattr(self.means2d, "absgrad", None)
+        if sums is None:
+            raise StrategyError(
+                "the view's renderer made no absolute gradient sums (means2d.absgrad): render with "
+                "RasterSettings(absgrad=True), which eg-train sets for a strategy that requires ABSOLUTE_GRADIENT"
+            )
+        return sums if sums.dim() == 2 else sums.reshape(sums.shape[-2:])
+
+    def has_absolute_gradient(self) -> bool:
+        """Whether the view carries the absolute sums (given, or left by its renderer)."""
+        return self.means2d_absgrad is not None or (self.means2d is not None and hasattr(self.means2d, "absgrad"))
 
     def keep_gradient(self, who: str) -> None:
         """Retain the gradient of the render's 2D means (the densification statistic reads it

@@ -10,7 +10,10 @@ VIEW_ERRORS = "view_errors"
 VISIBILITY_STATS = "visibility_stats"
 """``ViewObservation.visibility`` [N, 3]: each Gaussian's summed compositing weight alpha T and
 alpha over the view's pixels, and its largest alpha T at one pixel (the peak)."""
-REQUIREMENTS = frozenset({VIEW_ERRORS, VISIBILITY_STATS})
+ABSOLUTE_GRADIENT = "absolute_gradient"
+"""``ViewObservation.screen_gradient(absolute=True)`` [N, 2]: each Gaussian's sums over the view's
+pixels of |dL/dx| and |dL/dy| of each pixel (AbsGS; ``RasterSettings.absgrad``)."""
+REQUIREMENTS = frozenset({VIEW_ERRORS, VISIBILITY_STATS, ABSOLUTE_GRADIENT})
 """Everything a strategy or operator can declare in its ``requires``."""
 
 

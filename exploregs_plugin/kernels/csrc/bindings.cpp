@@ -21,7 +21,7 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
                               at::Tensor support, at::Tensor tile_offsets, at::Tensor pair_gauss,
                               at::Tensor pair_slot, at::Tensor out, at::Tensor grad_out, int64_t width,
                               int64_t height, int64_t tile_size, double alpha_max, double alpha_min, double t_min,
-                              int64_t threads);
+                              bool absolute, int64_t threads);
 at::Tensor sum_pairs(at::Tensor rows, at::Tensor gauss_first, at::Tensor gauss_count, int64_t c_sum,
                      int64_t threads);
 

@@ -405,8 +405,11 @@ void forward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, c
 
 // The backward of one tile: the same front-to-back walk, writing each pair's gradient sums
 // (mx, my, a, b, c, o, features) to pair_grad[slot * (6 + nf)]. Sums are kept per lane over the
-// rows, then added over the columns in order.
-template <int NF, typename scalar_t>
+// rows, then added over the columns in order. With ABS two more columns follow the features: the
+// sums over the pixels of |dL/dmx| and |dL/dmy| of each pixel (AbsGS): a blurred Gaussian over
+// texture, whose pixels pull its centre in opposite directions, has a small summed gradient but
+// large absolute sums.
+template <int NF, bool ABS, typename scalar_t>
 void backward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, const int32_t* pg, const int64_t* ps,
                    const scalar_t* mean, const scalar_t* con, const scalar_t* opa, const scalar_t* sup,
                    const scalar_t* feat, const scalar_t* out, const scalar_t* gout, scalar_t* pair_grad,
@@ -414,8 +417,8 @@ void backward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, 
   using V = typename Lanes<scalar_t>::V;
   using M = typename Lanes<scalar_t>::M;
   constexpr int64_t L = Lanes<scalar_t>::N;
-  constexpr int64_t MAXG = 6 + 16;  // gradient channels: 6 + up to 16 features
-  const int64_t nf = n_features<NF>(md), nf1 = nf + 1, ng = 6 + nf;
+  constexpr int64_t MAXG = 6 + 16 + 2;  // gradient channels: 6 + up to 16 features + 2 absolute sums
+  const int64_t nf = n_features<NF>(md), nf1 = nf + 1, ng = 6 + nf + (ABS ? 2 : 0);
   const int64_t ts = md.ts, rs = row_stride<scalar_t>(ts), np = ts * rs;
   const int64_t px0 = (tile % md.tiles_x) * ts, py0 = (tile / md.tiles_x) * ts;
   const int64_t cols = std::min(ts, md.width - px0), rows = std::min(ts, md.height - py0);
@@ -474,8 +477,13 @@ void backward_tile(int64_t tile, const Model<scalar_t>& md, const int64_t* off, 
         const V d_alpha = Tv * gf - behind / (scalar_t(1) - st.alpha);
         const M free = st.used & (st.value < amax);  // the clamp passes no gradient
         const V d_power = free ? st.alpha * d_alpha : V{};
-        sums[0][c] += d_power * (s.a * dx + bdy);
-        sums[1][c] += d_power * (s.b * dx + s.c * dy);
+        const V gmx = d_power * (s.a * dx + bdy), gmy = d_power * (s.b * dx + s.c * dy);
+        sums[0][c] += gmx;
+        sums[1][c] += gmy;
+        if (ABS) {
+          sums[6 + nf][c] += gmx < V{} ? -gmx : gmx;
+          sums[7 + nf][c] += gmy < V{} ? -gmy : gmy;
+        }
         sums[2][c] += scalar_t(-0.5) * d_power * dx * dx;
         sums[3][c] -= d_power * dx * dy;
         sums[4][c] += scalar_t(-0.5) * d_power * dy * dy;
@@ -572,7 +580,7 @@ void forward_all(const Model<scalar_t>& md, const Inputs<scalar_t>& in, const st
 
 template <typename scalar_t>
 void backward_all(const Model<scalar_t>& md, const Inputs<scalar_t>& in, const std::vector<int64_t>& order,
-                  int64_t threads, const scalar_t* out, const scalar_t* gout, scalar_t* pair_grad) {
+                  bool absolute, int64_t threads, const scalar_t* out, const scalar_t* gout, scalar_t* pair_grad) {
   const int64_t n_work = static_cast<int64_t>(order.size());
 #pragma omp parallel num_threads(std::max<int64_t>(1, std::min(threads, n_work)))
   {
@@ -580,10 +588,14 @@ void backward_all(const Model<scalar_t>& md, const Inputs<scalar_t>& in, const s
 #pragma omp for schedule(dynamic, 1)
     for (int64_t i = 0; i < n_work; ++i) {
       const int64_t t = order[i];
-      if (md.nf == 4)
-        backward_tile<4>(t, md, in.off, in.pg, in.ps, in.mean, in.con, in.opa, in.sup, in.feat, out, gout, pair_grad, buf);
+      if (md.nf == 4 && absolute)
+        backward_tile<4, true>(t, md, in.off, in.pg, in.ps, in.mean, in.con, in.opa, in.sup, in.feat, out, gout, pair_grad, buf);
+      else if (md.nf == 4)
+        backward_tile<4, false>(t, md, in.off, in.pg, in.ps, in.mean, in.con, in.opa, in.sup, in.feat, out, gout, pair_grad, buf);
+      else if (absolute)
+        backward_tile<0, true>(t, md, in.off, in.pg, in.ps, in.mean, in.con, in.opa, in.sup, in.feat, out, gout, pair_grad, buf);
       else
-        backward_tile<0>(t, md, in.off, in.pg, in.ps, in.mean, in.con, in.opa, in.sup, in.feat, out, gout, pair_grad, buf);
+        backward_tile<0, false>(t, md, in.off, in.pg, in.ps, in.mean, in.con, in.opa, in.sup, in.feat, out, gout, pair_grad, buf);
     }
   }
 }
@@ -645,16 +657,17 @@ at::Tensor composite_backward(at::Tensor means2d, at::Tensor conics, at::Tensor 
                                  at::Tensor feats, at::Tensor support, at::Tensor tile_offsets,
                                  at::Tensor pair_gauss, at::Tensor pair_slot, at::Tensor out,
                                  at::Tensor grad_out, int64_t width, int64_t height, int64_t tile_size,
-                                 double alpha_max, double alpha_min, double t_min, int64_t threads) {
+                                 double alpha_max, double alpha_min, double t_min, bool absolute,
+                                 int64_t threads) {
   check_inputs(means2d, conics, opacities, feats, support, tile_size);
   TORCH_CHECK(out.is_contiguous() && grad_out.is_contiguous(), "composite_backward: contiguous");
   const int64_t nf = feats.size(1), n_tiles = tile_offsets.size(0) - 1, n_pairs = pair_gauss.size(0);
-  auto pair_grad = eg::zeros_cpu({n_pairs, 6 + nf}, means2d.scalar_type());
+  auto pair_grad = eg::zeros_cpu({n_pairs, 6 + nf + (absolute ? 2 : 0)}, means2d.scalar_type());
   const auto order = tile_order(tile_offsets.data_ptr<int64_t>(), n_tiles);
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "composite_backward", [&] {
     const auto md = make_model<scalar_t>(width, height, tile_size, nf, alpha_max, alpha_min, t_min);
     const auto in = inputs<scalar_t>(tile_offsets, pair_gauss, pair_slot, means2d, conics, opacities, support, feats);
-    backward_all<scalar_t>(md, in, order, threads, out.data_ptr<scalar_t>(), grad_out.data_ptr<scalar_t>(),
+    backward_all<scalar_t>(md, in, order, absolute, threads, out.data_ptr<scalar_t>(), grad_out.data_ptr<scalar_t>(),
                            pair_grad.data_ptr<scalar_t>());
   });
   return pair_grad;

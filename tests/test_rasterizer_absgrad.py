@@ -1,0 +1,107 @@
+"""The absolute gradient sums (AbsGS; ``RasterSettings.absgrad``): per Gaussian and axis, the sum
+over the pixels of |dL/dmean2d| of each pixel, left on ``info["means2d"].absgrad`` by both CPU
+renderers, and Default's ``absgrad`` statistic that reads them."""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import pytest
+import torch
+
+from exploregs_plugin.bench.components.raster_scenes import random_scene
+from exploregs_plugin.engine.pipeline import gather_observations, renderer_for
+from exploregs_plugin.model import GaussianModelConfig
+from exploregs_plugin.rasterizer import RasterSettings, rasterize
+from exploregs_plugin.runtime.distributed import World
+from exploregs_plugin.strategies.default import DefaultStrategy, ndc_gradient_norms
+from exploregs_plugin.strategies.errors import StrategyError
+from exploregs_plugin.strategies.observation import observe_render
+from exploregs_plugin.strategies.requirements import ABSOLUTE_GRADIENT
+
+F64 = torch.float64
+WIDTH, HEIGHT = 20, 14
+
+
+def _render(settings: RasterSettings, dtype=F64):
+    """A scene of large, overlapping Gaussians (so that pixels pull a centre in different
+    directions), its render and a fixed random weighting of the image: (params, image, info, weights)."""
+    scene = random_scene(10, WIDTH, HEIGHT, torch.Generator().manual_seed(3), scale_range=(0.05, 0.4), dtype=dtype)
+    params = [t.detach().clone().requires_grad_() for t in (scene.means, scene.quats, scene.scales,
+                                                           scene.opacities, scene.sh_coeffs)]
+    image, _, _, info = rasterize(*params, scene.camera, settings=settings)
+    info["means2d"].retain_grad()
+    weights = torch.randn(HEIGHT, WIDTH, 3, generator=torch.Generator().manual_seed(4), dtype=F64).to(dtype)
+    return params, image, info, weights
+
+
+@pytest.mark.usefixtures("raster_backend")
+def test_the_sums_are_each_pixels_gradient_made_absolute_and_added():
+    _, image, info, weights = _render(RasterSettings(absgrad=True))
+    means2d = info["means2d"]
+    (image * weights).sum().backward(retain_graph=True)
+    sums, summed = means2d.absgrad.clone(), means2d.grad.clone()
+    per_pixel, signed = torch.zeros_like(means2d), torch.zeros_like(means2d)
+    for y in range(HEIGHT):
+        for x in range(WIDTH):
+            only = torch.zeros_like(weights)
+            only[y, x] = weights[y, x]
+            (grad,) = torch.autograd.grad(image, means2d, grad_outputs=only, retain_graph=True)
+            per_pixel += grad.abs()
+            signed += grad
+    assert sums.shape == means2d.shape and sums.dtype == F64
+    drawn = info["visible"]
+    assert int(drawn.sum()) >= 6 and bool((sums[~drawn] == 0).all())
+    torch.testing.assert_close(signed, summed, rtol=1e-9, atol=1e-12)  # the pixels' parts of the gradient
+    torch.testing.assert_close(sums, per_pixel, rtol=1e-9, atol=1e-12)
+    # the pixels pull the large Gaussians apart: some sums are well above the summed gradient's size
+    assert float((sums[drawn] / summed[drawn].abs().clamp_min(1e-30)).max()) > 2.0
+
+
+@pytest.mark.usefixtures("raster_backend")
+def test_asking_for_the_sums_changes_no_gradient_and_their_bits_do_not_follow_the_thread_count():
+    runs = {}
+    before = torch.get_num_threads()
+    try:
+        for absgrad, threads in ((False, 1), (True, 1), (True, 2)):
+            torch.set_num_threads(threads)
+            params, image, info, weights = _render(RasterSettings(absgrad=absgrad), dtype=torch.float32)
+            (image * weights).sum().backward()
+            runs[absgrad, threads] = ([p.grad for p in params] + [info["means2d"].grad],
+                                      getattr(info["means2d"], "absgrad", None))
+    finally:
+        torch.set_num_threads(before)
+    plain, with_sums, two_threads = runs[False, 1], runs[True, 1], runs[True, 2]
+    assert plain[1] is None  # not asked for: not made
+    assert all(torch.equal(a, b) for a, b in zip(plain[0], with_sums[0]))
+    assert all(torch.equal(a, b) for a, b in zip(with_sums[0], two_threads[0]))
+    assert torch.equal(with_sums[1], two_threads[1])
+
+
+def test_default_with_absgrad_asks_the_renderer_for_the_sums_and_grows_by_them():
+    strategy = DefaultStrategy(absgrad=True)
+    assert ABSOLUTE_GRADIENT in strategy.requirements() and ABSOLUTE_GRADIENT not in DefaultStrategy().requirements()
+    assert renderer_for(GaussianModelConfig(), strategy.requirements()).raster.absgrad
+    assert not renderer_for(GaussianModelConfig(), DefaultStrategy().requirements()).raster.absgrad
+
+    _, image, info, weights = _render(RasterSettings(absgrad=True), dtype=torch.float32)
+    (image * weights).sum().backward()
+    n = info["means2d"].shape[0]
+    for absgrad in (False, True):
+        s = replace(strategy, absgrad=absgrad, refine_start_iter=0, refine_every=100, refine_stop_iter=1000, reset_every=3000)
+        state = s.initialize_state()
+        s.step_post_backward({"means": torch.zeros(n, 3)}, {}, state, 1, [observe_render(info)])
+        read = info["means2d"].absgrad if absgrad else info["means2d"].grad
+        expected = torch.where(info["visible"], ndc_gradient_norms(read, WIDTH, HEIGHT), 0.0)
+        assert torch.equal(state["stats"]["grad2d"], expected)
+
+    # a rank's view travels with its sums (every rank's strategy reads the same bits)
+    (gathered,) = gather_observations(World(), [observe_render(info)], n, absolute=True)
+    assert gathered.means2d is None and torch.equal(gathered.screen_gradient(absolute=True), info["means2d"].absgrad)
+
+
+def test_a_view_rendered_without_the_sums_is_one_clear_error():
+    _, image, info, weights = _render(RasterSettings(), dtype=torch.float32)
+    (image * weights).sum().backward()
+    with pytest.raises(StrategyError, match=r"no absolute gradient sums .*RasterSettings\(absgrad=True\)"):
+        observe_render(info).screen_gradient(absolute=True)
