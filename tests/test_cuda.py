@@ -102,6 +102,18 @@ def test_gsplat_backend_agrees_with_the_torch_reference():
     assert gs[4]["means2d"].shape == (1, 3000, 2) and gs[4]["radii"].shape == (3000, 2)
 
 
+@needs_gsplat
+def test_gsplats_absolute_gradient_sums_agree_with_the_torch_reference():
+    # RasterSettings.absgrad: gsplat's absgrad=True leaves the sums where our renderers do
+    scene = random_scene(3000, 160, 120, torch.Generator().manual_seed(7))
+    scene = replace(scene, opacities=scene.opacities.clamp(0.05, 0.8))
+    ref = _render(scene, CUDA, RasterSettings(backend="torch", absgrad=True))[4]["means2d"].absgrad
+    gs = _render(scene, CUDA, RasterSettings(backend="gsplat", absgrad=True))[4]["means2d"].absgrad
+    assert gs.shape == (1, 3000, 2) and ref.shape == (3000, 2)
+    cos = torch.nn.functional.cosine_similarity(gs.reshape(-1).double().cpu(), ref.reshape(-1).double().cpu(), dim=0)
+    assert float(cos) >= 0.98, float(cos)
+
+
 def _train(tmp_path, name: str, device: str, backend: str = "torch", batch_size: int = 1, max_steps: int = 300) -> dict:
     from exploregs_plugin.engine.trainer import Trainer, TrainerConfig
 

@@ -102,9 +102,9 @@ class ViewObservation:
     def _absolute_gradient(self) -> Tensor | None:
         if self.means2d is None or self.means2d_absgrad is not None:
             return self.means2d_absgrad
-        if self.means2d.grad is None:
-            return None  # no gradient reached the means: nor did the absolute sums
         sums = getattr(self.means2d, "absgrad", None)
+        if sums is None and self.gradient_kept() and self.means2d.grad is None:
+            return None  # no gradient reached the means (the backward never came to the renderer)
         if sums is None:
             raise StrategyError(
                 "the view's renderer made no absolute gradient sums (means2d.absgrad): render with "
