@@ -160,15 +160,14 @@ def gsplat_info(views: list[ViewObservation]) -> dict[str, Any]:
         view.check_rows(n)
         grad = view.screen_gradient()
         grad = torch.zeros(n, 2, device=device) if grad is None else grad.detach().reshape(n, 2).to(torch.float32)
-        if absolute:
-            total = view.screen_gradient(absolute=True)
-            sums.append(torch.zeros(n, 2, device=device) if total is None else total.detach().reshape(n, 2).to(torch.float32))
         own = torch.tensor([float(view.width), float(view.height)], dtype=torch.float64) * float(view.n_cameras)
         # ref > 0: image sizes and n_cameras are positive integers.
         factor = (own / ref.clamp_min(1.0)).to(torch.float32).to(device)
         grads.append(grad * factor)
         if absolute:
-            sums[-1] = sums[-1] * factor
+            total = view.screen_gradient(absolute=True)
+            total = torch.zeros(n, 2, device=device) if total is None else total.detach().reshape(n, 2).to(torch.float32)
+            sums.append(total * factor)
         size_factor = ref_size / max(float(max(view.width, view.height)), 1.0)
         radii.append(view.radii.detach().to(torch.float32) * size_factor)
     means2d = torch.zeros(len(views), n, 2, device=device)  # only a carrier of the gradient

@@ -95,9 +95,7 @@ class ViewObservation:
                 "the view's means2d.grad is not retained: call strategy.step_pre_backward(...) before "
                 "loss.backward() so the screen-space gradient is kept"
             )
-        grad = self.means2d.grad
-        # gsplat's rasterization differentiates a [1, N, 2] tensor (one camera)
-        return grad if grad is None or grad.dim() == 2 else grad.reshape(grad.shape[-2:])
+        return _one_camera(self.means2d.grad)
 
     def _absolute_gradient(self) -> Tensor | None:
         if self.means2d is None or self.means2d_absgrad is not None:
@@ -110,7 +108,7 @@ class ViewObservation:
                 "the view's renderer made no absolute gradient sums (means2d.absgrad): render with "
                 "RasterSettings(absgrad=True), which eg-train sets for a strategy that requires ABSOLUTE_GRADIENT"
             )
-        return sums if sums.dim() == 2 else sums.reshape(sums.shape[-2:])
+        return _one_camera(sums)
 
     def has_absolute_gradient(self) -> bool:
         """Whether the view carries the absolute sums (given, or left by its renderer)."""
@@ -135,6 +133,12 @@ class ViewObservation:
                 f"the view's radii have shape {tuple(self.radii.shape)} but there are {n} Gaussians: the "
                 "observation must come from rendering the current Gaussian set"
             )
+
+
+def _one_camera(t: Tensor | None) -> Tensor | None:
+    """[N, 2] from a render's 2D-mean gradient or sums: gsplat's rasterization differentiates a
+    [1, N, 2] tensor (one camera)."""
+    return t if t is None or t.dim() == 2 else t.reshape(t.shape[-2:])
 
 
 def observe_render(info: dict[str, Any], n_cameras: int = 1, error: ViewError | None = None,
