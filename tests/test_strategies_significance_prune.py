@@ -10,7 +10,9 @@ from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.engine.pipeline import strategy_for_renderer
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.strategies import DefaultStrategy, OcclusionSplittingStrategy, SeedSplitStrategy, StrategyError
-from exploregs_plugin.strategies.default import ndc_gradient_norms
+from exploregs_plugin.model.significance import visibility_cut_order
+from exploregs_plugin.strategies.count_rule import evenly_spread, paired_deficit
+from exploregs_plugin.strategies.default import CHECKED_SHARES, ndc_gradient_norms
 from exploregs_plugin.strategies.requirements import VISIBILITY_STATS
 from exploregs_plugin.strategies.significance_prune import (WEIGHT, WEIGHT_PEAK, WEIGHT_VIEWS, accumulate_weights,
                                                             least_significant, window_follows_reset)
@@ -181,6 +183,105 @@ def test_the_end_of_run_cut_spends_its_share_on_faint_rows_and_keeps_a_row_that_
     assert torch.equal(params["means"].detach(), kept_means)
 
 
+def _checked_cut_case(tolerance: float, nan_at: int | None = None, loss_per_share: float = 10.0):
+    """A 300-row set whose weights span four decades (the last 5 rows drawn by no view), cut by
+    Default's end-of-run rule with a check that scores 6 views: each view loses ``loss_per_share``
+    dB per unit of blend-weight share removed, times (1 + v / 10) on view v, and every view scores
+    NaN from the ``nan_at``-th call on. Returns (rows kept, note, the masks the check saw, the
+    visibility)."""
+    g = torch.Generator().manual_seed(5)
+    n = 300
+    params = make_gaussians(n, g)
+    optimizers = make_optimizers(params)
+    weights = 10.0 ** (4.0 * torch.rand(n, generator=g, dtype=torch.float64))
+    drawn = torch.ones(n, dtype=torch.float64)
+    weights[-5:], drawn[-5:] = 0.0, 0.0
+    visibility = torch.stack([weights, drawn, torch.ones(n, dtype=torch.float64)], 1)
+    seen: list[torch.Tensor] = []
+
+    def score_without(rows: torch.Tensor) -> list[float]:
+        seen.append(rows.clone())
+        if nan_at is not None and len(seen) > nan_at:
+            return [float("nan")] * 6
+        removed = float(weights[rows].sum() / weights.sum())
+        return [30.0 - loss_per_share * removed * (1.0 + v / 10.0) for v in range(6)]
+
+    strategy = DefaultStrategy(final_cut_tolerance=tolerance)
+    state = strategy.initialize_state()
+    strategy.final_cut(params, optimizers, state, visibility, step=99, score_without=score_without)
+    return params["means"].shape[0], strategy.count_decision(state), seen, visibility
+
+
+def _ladder(visibility: torch.Tensor) -> tuple[list[float], list[torch.Tensor]]:
+    weights, order = visibility[:, 0], visibility_cut_order(visibility)
+    shares = [0.003, *CHECKED_SHARES]
+    return shares, [least_significant(weights, torch.ones_like(weights), q, order) for q in shares]
+
+
+def test_the_end_of_run_cut_goes_on_while_the_checked_views_lose_at_most_the_tolerance():
+    kept, note, seen, visibility = _checked_cut_case(tolerance=0.1)
+    weights = visibility[:, 0]
+    shares, ladder = _ladder(visibility)
+    # the whole set scored, then the default share and each larger one until one costs more
+    assert not seen[0].any() and all(torch.equal(a, b) for a, b in zip(seen[1:], ladder))
+    deficits = [paired_deficit([30.0] * 6, [30.0 - 10.0 * float(weights[m].sum() / weights.sum()) * (1 + v / 10)
+                                           for v in range(6)]) for m in ladder]
+    passed = [d <= 0.1 for d in deficits]
+    last = passed.index(False) - 1  # the cuts are nested: the deficit grows with the share
+    assert last >= 1 and not any(passed[last + 1:]) and len(seen) == last + 3
+    assert kept == int((~ladder[last]).sum())
+    assert (f"at most {shares[last]:.1%} of the training views' blend weight" in note
+            and f"the 6 training views checked lose {deficits[last]:.2f} dB" in note
+            and f"{shares[last + 1]:.1%} would lose {deficits[last + 1]:.2f} dB" in note)
+
+
+def test_a_cut_the_views_refuse_at_the_first_share_leaves_only_the_rows_no_view_draws():
+    kept, note, seen, visibility = _checked_cut_case(tolerance=0.1, loss_per_share=100.0)
+    assert len(seen) == 2 and kept == 295  # the 5 undrawn rows, which paint nothing, go for free
+    assert "the 5 that no training view draws were cut; the 6 training views checked lose nothing" in note
+    assert "0.3% would lose" in note
+
+
+def test_the_checked_cut_is_off_at_tolerance_0_and_refuses_a_share_whose_views_score_nan():
+    kept_off, note_off, seen_off, visibility = _checked_cut_case(tolerance=0.0)
+    _, ladder = _ladder(visibility)
+    assert seen_off == [] and kept_off == int((~ladder[0]).sum()) and "checked" not in note_off
+    # a candidate whose renders are not finite is never kept: the cut stays at the last finite one
+    kept, note, seen, _ = _checked_cut_case(tolerance=10.0, nan_at=2)
+    assert len(seen) == 3 and kept == int((~ladder[0]).sum()) and "0.5% would lose nan dB" in note
+    # a generous tolerance takes every share tried, and the line says where the search stopped
+    kept_all, note_all, seen_all, _ = _checked_cut_case(tolerance=1e6)
+    assert len(seen_all) == 2 + len(CHECKED_SHARES) and kept_all == int((~ladder[-1]).sum())
+    assert note_all.endswith("--strategy.final-cut-tolerance); the largest share tried "
+                             "(--strategy.final-weight-share 0 keeps them)")
+
+
+def test_the_checks_renders_are_the_run_without_those_rows(tmp_path):
+    """Pipeline.view_psnrs without rows gives, bit for bit, the PSNRs of the set with those rows
+    removed (row_ops.remove), and without none those of the whole set."""
+    from dataclasses import replace
+
+    from exploregs_plugin.method_configs import get_method
+    from exploregs_plugin.strategies import row_ops
+
+    config = get_method("exploregs-seedsplit").config
+    config = replace(config, data="builtin:tiny", max_steps=12, run_dir=tmp_path / "run", eval_count=1,
+                     tensorboard=False, save_eval_images=False, quiet=True, num_threads=1)
+    trainer = config.setup()
+    trainer.train()
+    pipeline = trainer.pipeline
+    views = evenly_spread(len(pipeline.datamanager.train_cameras), 3)
+    n = pipeline.model.num_gaussians
+    rows = torch.zeros(n, dtype=torch.bool)
+    rows[::3] = True
+    whole = pipeline.view_psnrs(views, 11)
+    assert pipeline.view_psnrs(views, 11, without=torch.zeros(n, dtype=torch.bool)) == whole
+    without = pipeline.view_psnrs(views, 11, without=rows)
+    assert all(w > o for w, o in zip(whole, without))  # a third of the set missing costs every view
+    row_ops.remove(pipeline.params, pipeline.optimizers, {}, rows)
+    assert pipeline.view_psnrs(views, 11) == without
+
+
 def test_a_run_cuts_after_its_last_step_and_evaluates_the_cut_set(tmp_path):
     from dataclasses import replace
 
@@ -205,6 +306,8 @@ def test_a_run_cuts_after_its_last_step_and_evaluates_the_cut_set(tmp_path):
 def test_fields_are_checked():
     with pytest.raises(StrategyError, match="final_weight_share"):
         DefaultStrategy(final_weight_share=1.0)
+    with pytest.raises(StrategyError, match="final_cut_tolerance"):
+        DefaultStrategy(final_cut_tolerance=float("nan"))
     with pytest.raises(StrategyError, match="prune_weight_share"):
         DefaultStrategy(prune_weight_share=1.0)
     with pytest.raises(StrategyError, match="grow_grad2d_height"):
@@ -212,10 +315,13 @@ def test_fields_are_checked():
 
 
 def test_a_config_saved_before_the_fields_existed_loads_as_it_trained():
-    saved = config_to_dict(SeedSplitStrategy(grow_grad2d_height=720, prune_weight_share=0.01, final_weight_share=0.01))
+    saved = config_to_dict(SeedSplitStrategy(grow_grad2d_height=720, prune_weight_share=0.01, final_weight_share=0.01,
+                                             final_cut_tolerance=0.5))
     del saved["grow_grad2d_height"], saved["prune_weight_share"], saved["final_weight_share"]
+    del saved["final_cut_tolerance"]
     loaded = config_from_dict(saved)
     assert loaded.grow_grad2d_height is None and loaded.prune_weight_share == 0.0 and loaded.final_weight_share == 0.0
+    assert loaded.final_cut_tolerance == 0.0 and SeedSplitStrategy().final_cut_tolerance == 0.1
 
 
 def test_the_height_scaled_statistic_is_the_one_at_the_reference_height():

@@ -13,6 +13,7 @@ from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.runtime.device import make_generator, restore_generator, to_device
 from exploregs_plugin.runtime.distributed import World
 from exploregs_plugin.model import GaussianModelConfig
+from exploregs_plugin.model.gaussians import render_params
 from exploregs_plugin.engine.loss_terms import DepthTerm, LossTerm, PhotometricTerm, ViewLossInput, view_loss
 from exploregs_plugin.model.losses import VIEW_PSNR, DepthSpace, pooled_psnr, psnr_on_device
 from exploregs_plugin.engine.nonfinite import NonFiniteError, NonFiniteWatch
@@ -22,7 +23,7 @@ from exploregs_plugin.rasterizer import BackendError, backend_problem, resolve_b
 from exploregs_plugin.rasterizer.composite import single_threaded_ops
 from exploregs_plugin.schedule import Schedule
 from exploregs_plugin.strategies import DefaultStrategy
-from exploregs_plugin.strategies.count_rule import MIN_VIEWS, VALIDATED, held_out_indices
+from exploregs_plugin.strategies.count_rule import CHECK_VIEWS, MIN_VIEWS, VALIDATED, evenly_spread, held_out_indices
 from exploregs_plugin.strategies.requirements import ABSOLUTE_GRADIENT, VIEW_ERRORS, VISIBILITY_STATS
 
 
@@ -321,7 +322,9 @@ class Pipeline:
             return 0, [f"note: the end-of-run cut (--strategy.final-weight-share {share:g}) is off: gsplat's "
                        f"kernels do not sum each Gaussian's compositing weight"]
         totals = count_trial.training_visibility(self)  # rendered without gradients
-        cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals, step)
+        checked = evenly_spread(len(self.datamanager.train_cameras), CHECK_VIEWS)
+        cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals, step,
+                                      score_without=lambda rows: self.view_psnrs(checked, step, without=rows))
         return cut, [self.strategy.count_decision(self.strategy_state)]
 
     def _count_note(self, before: str) -> list[str]:
@@ -342,13 +345,25 @@ class Pipeline:
         self.datamanager.hold_out(held)
 
     def held_out_psnrs(self, step: int) -> list[float]:
-        """PSNR (dB) of each held-out training view (in the datamanager's order), rendered without
-        gradients at the step's SH degree on the dataset's background: one read of the device."""
+        """PSNR (dB) of each held-out training view (in the datamanager's order): :meth:`view_psnrs`."""
+        return self.view_psnrs(self.datamanager.held_out, step)
+
+    def view_psnrs(self, indices: list[int], step: int, without: Tensor | None = None) -> list[float]:
+        """PSNR (dB) of each of these training views, in order, rendered without gradients at the
+        step's SH degree on the dataset's background, without the rows of ``without`` ([N] bool)
+        where given (a static model: the cut's check): one read of the device."""
+        params = None
+        if without is not None:
+            params = {k: v.detach()[~without] for k, v in self.params.items()}
         squared = []
         with torch.no_grad():
-            for index in self.datamanager.held_out:
+            for index in indices:
                 camera, target, _ = self.datamanager.train_item(index, self.device)
-                image = self.model.render(camera, self.sh_degree_at(step), self.background)[0]
+                if params is None:
+                    image = self.model.render(camera, self.sh_degree_at(step), self.background)[0]
+                else:
+                    image = render_params(params, camera, self.sh_degree_at(step), self.background,
+                                          self.model.config.raster)[0]
                 squared.append((((image.double() - target.double()) ** 2).sum(), target.numel()))
         values = torch.stack([s for s, _ in squared]).tolist() if squared else []
         return [pooled_psnr(value, count) for value, (_, count) in zip(values, squared)]

@@ -358,13 +358,14 @@ class Strategy:
         return 0.0
 
     def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], visibility: Tensor,
-                  step: int) -> int:
+                  step: int, score_without: Any = None) -> int:
         """After the last step, before the final evaluation: remove rows by their visibility
         statistics over every training view (``visibility`` [N, 3] float64: the summed compositing
         weight, the summed alpha, > 0 where a view drew the row, and the peak weight; the pipeline
         renders them with :func:`exploregs_plugin.model.significance.visibility_totals`). Returns
-        the rows removed.
-        Default's rule: :class:`DefaultStrategy.final_weight_share`."""
+        the rows removed. ``score_without(rows)``, where the caller can render, gives the PSNR of
+        each of a fixed list of training views rendered without ``rows`` ([N] bool), to check a cut.
+        Default's rule: :class:`DefaultStrategy.final_weight_share` and ``final_cut_tolerance``."""
         return 0
 
 

@@ -20,7 +20,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, Callable, ClassVar, Sequence
 
 import torch
 from torch import Tensor
@@ -28,6 +28,7 @@ from torch import Tensor
 from . import row_ops
 from .observation import ViewObservation
 from .base import StepContext, Strategy, StrategyError, require_generator
+from .count_rule import paired_deficit
 from .geometry import max_world_scale
 from .requirements import ABSOLUTE_GRADIENT, VISIBILITY_STATS
 from .row_ops import Optimizers, Params, Stats, num_gaussians
@@ -41,6 +42,9 @@ GRAD_STATS = ("grad2d", "count")
 REFERENCE_HEIGHT = 720
 """The image height (pixels) at which Default's threshold is 3DGS's 0.0002 (beer's capture; 3DGS's
 own scenes are 545 to 1080 pixels high)."""
+CHECKED_SHARES = (0.005, 0.01, 0.02, 0.03, 0.05, 0.1)
+"""The shares the end-of-run cut tries after ``final_weight_share``, in order, each kept only while
+the training views say the cut costs at most ``final_cut_tolerance`` (steps of about 1.5-2x)."""
 SIGNIFICANCE_PRUNED, SIGNIFICANCE_NOTE = "significance_pruned", "significance_note"
 """State of the significance prune: the rows it has removed in all, and the line that says the
 count it left at the end of growth, and why ('' before)."""
@@ -172,6 +176,12 @@ def prune_mask(
     return mask
 
 
+ScoreWithout = Callable[[Tensor], Sequence[float]]
+"""The end-of-run cut's check: given rows to leave out ([N] bool), the PSNR (dB) of each checked
+training view rendered without them (the pipeline renders; the same views in the same order at
+every call)."""
+
+
 # ---------------------------------------------------------------------------- strategy
 @dataclass
 class DefaultStrategy(Strategy):
@@ -216,9 +226,17 @@ class DefaultStrategy(Strategy):
     peak (their compositing weight summed over every training view times their largest weight at
     one pixel) that together painted at most this share of the training views' compositing weight,
     and every Gaussian that no training view draws (one pass over the training views; the count and
-    why in one line). Measured on the re-posed beer and builtin:farside in docs/strategies.md. 0:
-    off. Off too when cap_max is a count (the user's), on gsplat's kernels (no weight sums) and for
-    a dynamic model."""
+    why in one line); with final_cut_tolerance, the first share the check tries. Measured on the
+    re-posed beer and builtin:farside in docs/strategies.md. 0: off. Off too when cap_max is a count
+    (the user's), on gsplat's kernels (no weight sums) and for a dynamic model."""
+    final_cut_tolerance: float = 0.1
+    """The cut is checked: the rows no training view draws go, then the cut at final_weight_share
+    and at each larger share of CHECKED_SHARES in turn while the training views lose at most this
+    PSNR (dB) against the whole set: per view d_v = PSNR before - PSNR after, over CHECK_VIEWS views
+    evenly spread, mean(d) + sd(d) / sqrt(k) <= this. Training views need none held out, and they
+    err on keeping: a row that paints only what the run overfit costs PSNR on them and none on new
+    views. One render of each checked view for the whole set and for each share tried. 0: the cut
+    at final_weight_share, unchecked (docs/strategies.md)."""
 
     def __post_init__(self) -> None:
         super().__post_init__()
@@ -232,6 +250,8 @@ class DefaultStrategy(Strategy):
             raise StrategyError(f"prune_weight_share must be in [0, 1), got {self.prune_weight_share}")
         if not 0.0 <= self.final_weight_share < 1.0:
             raise StrategyError(f"final_weight_share must be in [0, 1), got {self.final_weight_share}")
+        if not self.final_cut_tolerance >= 0.0:
+            raise StrategyError(f"final_cut_tolerance must be >= 0 dB, got {self.final_cut_tolerance}")
 
     # ------------------------------------------------------------------ significance prune
     def prunes_by_significance(self) -> bool:
@@ -272,7 +292,7 @@ class DefaultStrategy(Strategy):
         return 0.0 if isinstance(self.cap_max, int) else self.final_weight_share
 
     def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], visibility: Tensor,
-                  step: int) -> int:
+                  step: int, score_without: ScoreWithout | None = None) -> int:
         share = self.final_cut_share()
         if share <= 0.0 or num_gaussians(params) == 0:
             return 0
@@ -280,14 +300,43 @@ class DefaultStrategy(Strategy):
         # Every row is judged: over every training view, a row that none draws paints nothing that
         # training sees (outside every view, or behind what stops the compositing) and is cut first,
         # for free. (The prune while growing judges only the rows its window's few views drew.)
-        judged = torch.ones_like(visibility[:, 0])
-        cut = least_significant(visibility[:, 0], judged, share, visibility_cut_order(visibility))
+        weights, judged = visibility[:, 0], torch.ones_like(visibility[:, 0])
+        order = visibility_cut_order(visibility)
+        checked = ""
+        if self.final_cut_tolerance > 0.0 and score_without is not None:
+            cut, share, checked = self._checked_cut(weights, judged, order, visibility[:, 1] <= 0.0, share,
+                                                    score_without)
+        else:
+            cut = least_significant(weights, judged, share, order)
         n = row_ops.remove(params, optimizers, state["stats"], cut)
+        which = (f"the {n:,} of least weight x peak, which together painted at most {share:.1%} of the training "
+                 f"views' blend weight, were cut" if share > 0.0 else f"the {n:,} that no training view draws were cut")
         state[SIGNIFICANCE_NOTE] = (
-            f"count: {before - n:,} of {before:,} Gaussians kept after the last step ({step + 1}): the {n:,} of least "
-            f"weight x peak, which together painted at most {share:.1%} of the training views' blend weight, were "
-            f"cut (--strategy.final-weight-share 0 keeps them)")
+            f"count: {before - n:,} of {before:,} Gaussians kept after the last step ({step + 1}): {which}{checked} "
+            f"(--strategy.final-weight-share 0 keeps them)")
         return n
+
+    def _checked_cut(self, weights: Tensor, judged: Tensor, order: Tensor, undrawn: Tensor, share: float,
+                     score_without: ScoreWithout) -> tuple[Tensor, float, str]:
+        """The largest of ``share`` and the larger CHECKED_SHARES whose rows the checked training
+        views miss by at most final_cut_tolerance: the paired deficit (count_rule.paired_deficit)
+        against the whole set. The cuts are nested (the rows no view draws, which cost nothing, then
+        each share's), so the first that costs more ends the search. Returns (the rows to cut, their
+        share, 0 for the undrawn rows alone; the words the count line adds)."""
+        base = score_without(torch.zeros_like(undrawn))
+        cut, kept_share, kept_deficit, refused = undrawn, 0.0, None, "; the largest share tried"
+        for larger in [share] + [q for q in CHECKED_SHARES if q > share]:
+            more = least_significant(weights, judged, larger, order)
+            if int(more.sum()) == int(cut.sum()):
+                continue  # no row more: nothing to check
+            deficit = paired_deficit(base, score_without(more))
+            if not deficit <= self.final_cut_tolerance:  # a NaN deficit is refused too
+                refused = f"; {larger:.1%} would lose {deficit:.2f} dB"
+                break
+            cut, kept_share, kept_deficit = more, larger, deficit
+        lost = "nothing" if kept_deficit is None else f"{kept_deficit:.2f} dB"
+        return cut, kept_share, (f"; the {len(base)} training views checked lose {lost} (at most "
+                                 f"{self.final_cut_tolerance:g}, --strategy.final-cut-tolerance){refused}")
 
     # ------------------------------------------------------------------ hooks for subclasses
     def size_prune_factor(self, step: int) -> float:
