@@ -14,7 +14,7 @@ from exploregs_plugin.engine.pipeline import gather_observations, renderer_for
 from exploregs_plugin.model import GaussianModelConfig
 from exploregs_plugin.rasterizer import RasterSettings, rasterize
 from exploregs_plugin.runtime.distributed import World
-from exploregs_plugin.strategies.default import DefaultStrategy, ndc_gradient_norms
+from exploregs_plugin.strategies.default import DefaultStrategy, grow_masks, ndc_gradient_norms
 from exploregs_plugin.strategies.errors import StrategyError
 from exploregs_plugin.strategies.observation import observe_render
 from exploregs_plugin.strategies.requirements import ABSOLUTE_GRADIENT
@@ -105,3 +105,79 @@ def test_a_view_rendered_without_the_sums_is_one_clear_error():
     (image * weights).sum().backward()
     with pytest.raises(StrategyError, match=r"no absolute gradient sums .*RasterSettings\(absgrad=True\)"):
         observe_render(info).screen_gradient(absolute=True)
+
+
+def test_grow_masks_split_a_large_gaussian_by_the_absolute_sums_and_clone_by_the_gradient_alone():
+    # rows: small with a high gradient, large with a high gradient, large with only the sums high,
+    # small with only the sums high, large with both low, large with the sums at the threshold
+    avg_grad = torch.tensor([3e-4, 3e-4, 1e-4, 1e-4, 1e-4, 1e-4])
+    avg_abs = torch.tensor([5e-4, 5e-4, 2e-3, 2e-3, 5e-4, 1e-3])
+    small, large = torch.log(torch.full((3,), 0.005)), torch.log(torch.full((3,), 0.5))
+    log_scales = torch.stack([small, large, large, small, large, large])
+    plain = grow_masks(avg_grad, log_scales, 2e-4, 0.01)
+    clone, split = grow_masks(avg_grad, log_scales, 2e-4, 0.01, avg_abs, 1e-3)
+    assert clone.tolist() == plain[0].tolist() == [True, False, False, False, False, False]
+    assert plain[1].tolist() == [False, True, False, False, False, False]
+    assert split.tolist() == [False, True, True, False, False, False]
+
+
+def test_split_absgrad2d_keeps_the_sums_beside_the_gradient_and_splits_by_them():
+    strategy = DefaultStrategy(split_absgrad2d=1e-3)
+    assert strategy.splits_by_absolute_sums() and ABSOLUTE_GRADIENT in strategy.requirements()
+    for bad in (0.0, -1e-3, float("nan")):
+        with pytest.raises(StrategyError, match="split_absgrad2d must be positive"):
+            DefaultStrategy(split_absgrad2d=bad)
+    with pytest.raises(StrategyError, match="set one of the two"):  # absgrad's growth reads the sums already
+        replace(strategy, absgrad=True)
+
+    _, image, info, weights = _render(RasterSettings(absgrad=True), dtype=torch.float32)
+    (image * weights).sum().backward()
+    n, visible = info["means2d"].shape[0], info["visible"]
+    s = replace(strategy, refine_start_iter=0, refine_every=2, refine_stop_iter=1000, reset_every=3000)
+    state = s.initialize_state()
+    state["scene_scale"] = 1.0
+    params = {"means": torch.zeros(n, 3), "scales": torch.log(torch.full((n, 3), 0.5))}  # every row too large to clone
+    s.step_post_backward(params, {}, state, 1, [observe_render(info)])
+    stats = state["stats"]
+    for key, read in (("grad2d", info["means2d"].grad), ("absgrad2d", info["means2d"].absgrad)):
+        assert torch.equal(stats[key], torch.where(visible, ndc_gradient_norms(read, WIDTH, HEIGHT), 0.0))
+    assert torch.equal(stats["abscount"], stats["count"])
+    # a threshold between the two statistics of a row splits it by its sums alone
+    ratio = stats["absgrad2d"] / stats["grad2d"].clamp_min(1e-30)
+    row = int(torch.argmax(torch.where(visible, ratio, 0.0)))
+    between = float(stats["grad2d"][row] + stats["absgrad2d"][row]) / 2
+    s = replace(s, grow_grad2d=between, split_absgrad2d=between)
+    clone, split = s.growth(params, state)
+    assert not clone.any() and bool(split[row])
+    assert bool(split[row]) != bool((replace(s, split_absgrad2d=None).growth(params, state))[1][row])
+
+
+def test_a_run_with_split_absgrad2d_splits_more_and_starts_each_window_with_empty_sums(tmp_path, tiny_scene_dir):
+    from exploregs_plugin.callbacks import TrainingCallback
+    from exploregs_plugin.method_configs import get_method
+    from exploregs_plugin.schedule import ScheduleConfig
+
+    class Sums(TrainingCallback):
+        def __init__(self):
+            self.after = {}
+
+        def after_step(self, trainer, step, stats):
+            sums = trainer.pipeline.strategy_state["stats"].get("absgrad2d")
+            self.after[step] = (None if sums is None else float(sums.abs().sum()), stats["counts"].get("split", 0))
+
+    config = get_method("exploregs-default").config
+    splits = {}
+    for threshold in (None, 1e-3):
+        strategy = replace(config.pipeline.strategy, split_absgrad2d=threshold)
+        run = replace(config, data="builtin:tiny", max_steps=31, run_dir=tmp_path / f"run-{threshold}", quiet=True,
+                      tensorboard=False, eval_count=1, save_eval_images=False, num_threads=1,
+                      schedule=ScheduleConfig(min_refine_every=10),
+                      pipeline=replace(config.pipeline, strategy=strategy))
+        sums = Sums()
+        run.setup(callbacks=[sums]).train()
+        splits[threshold] = sum(split for _, split in sums.after.values())
+        if threshold is None:
+            assert all(total is None for total, _ in sums.after.values())  # no sums asked for, none kept
+        else:  # the refinement of step 10 (the callback's step 11) clears them with grad2d; the next view adds
+            assert sums.after[10][0] > 0.0 and sums.after[11] == (0.0, splits[threshold]) and sums.after[12][0] > 0.0
+    assert splits[1e-3] > splits[None]

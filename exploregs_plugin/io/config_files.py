@@ -137,6 +137,7 @@ ADDED_FIELDS: dict[str, dict[str, Any]] = {
         "prune_weight_share": 0.0,  # no significance prune while growing
         "final_weight_share": 0.0,  # no cut after the last step
         "final_cut_tolerance": 0.0,  # the cut at the fixed share alone
+        "split_absgrad2d": None,  # splits by the summed gradient alone
     },
 }
 """Fields a config class gained after runs were saved without them, by the class that has them

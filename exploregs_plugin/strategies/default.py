@@ -39,6 +39,8 @@ from .significance_prune import (WEIGHT, WEIGHT_PEAK, WEIGHT_STATS, WEIGHT_VIEWS
 
 GRAD_STATS = ("grad2d", "count")
 """Per-Gaussian statistics of the gradient criterion, cleared after every densification."""
+ABS_GRAD_STATS = ("absgrad2d", "abscount")
+"""The same for the absolute sums that ``split_absgrad2d`` reads, beside GRAD_STATS."""
 REFERENCE_HEIGHT = 720
 """The image height (pixels) at which Default's threshold is 3DGS's 0.0002 (beer's capture; 3DGS's
 own scenes are 545 to 1080 pixels high)."""
@@ -60,8 +62,10 @@ def accumulate_grad_stats(
     n_cameras: int = 1,
     downscale: int = 1,
     reference_height: int | None = None,
+    names: tuple[str, str] = GRAD_STATS,
 ) -> Tensor:
-    """Add this step's NDC gradient norms to ``stats["grad2d"]`` and views to ``stats["count"]``.
+    """Add this step's NDC gradient norms to ``stats["grad2d"]`` and views to ``stats["count"]``
+    (to the two ``names`` given: another statistic kept beside it).
 
     pixel_grads: [C, N, 2] dL/d(mean2d) in pixels, or [N, 2] for one camera; visible: [C, N]
     (or [N]) bool. The stats are created (zeros [N]) on first use; ``reference_height``: see
@@ -70,12 +74,13 @@ def accumulate_grad_stats(
     device (read only where it is logged: nothing here waits for the device).
     """
     n = pixel_grads.shape[-2]
-    if "grad2d" not in stats:
-        stats["grad2d"] = torch.zeros(n, device=pixel_grads.device)
-        stats["count"] = torch.zeros(n, device=pixel_grads.device)
-    if stats["grad2d"].shape[0] != n:
+    total, count = names
+    if total not in stats:
+        stats[total] = torch.zeros(n, device=pixel_grads.device)
+        stats[count] = torch.zeros(n, device=pixel_grads.device)
+    if stats[total].shape[0] != n:
         raise StrategyError(
-            f"strategy statistics have {stats['grad2d'].shape[0]} rows but the gradient has {n}: "
+            f"strategy statistics have {stats[total].shape[0]} rows but the gradient has {n}: "
             f"the Gaussian set was changed without strategies.row_ops"
         )
     norms = ndc_gradient_norms(pixel_grads, width, height, n_cameras, downscale, reference_height)
@@ -86,8 +91,8 @@ def accumulate_grad_stats(
     # each select is one more operator a step (docs/training.md, "Operators per step").
     per_camera = [(norms, take)] if norms.dim() == 1 else zip(norms, take)
     for camera_norms, camera_take in per_camera:
-        stats["grad2d"] += torch.where(camera_take, camera_norms, 0.0)
-        stats["count"] += camera_take
+        stats[total] += torch.where(camera_take, camera_norms, 0.0)
+        stats[count] += camera_take
     return (visible ^ take).sum()  # visible and not finite
 
 
@@ -138,16 +143,22 @@ def _ndc_scale(device: torch.device, width: int, height: int, n_cameras: int, do
 
 
 def grow_masks(
-    avg_grad: Tensor, log_scales: Tensor, grad_threshold: float, clone_max_scale: float
+    avg_grad: Tensor, log_scales: Tensor, grad_threshold: float, clone_max_scale: float,
+    avg_abs: Tensor | None = None, abs_threshold: float = 0.0,
 ) -> tuple[Tensor, Tensor]:
     """3DGS growth decisions: (clone [N], split [N]) bool masks.
 
     High gradient (> threshold) and small (max scale <= clone_max_scale) -> clone; high and
-    large -> split.
+    large -> split. With ``avg_abs`` (AbsGS's statistic), a large Gaussian whose absolute sums
+    exceed ``abs_threshold`` is split too: over texture its pixels pull it in opposite directions
+    and the summed gradient cancels, the absolute sums do not. Clones stay 3DGS's.
     """
     high = avg_grad > grad_threshold
     small = max_world_scale(log_scales) <= clone_max_scale
-    return high & small, high & ~small
+    split = high & ~small
+    if avg_abs is not None:
+        split |= (avg_abs > abs_threshold) & ~small
+    return high & small, split
 
 
 def limit_growth(clone: Tensor, split: Tensor, score: Tensor, room: int) -> tuple[Tensor, Tensor]:
@@ -214,6 +225,12 @@ class DefaultStrategy(Strategy):
     pair it with a higher grow_grad2d. At 0.001 it grew 18% fewer Gaussians than 0.0002 without it
     on beer (--data-factor 4) at the same PSNR and LPIPS, and 69% more on fox at +1.07 dB and
     -0.048 LPIPS: the count follows the scene (docs/strategies.md)."""
+    split_absgrad2d: float | None = None
+    """AbsGS's split rule beside 3DGS's: a Gaussian too large to clone is also split when the mean
+    over its views of the norm of the sums of each pixel's |dL/dx| and |dL/dy| (NDC, as
+    grow_grad2d's statistic) exceeds this. The summed gradient of a blur over texture cancels and
+    never reaches grow_grad2d; these sums do. Clones stay 3DGS's (absgrad grows clones by the sums
+    too; the two do not go together). None: off (docs/strategies.md)."""
     prune_weight_share: float = 0.0
     """At each refinement (and once more at the end of growth), prune the least significant
     Gaussians that together painted at most this share of the compositing weight of the window's
@@ -252,6 +269,11 @@ class DefaultStrategy(Strategy):
             raise StrategyError(f"final_weight_share must be in [0, 1), got {self.final_weight_share}")
         if not self.final_cut_tolerance >= 0.0:
             raise StrategyError(f"final_cut_tolerance must be >= 0 dB, got {self.final_cut_tolerance}")
+        if self.split_absgrad2d is not None and not self.split_absgrad2d > 0.0:
+            raise StrategyError(f"split_absgrad2d must be positive or None, got {self.split_absgrad2d}")
+        if self.split_absgrad2d is not None and self.absgrad:
+            raise StrategyError("split_absgrad2d splits by the absolute sums beside the summed gradient; with absgrad "
+                                "every growth reads the sums already: set one of the two")
 
     # ------------------------------------------------------------------ significance prune
     def prunes_by_significance(self) -> bool:
@@ -260,9 +282,13 @@ class DefaultStrategy(Strategy):
 
     def requirements(self) -> frozenset[str]:
         required = super().requirements()
-        if self.absgrad:
+        if self.absgrad or self.splits_by_absolute_sums():
             required |= {ABSOLUTE_GRADIENT}
         return required | {VISIBILITY_STATS} if self.prunes_by_significance() else required
+
+    def splits_by_absolute_sums(self) -> bool:
+        """Whether the absolute sums are kept beside the summed gradient, for split_absgrad2d."""
+        return self.split_absgrad2d is not None
 
     def without_visibility(self) -> "DefaultStrategy | None":
         """This strategy for a renderer that cannot sum the compositing weights: the significance
@@ -387,7 +413,7 @@ class DefaultStrategy(Strategy):
             if step > self.refine_start_iter and step % self.refine_every == 0:
                 counts["cloned"], counts["split"] = self._grow(params, optimizers, state, ctx.generator)
                 counts.update(self._prune(params, optimizers, state, step))
-                for key in GRAD_STATS + WEIGHT_STATS:
+                for key in GRAD_STATS + ABS_GRAD_STATS + WEIGHT_STATS:
                     if key in state["stats"]:
                         state["stats"][key].zero_()
         elif step == self.refine_stop_iter and self.prunes_by_significance():
@@ -432,18 +458,30 @@ class DefaultStrategy(Strategy):
         visible = view.visible()
         if self.prunes_by_significance() and view.visibility is not None:
             accumulate_weights(state["stats"], view.visibility, visible)
-        return accumulate_grad_stats(
+        skipped = accumulate_grad_stats(
             state["stats"], grad, visible, view.width, view.height, view.n_cameras, view.downscale,
             self.grow_grad2d_height,
         )
+        if self.splits_by_absolute_sums():
+            sums = view.screen_gradient(absolute=True)
+            if sums is not None:
+                accumulate_grad_stats(state["stats"], sums, visible, view.width, view.height, view.n_cameras,
+                                      view.downscale, self.grow_grad2d_height, names=ABS_GRAD_STATS)
+        return skipped
 
     def growth(self, params: Params, state: dict[str, Any]) -> tuple[Tensor, Tensor]:
-        """This refinement's (clone [N], split [N]) masks: the 3DGS rule on the gradient statistic,
-        limited by cap_max. A densifier that chooses otherwise overrides this; :meth:`_grow` applies it."""
+        """This refinement's (clone [N], split [N]) masks: the 3DGS rule on the gradient statistic
+        (with split_absgrad2d, AbsGS's split by the absolute sums too), limited by cap_max. A
+        densifier that chooses otherwise overrides this; :meth:`_grow` applies it."""
         stats = state["stats"]
         avg_grad = stats["grad2d"] / stats["count"].clamp_min(1.0)
+        total, count = ABS_GRAD_STATS
+        avg_abs = None
+        if self.splits_by_absolute_sums() and total in stats:
+            avg_abs = stats[total] / stats[count].clamp_min(1.0)
         clone, split = grow_masks(
-            avg_grad, params["scales"].detach(), self.grow_grad2d, self.grow_scale3d * state["scene_scale"]
+            avg_grad, params["scales"].detach(), self.grow_grad2d, self.grow_scale3d * state["scene_scale"],
+            avg_abs, self.split_absgrad2d or 0.0,
         )
         return limit_growth(clone, split, avg_grad, self.room(num_gaussians(params)))
 
