@@ -1,6 +1,7 @@
 """The absolute gradient sums (AbsGS; ``RasterSettings.absgrad``): per Gaussian and axis, the sum
 over the pixels of |dL/dmean2d| of each pixel, left on ``info["means2d"].absgrad`` by both CPU
-renderers, and Default's ``absgrad`` statistic that reads them."""
+renderers, Default's ``absgrad`` statistic that reads them, and its ``split_absgrad2d`` (AbsGS's
+split beside 3DGS's clone), which keeps them beside the summed gradient."""
 
 from __future__ import annotations
 
