@@ -6,7 +6,9 @@ divided by the number of views in which the Gaussian was visible. Every ``refine
 clone Gaussians whose statistic exceeds ``grow_grad2d`` and whose largest scale is at most
 ``grow_scale3d`` x extent, split the larger ones, prune opacity < ``prune_opa`` (and, after the
 first opacity reset, world size > ``prune_scale3d`` x extent), then clear the statistics. Every
-``reset_every`` steps the opacities are clamped to ``reset_opacity``.
+``reset_every`` steps the opacities are clamped to ``reset_opacity``. With ``split_absgrad2d``
+(AbsGS's rule, an option) the larger ones are split also when the absolute sums of their pixels'
+gradients, a second statistic kept beside the first, exceed it.
 
 Exploration enters through four hooks: :meth:`DefaultStrategy.observe` (each view, inside the
 window), :meth:`DefaultStrategy.explore` (every step, after densification and before the opacity
