@@ -633,10 +633,31 @@ def test_progress_shows_elapsed_and_eta_and_the_total_includes_evaluation(tmp_pa
     assert [ln.split()[1] for ln in steps] == ["10/20", "20/20"]
     assert all(re.search(r"  elapsed \d+:\d\d  ETA \d+:\d\d$", ln) for ln in steps), steps
     assert steps[-1].endswith("ETA 0:00")
+    # the end-of-run cut, which renders every training view after the last step, is said before it
+    said = [i for i, ln in enumerate(lines) if ln.startswith("after step 20: the end-of-run cut weighs the ")]
+    count = next(i for i, ln in enumerate(lines) if ln.startswith("count: "))
+    assert len(said) == 1 and lines.index(steps[-2]) < said[0] < lines.index(steps[-1]) < count, lines
+    weighed = re.search(r"weighs the ([\d,]+) Gaussians over the (\d+) training views", lines[said[0]])
+    assert f" of {weighed.group(1)} Gaussians kept after the last step (20)" in lines[count], lines[count]
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert metrics["wall_seconds"] > metrics["train_seconds"] > 0
     assert re.search(rf"{metrics['train_seconds']:.1f} s training, {metrics['wall_seconds']:.1f} s in all "
                      r"\(evaluation and checkpoints included\)", lines[-1])
+
+
+def test_the_cut_is_said_only_before_the_last_step_of_a_run_that_cuts(tmp_path, tiny_scene_dir):
+    from exploregs_plugin.scripts.train import parse_config
+
+    def pipeline(name: str, *extra: str):
+        return parse_config(["exploregs-default", "--data", "builtin:tiny", "--max-steps", "10", "--quiet",
+                             "--run-dir", str(tmp_path / name), *extra]).setup().pipeline
+
+    cuts = pipeline("cuts")
+    assert cuts.final_cut_note(8) is None and cuts.final_cut_note(10) is None
+    assert cuts.final_cut_note(9) == (f"after step 10: the end-of-run cut weighs the {cuts.model.num_gaussians:,} "
+                                      f"Gaussians over the {len(cuts.datamanager.train_cameras)} training views (one "
+                                      "render each) before the final evaluation")
+    assert pipeline("no-cut", "--strategy.final-weight-share", "0").final_cut_note(9) is None
 
 
 def test_resume_eval_and_export_skip_a_truncated_newest_checkpoint(tmp_path, tiny_scene_dir, capsys):

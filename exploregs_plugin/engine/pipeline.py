@@ -316,7 +316,7 @@ class Pipeline:
         for a dynamic model (its Gaussians move with time) or on gsplat's kernels, which do not sum
         the weights (a note)."""
         share = self.strategy.final_cut_share()
-        if share <= 0.0 or self.model.parts:
+        if not self._final_cut_runs():
             return 0, []
         if resolve_backend(self.model.config.raster, self.device) == "gsplat":
             return 0, [f"note: the end-of-run cut (--strategy.final-weight-share {share:g}) is off: gsplat's "
@@ -326,6 +326,23 @@ class Pipeline:
         cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals, step,
                                       score_without=lambda rows: self.view_psnrs(checked, step, without=rows))
         return cut, [self.strategy.count_decision(self.strategy_state)]
+
+    def _final_cut_runs(self) -> bool:
+        """Whether the end-of-run cut applies: a strategy with a share to cut, a static model."""
+        return self.strategy.final_cut_share() > 0.0 and not self.model.parts
+
+    def final_cut_note(self, step: int) -> str | None:
+        """The line said before ``step`` when the end-of-run cut comes after it: the cut renders
+        every training view once more (and, checked, ``CHECK_VIEWS`` of them per share it tries),
+        which on a large capture takes minutes (252 views at 800 x 533: about 143 s,
+        docs/strategies.md) that the progress bar would otherwise spend silent at its last step."""
+        if step != self.schedule.max_steps - 1 or not self._final_cut_runs():
+            return None
+        if resolve_backend(self.model.config.raster, self.device) == "gsplat":
+            return None  # no cut: the step says so after it
+        views = len(self.datamanager.train_cameras) - len(self.datamanager.held_out)
+        return (f"after step {step + 1}: the end-of-run cut weighs the {self.model.num_gaussians:,} Gaussians over "
+                f"the {views} training views (one render each) before the final evaluation")
 
     def _count_note(self, before: str) -> list[str]:
         """The strategy's line on the count it kept, once, at the step it was written (a count

@@ -179,6 +179,9 @@ class Trainer:
             self.save_checkpoint(step)
         if threads is not None:
             threads.check()
+        note = self.pipeline.final_cut_note(step)
+        if note:  # the cut after this step takes minutes on a large capture: say so before it
+            self.logger.note(note)
 
     def _after_step(self, step: int, stats: dict[str, Any], eval_steps: set[int]) -> None:
         """Totals, the collapse watch, logging, callbacks, then evaluation and the periodic
