@@ -16,6 +16,7 @@ import torch
 from exploregs_plugin.io.config_files import load_config
 from exploregs_plugin.evaluation.metrics import evaluate
 from exploregs_plugin.io.checkpoint import latest_checkpoint, list_checkpoints, load_checkpoint
+from exploregs_plugin.engine import final_weights
 from exploregs_plugin.engine.pipeline import NonFiniteError
 from exploregs_plugin.schedule import ScheduleConfig
 from exploregs_plugin.engine.trainer import Trainer, TrainerConfig
@@ -104,27 +105,30 @@ def test_same_seed_same_result_other_seed_differs(tmp_path, tiny_scene_dir):
                    for k in runs["a"])
 
 
-def test_ctrl_c_then_resume_is_bit_identical(tmp_path, tiny_scene_dir, ctrl_c_after_step):
+@pytest.mark.parametrize("stopped_after", [16, 34])  # while growing; inside the last epoch the end-of-run cut sums
+def test_ctrl_c_then_resume_is_bit_identical(tmp_path, tiny_scene_dir, ctrl_c_after_step, stopped_after):
     full = tiny_config(tmp_path / "full").setup()
     full.train()
 
     interrupted = tiny_config(tmp_path / "cut").setup()
-    ctrl_c_after_step.arm(16)  # a real Ctrl-C, handled at the step boundary
+    ctrl_c_after_step.arm(stopped_after)  # a real Ctrl-C, handled at the step boundary
     with pytest.raises(KeyboardInterrupt):
         interrupted.train()
     ctrl_c_after_step.disarm()
     ckpt = latest_checkpoint(tmp_path / "cut")
-    assert ckpt.name == "step-0000017.pt"
+    assert ckpt.name == f"step-{stopped_after + 1:07d}.pt"
     saved = load_checkpoint(ckpt)
 
     resumed = Trainer.from_run(tmp_path / "cut")
-    assert resumed.start_step == 17
+    assert resumed.start_step == stopped_after + 1
     for name, opt in resumed.pipeline.optimizers.items():
         state = next(iter(opt.state.values()))
         saved_state = saved["optimizers"][name]["state"][0]
         assert torch.equal(state["exp_avg"], saved_state["exp_avg"])
         assert torch.equal(state["exp_avg_sq"], saved_state["exp_avg_sq"])
     assert resumed.pipeline.strategy_state.keys() == saved["strategy_state"].keys()
+    # stopped inside the last epoch (steps 32-39), the checkpoint carries its first views' weights
+    assert final_weights.window_views(saved["strategy_state"]) == max(0, stopped_after - 31)
     resumed.train()
 
     a, b = params_of(full), params_of(resumed)

@@ -77,11 +77,11 @@ class BranchAblationModel(GaussianModel):
     def __init__(self, config: BranchAblationModelConfig, params: nn.ParameterDict) -> None:
         super().__init__(config, params)
 
-    def render(self, camera: Camera, sh_degree: int | None = None, background: Tensor | None = None
-               ) -> tuple[Tensor, Tensor, Tensor, dict]:
+    def render(self, camera: Camera, sh_degree: int | None = None, background: Tensor | None = None,
+               visibility_stats: bool = False) -> tuple[Tensor, Tensor, Tensor, dict]:
         return render_detached(self.params_at(camera.time), camera,
                                sh_degree if sh_degree is not None else self.config.sh_degree, background,
-                               self.config.detach_paths, self.config.raster)
+                               self.config.detach_paths, self.raster_settings(visibility_stats))
 
 
 __getattr__ = default_variant(

@@ -344,6 +344,16 @@ class DataManager:
                 indices.append(index)
         return indices
 
+    def last_epoch_draws(self, count: int, draws_left: int) -> list[bool]:
+        """For each of the next ``count`` draws of :meth:`next_train_indices`, whether it belongs to
+        the last epoch of the order that the run's ``draws_left`` remaining draws complete
+        (:func:`in_last_epoch`). None of them while views
+        are held out: the order then passes over some of its places, and an epoch's draws are not
+        every view."""
+        if self._held:
+            return [False] * count
+        return in_last_epoch(self._position, len(self._train), draws_left, count)
+
     def hold_out(self, indices: list[int]) -> None:
         """Keep these training views out of the order until :meth:`return_held` (a count rule
         scores them); at least one view stays in training."""
@@ -392,6 +402,28 @@ class DataManager:
     @property
     def epoch(self) -> int:
         return self._epoch
+
+
+def in_last_epoch(position: int, length: int, draws_left: int, count: int) -> list[bool]:
+    """For each of the next ``count`` draws of an order that deals ``length`` views per epoch, of
+    which ``position`` are dealt in the current one (``length``: all, the next draw begins a new
+    epoch), whether it belongs to the last epoch that the run's ``draws_left`` draws (these
+    included) complete. A draw is the ``taken``-th of its epoch; its epoch completes when the
+    ``length - taken`` draws it still needs fit in the ``after`` draws that follow, and is the last
+    to when the next one's ``length`` do not:
+
+        length - taken <= after < 2 length - taken.
+
+    Both sides move by one per draw, so the answer is the same for every draw of an epoch: the
+    draws marked are one whole epoch, each view once, or none where the run completes no epoch."""
+    if length <= 0:
+        return [False] * count
+    marked = []
+    for j in range(count):
+        taken = (position + j) % length + 1
+        after = draws_left - j - 1
+        marked.append(length - taken <= after < 2 * length - taken)
+    return marked
 
 
 def _downscaled(item: _Item, factor: int) -> _Item:

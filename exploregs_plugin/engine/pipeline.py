@@ -8,7 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor, nn
 
-from exploregs_plugin.engine import count_trial
+from exploregs_plugin.engine import count_trial, final_weights
 from exploregs_plugin.data import DataManagerConfig
 from exploregs_plugin.runtime.device import make_generator, restore_generator, to_device
 from exploregs_plugin.runtime.distributed import World
@@ -272,14 +272,19 @@ class Pipeline:
 
     def _train_step(self, step: int) -> dict[str, Any]:
         self.model.begin_step(step, self.schedule.max_steps)
+        in_window = self._final_window_draws(step)  # before the draw: which of it the end-of-run cut reads
         indices = self.datamanager.next_train_indices(self.batch_size)  # every rank draws the whole batch
         # the backgrounds too, so that the run's generator advances alike on every rank
         backgrounds = [self._step_background() for _ in indices]
         share = self.batch_size // self.world.size
         mine = range(self.world.rank * share, (self.world.rank + 1) * share)
         totals: dict[str, Tensor] = {}
-        views = [self._train_view(step, indices[p], backgrounds[p], p == mine.start, totals) for p in mine]
+        views = [self._train_view(step, indices[p], backgrounds[p], p == mine.start, totals, any(in_window))
+                 for p in mine]
         views = self._step_observations(views, totals)
+        for view, counted in zip(views, in_window):  # every view of the global batch, on every rank
+            if counted:
+                final_weights.add_window_view(self.strategy_state, view.visibility)
         self.nonfinite.loss(step, totals)
         means_lr = self._optimizer_step(step)
         self.check_finite(step)
@@ -321,28 +326,52 @@ class Pipeline:
         if resolve_backend(self.model.config.raster, self.device) == "gsplat":
             return 0, [f"note: the end-of-run cut (--strategy.final-weight-share {share:g}) is off: gsplat's "
                        f"kernels do not sum each Gaussian's compositing weight"]
-        totals = count_trial.training_visibility(self)  # rendered without gradients
+        totals = final_weights.window_totals(self.strategy_state, self._final_cut_views())
+        if totals is None:  # no whole last epoch after growth ended: render every view once more
+            totals = count_trial.training_visibility(self)
         checked = evenly_spread(len(self.datamanager.train_cameras), CHECK_VIEWS)
         cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals, step,
                                       score_without=lambda rows: self.view_psnrs(checked, step, without=rows))
+        final_weights.clear_window(self.strategy_state)
         return cut, [self.strategy.count_decision(self.strategy_state)]
 
     def _final_cut_runs(self) -> bool:
         """Whether the end-of-run cut applies: a strategy with a share to cut, a static model."""
         return self.strategy.final_cut_share() > 0.0 and not self.model.parts
 
+    def _final_cut_views(self) -> int:
+        """The training views whose weights the end-of-run cut sums: those still trained on (a
+        held-out view must not choose what is kept; at the last step none is held out)."""
+        return len(self.datamanager.train_cameras) - len(self.datamanager.held_out)
+
+    def _final_window_draws(self, step: int) -> list[bool]:
+        """Which of this step's draws are views of the run's last complete epoch, whose training
+        renders sum the end-of-run cut's weights (:mod:`final_weights`): none before the strategy
+        stops growing (its rows must be the cut's), below full size, or where no cut comes (or
+        gsplat's kernels, which do not sum the weights)."""
+        batch = self.batch_size
+        if (not self._final_cut_runs() or step < self.strategy.refine_stop_iter
+                or self.schedule.downscale_at(step) != 1
+                or resolve_backend(self.model.config.raster, self.device) == "gsplat"):
+            return [False] * batch
+        return self.datamanager.last_epoch_draws(batch, (self.schedule.max_steps - step) * batch)
+
     def final_cut_note(self, step: int) -> str | None:
         """The line said before ``step`` when the end-of-run cut comes after it: the cut renders
-        every training view once more (and, checked, ``CHECK_VIEWS`` of them per share it tries),
-        which on a large capture takes minutes (252 views at 800 x 533: about 143 s,
-        docs/strategies.md) that the progress bar would otherwise spend silent at its last step."""
+        ``CHECK_VIEWS`` training views per share it tries (and, where the run has no whole last epoch
+        of weights after growth, every training view once more), which on a large capture takes
+        minutes (220 views at 800 x 533: about 143 s with the views' pass, docs/strategies.md) that
+        the progress bar would otherwise spend silent at its last step."""
         if step != self.schedule.max_steps - 1 or not self._final_cut_runs():
             return None
         if resolve_backend(self.model.config.raster, self.device) == "gsplat":
             return None  # no cut: the step says so after it
-        views = len(self.datamanager.train_cameras) - len(self.datamanager.held_out)
-        return (f"after step {step + 1}: the end-of-run cut weighs the {self.model.num_gaussians:,} Gaussians over "
-                f"the {views} training views (one render each) before the final evaluation")
+        views = self._final_cut_views()
+        summed = final_weights.window_views(self.strategy_state) + sum(self._final_window_draws(step))
+        how = (f"by their weights in the last epoch's renders of the {views} training views" if summed == views
+               else f"over the {views} training views (one render each)")
+        return (f"after step {step + 1}: the end-of-run cut weighs the {self.model.num_gaussians:,} Gaussians {how} "
+                f"before the final evaluation")
 
     def _count_note(self, before: str) -> list[str]:
         """The strategy's line on the count it kept, once, at the step it was written (a count
@@ -398,14 +427,15 @@ class Pipeline:
         return [f"{reason}; the {held} held-out views return to training"]
 
     def _train_view(self, step: int, index: int, background: Tensor, first: bool,
-                    totals: dict[str, Tensor]) -> ViewObservation:
+                    totals: dict[str, Tensor], visibility_stats: bool = False) -> ViewObservation:
         """Render one training view, back-propagate its share of the step's loss, add its values
-        to ``totals``; returns what the strategy observes of this view."""
+        to ``totals``; returns what the strategy observes of this view (with ``visibility_stats``,
+        the renderer's visibility statistics too)."""
         batch = self.batch_size
         downscale = self.schedule.downscale_at(step)  # coarse-to-fine: the step's level (1 = full size)
         camera, target, extras = self.datamanager.train_item(index, self.device, downscale)
         target = self._target_on(background, target, extras)
-        image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background)
+        image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background, visibility_stats)
         error = None
         if VIEW_ERRORS in self.requires:  # guided exploration: where this view is still wrong
             error = ViewError(index, camera.viewmat, camera.K, target, (image.detach() - target).abs().mean(dim=-1))

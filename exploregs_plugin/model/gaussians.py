@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Mapping
 
 import numpy as np
@@ -158,13 +158,21 @@ class GaussianModel(nn.Module):
         camera: Camera,
         sh_degree: int | None = None,
         background: Tensor | None = None,
+        visibility_stats: bool = False,
     ) -> tuple[Tensor, Tensor, Tensor, dict]:
         """Render from ``camera`` (at its time, for a dynamic scene): image [H, W, 3], alpha
-        [H, W, 1], depth [H, W, 1], info."""
+        [H, W, 1], depth [H, W, 1], info; with ``visibility_stats``, the info's per-Gaussian
+        visibility statistics too, whatever the config asks (the same image: they are sums kept
+        beside it)."""
         return render_params(
             self.params_at(camera.time), camera, sh_degree if sh_degree is not None else self.config.sh_degree,
-            background, self.config.raster,
+            background, self.raster_settings(visibility_stats),
         )
+
+    def raster_settings(self, visibility_stats: bool = False) -> RasterSettings:
+        """The config's renderer settings, with the visibility statistics asked for where given."""
+        settings = self.config.raster
+        return replace(settings, visibility_stats=True) if visibility_stats and not settings.visibility_stats else settings
 
 
 def activate(params: Mapping[str, Tensor]) -> tuple[Tensor, Tensor, Tensor, Tensor, Tensor]:

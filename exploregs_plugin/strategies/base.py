@@ -361,8 +361,10 @@ class Strategy:
                   step: int, score_without: Any = None) -> int:
         """After the last step, before the final evaluation: remove rows by their visibility
         statistics over every training view (``visibility`` [N, 3] float64: the summed compositing
-        weight, the summed alpha, > 0 where a view drew the row, and the peak weight; the pipeline
-        renders them with :func:`exploregs_plugin.model.significance.visibility_totals`). Returns
+        weight, the summed alpha, > 0 where a view drew the row, and the peak weight; eg-train's
+        pipeline sums them from the training renders of the run's last whole epoch,
+        :mod:`exploregs_plugin.engine.final_weights`, or renders them with
+        :func:`exploregs_plugin.model.significance.visibility_totals`). Returns
         the rows removed. ``score_without(rows)``, where the caller can render, gives the PSNR of
         each of a fixed list of training views rendered without ``rows`` ([N] bool), to check a cut.
         Default's rule: :class:`DefaultStrategy.final_weight_share` and ``final_cut_tolerance``."""

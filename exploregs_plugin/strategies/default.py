@@ -244,8 +244,9 @@ class DefaultStrategy(Strategy):
     """After the last step, before the final evaluation, remove the Gaussians of least weight x
     peak (their compositing weight summed over every training view times their largest weight at
     one pixel) that together painted at most this share of the training views' compositing weight,
-    and every Gaussian that no training view draws (one pass over the training views; the count and
-    why in one line); with final_cut_tolerance, the first share the check tries. Measured on the
+    and every Gaussian that no training view draws (summed by the training renders of the run's last
+    whole epoch, engine/final_weights.py, or, where the run has none after growth, one pass over the
+    training views; the count and why in one line); with final_cut_tolerance, the first share the check tries. Measured on the
     re-posed beer and builtin:farside in docs/strategies.md. 0: off. Off too when cap_max is a count
     (the user's), on gsplat's kernels (no weight sums) and for a dynamic model."""
     final_cut_tolerance: float = 0.1

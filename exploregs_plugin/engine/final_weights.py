@@ -1,0 +1,65 @@
+"""The end-of-run cut's weights, summed from the training renders of the run's last epoch.
+
+The cut after the last step (:meth:`Strategy.final_cut`) ranks each Gaussian by its visibility
+statistics over every training view: its compositing weight S_j = sum_v sum_p alpha_j T_j, its
+summed alpha (> 0 where some view drew it) and its peak weight
+(:func:`exploregs_plugin.model.significance.visibility_totals`). Rendering every view once more for
+them costs one render per view after the last step: on the 252-photo capture at 800 x 533 (220
+training views), 98 s of the cut's 143 s (docs/strategies.md).
+
+The run renders every view once per epoch anyway. In its last complete epoch (the last permutation
+of the training views that the run's remaining draws finish) the renderer sums the same statistics
+in the pass that draws each training image, and the cut reads those sums: no pass of its own
+(which draws are that epoch's: :meth:`~exploregs_plugin.data.datamanager.DataManager.last_epoch_draws`). The
+price is weights from parameters up to one epoch old, which after the set stops growing only the
+optimiser moves; so the window counts only once the strategy no longer grows (a draw at or after
+``refine_stop_iter``) and only renders at full size (a coarse-to-fine level's pixels weigh less).
+A window that is not whole (a run whose last epoch began before growth ended, or while views were
+held out, or that resumed with another schedule) is not used: the cut renders the views itself.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from exploregs_plugin.rasterizer.composite import add_visibility_
+from exploregs_plugin.rasterizer.settings import VISIBILITY_COLUMNS
+
+FINAL_WEIGHTS = "final_weights"
+"""Key in the strategy's row statistics (``state["stats"]``, so every row operation keeps them in
+step with the rows): [N, 3] float64, the visibility statistics summed over the last epoch's views."""
+FINAL_VIEWS = "final_weight_views"
+"""Key in the strategy's state: how many views the sums hold (whole when it equals the training views)."""
+
+
+def add_window_view(state: dict[str, Any], visibility: Tensor) -> None:
+    """Add one of the last epoch's training renders (its visibility statistics [N, 3], the rows of
+    the set it was drawn from) to the window's sums, created on first use. A non-finite entry adds
+    nothing (as :func:`exploregs_plugin.strategies.significance_prune.accumulate_weights`)."""
+    stats = state["stats"]
+    more = visibility.detach().to(torch.float64)
+    if FINAL_WEIGHTS not in stats:
+        stats[FINAL_WEIGHTS] = more.new_zeros(more.shape[0], len(VISIBILITY_COLUMNS))
+    add_visibility_(stats[FINAL_WEIGHTS], torch.where(torch.isfinite(more), more, 0.0))
+    state[FINAL_VIEWS] = window_views(state) + 1
+
+
+def window_views(state: dict[str, Any]) -> int:
+    """How many views the window's sums hold so far."""
+    return int(state.get(FINAL_VIEWS, 0))
+
+
+def window_totals(state: dict[str, Any], views: int) -> Tensor | None:
+    """The window's sums [N, 3] where they hold exactly one whole epoch of ``views`` training
+    views, else None (the cut then renders them)."""
+    sums = state.get("stats", {}).get(FINAL_WEIGHTS)
+    return sums if sums is not None and window_views(state) == views else None
+
+
+def clear_window(state: dict[str, Any]) -> None:
+    """Drop the window's sums (after the cut has read them: the last checkpoint does not carry them)."""
+    state.get("stats", {}).pop(FINAL_WEIGHTS, None)
+    state.pop(FINAL_VIEWS, None)

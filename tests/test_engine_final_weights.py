@@ -1,0 +1,143 @@
+"""The end-of-run cut's weights from the last epoch's training renders (engine/final_weights.py)."""
+
+from __future__ import annotations
+
+import random
+
+import torch
+
+from exploregs_plugin.data.datamanager import in_last_epoch
+from exploregs_plugin.engine import count_trial, final_weights
+from exploregs_plugin.engine.pipeline import Pipeline
+from exploregs_plugin.engine.trainer import TrainerConfig
+from exploregs_plugin.model.significance import visibility_totals
+from exploregs_plugin.schedule import ScheduleConfig
+
+VIEWS = 8  # builtin:tiny's training views
+
+
+def _last_whole_epoch(length: int, draws: int) -> list[bool]:
+    """Brute force: deal ``draws`` views one by one from a fresh order, ``length`` an epoch, and
+    mark the draws of the last epoch dealt whole."""
+    whole = draws // length  # epochs 0 .. whole - 1 are dealt whole
+    return [whole > 0 and d // length == whole - 1 for d in range(draws)]
+
+
+def test_the_draws_marked_are_the_last_whole_epoch_each_view_once():
+    rng = random.Random(0)
+    for _ in range(500):
+        length, batch, steps = rng.randint(1, 9), rng.randint(1, 4), rng.randint(1, 12)
+        draws, marked = steps * batch, []
+        for step in range(steps):  # asked a batch at a time, before the draw, as the pipeline asks
+            dealt = step * batch
+            position = (dealt - 1) % length + 1 if dealt else 0  # the datamanager's: length once an epoch is done
+            marked += in_last_epoch(position, length, draws - dealt, batch)
+        assert marked == _last_whole_epoch(length, draws), (length, batch, steps)
+        assert sum(marked) in (0, length)
+    assert in_last_epoch(1, 4, 7, 7) == [False, False, False, True, True, True, True]
+    assert in_last_epoch(1, 4, 6, 6) == [True, True, True, False, False, False]  # with the one dealt before
+    assert in_last_epoch(0, 4, 3, 3) == [False, False, False]
+
+
+def test_no_draw_is_marked_while_views_are_held_out(tiny_scene_dir):
+    from exploregs_plugin.data import DataManagerConfig
+
+    dm = DataManagerConfig(data="builtin:tiny").setup()
+    assert dm.last_epoch_draws(2, VIEWS) == [True, True]
+    dm.hold_out([0])
+    assert dm.last_epoch_draws(2, VIEWS) == [False, False]
+    dm.return_held()
+    assert dm.last_epoch_draws(1, VIEWS + 1) == [True] and dm.last_epoch_draws(1, 2 * VIEWS) == [False]
+
+
+def _trainer(run_dir, steps: int, **overrides):
+    fields = dict(data="builtin:tiny", max_steps=steps, run_dir=run_dir, quiet=True, tensorboard=False, eval_count=1,
+                  checkpoint_every=10_000, save_eval_images=False, schedule=ScheduleConfig(min_refine_every=10))
+    return TrainerConfig(**{**fields, **overrides}).setup()
+
+
+def test_the_cut_reads_each_views_render_of_the_last_epoch_after_growth(tmp_path, monkeypatch):
+    from exploregs_plugin.data.datamanager import DataManager
+
+    marked, seen, notes, read, before = [], [], [], {}, {}
+    real_marks, real_draw = Pipeline._final_window_draws, DataManager.next_train_indices
+    real_add, real_note, real_totals, real_cut = (final_weights.add_window_view, Pipeline.final_cut_note,
+                                                  final_weights.window_totals, Pipeline._final_cut)
+
+    def marks(pipeline, step):
+        marked.append(step)
+        return real_marks(pipeline, step)
+
+    def draw(dm, count):
+        indices = real_draw(dm, count)
+        marked.append(indices)
+        return indices
+
+    def add(state, visibility):  # the view of the step, rendered with the parameters it was drawn with
+        step, (index,) = marked[-2], marked[-1]
+        params = {k: v.detach() for k, v in pipeline.params.items()}  # before the step's optimiser step
+        fresh = visibility_totals(params, [pipeline.datamanager.train_cameras[index]], pipeline.model.config.raster,
+                                  pipeline.background)
+        seen.append((step, index, torch.allclose(visibility.double(), fresh, rtol=1e-5, atol=1e-6)))
+        real_add(state, visibility)
+
+    def note(pipeline, step):
+        said = real_note(pipeline, step)
+        notes.extend([said] if said else [])
+        return said
+
+    def cut(pipeline, step):
+        before["n"] = pipeline.model.num_gaussians
+        return real_cut(pipeline, step)
+
+    def no_pass(pipeline):
+        raise AssertionError("the cut rendered the views again")
+
+    monkeypatch.setattr(Pipeline, "_final_window_draws", marks)
+    monkeypatch.setattr(DataManager, "next_train_indices", draw)
+    monkeypatch.setattr(final_weights, "add_window_view", add)
+    monkeypatch.setattr(Pipeline, "final_cut_note", note)
+    monkeypatch.setattr(Pipeline, "_final_cut", cut)
+    monkeypatch.setattr(count_trial, "training_visibility", no_pass)
+    monkeypatch.setattr(final_weights, "window_totals",
+                        lambda state, views: read.setdefault("sums", real_totals(state, views)))
+    trainer = _trainer(tmp_path / "run", 40)  # growth stops at step 20; epochs of 8 draws: the last is 32-39
+    pipeline = trainer.pipeline
+    metrics = trainer.train()
+    assert [s for s, _, _ in seen] == list(range(32, 40)) and all(ok for _, _, ok in seen), seen
+    assert sorted(i for _, i, _ in seen) == list(range(VIEWS))  # each training view once
+    assert read["sums"] is not None and read["sums"].shape == (before["n"], 3)
+    assert metrics["num_gaussians"] < before["n"]  # it cut
+    assert notes == [f"after step 40: the end-of-run cut weighs the {before['n']:,} Gaussians by their weights in "
+                     f"the last epoch's renders of the {VIEWS} training views before the final evaluation"]
+    state = pipeline.strategy_state
+    assert final_weights.FINAL_WEIGHTS not in state["stats"] and final_weights.FINAL_VIEWS not in state
+
+
+def test_a_run_whose_last_epoch_began_before_growth_ended_renders_the_views_for_the_cut(tmp_path, monkeypatch):
+    passes = []
+    real = count_trial.training_visibility
+    monkeypatch.setattr(count_trial, "training_visibility", lambda p: passes.append(p.model.num_gaussians) or real(p))
+    trainer = _trainer(tmp_path / "run", 20)  # growth stops at step 10; the last whole epoch is steps 8-15
+    trainer.train()
+    assert len(passes) == 1
+    assert final_weights.FINAL_VIEWS not in trainer.pipeline.strategy_state
+
+
+def test_summing_the_weights_changes_no_bit_of_the_run_and_the_sums_are_the_same_on_one_and_two_threads(
+        tmp_path, monkeypatch):
+    monkeypatch.setattr(Pipeline, "_final_cut", lambda pipeline, step: (0, []))  # the runs differ only here
+
+    def run(name: str, threads: int = 1):
+        trainer = _trainer(tmp_path / name, 40, num_threads=threads)
+        trainer.train()
+        state = trainer.pipeline.strategy_state
+        return {k: v.detach().clone() for k, v in trainer.pipeline.params.items()}, state
+
+    summed, state = run("summed")
+    assert final_weights.window_views(state) == VIEWS  # the window was summed (no cut cleared it)
+    _, on_two = run("two-threads", threads=2)
+    assert torch.equal(final_weights.window_totals(state, VIEWS), final_weights.window_totals(on_two, VIEWS))
+    monkeypatch.setattr(Pipeline, "_final_window_draws", lambda pipeline, step: [False] * pipeline.batch_size)
+    plain, _ = run("plain")
+    assert summed.keys() == plain.keys() and all(torch.equal(summed[k], plain[k]) for k in summed)
