@@ -347,9 +347,8 @@ class DataManager:
     def last_epoch_draws(self, count: int, draws_left: int) -> list[bool]:
         """For each of the next ``count`` draws of :meth:`next_train_indices`, whether it belongs to
         the last epoch of the order that the run's ``draws_left`` remaining draws complete
-        (:func:`in_last_epoch`). None of them while views
-        are held out: the order then passes over some of its places, and an epoch's draws are not
-        every view."""
+        (:func:`in_last_epoch`). None of them while views are held out: the order then passes over
+        some of its places, and an epoch's draws are not every view."""
         if self._held:
             return [False] * count
         return in_last_epoch(self._position, len(self._train), draws_left, count)

@@ -10,8 +10,8 @@ training views), 98 s of the cut's 143 s (docs/strategies.md).
 The run renders every view once per epoch anyway. In its last complete epoch (the last permutation
 of the training views that the run's remaining draws finish) the renderer sums the same statistics
 in the pass that draws each training image, and the cut reads those sums: no pass of its own
-(which draws are that epoch's: :meth:`~exploregs_plugin.data.datamanager.DataManager.last_epoch_draws`). The
-price is weights from parameters up to one epoch old, which after the set stops growing only the
+(which draws are that epoch's: :meth:`~exploregs_plugin.data.datamanager.DataManager.last_epoch_draws`).
+The price is weights from parameters up to one epoch old, which after the set stops growing only the
 optimiser moves; so the window counts only once the strategy no longer grows (a draw at or after
 ``refine_stop_iter``) and only renders at full size (a coarse-to-fine level's pixels weigh less).
 A window that is not whole (a run whose last epoch began before growth ended, or while views were

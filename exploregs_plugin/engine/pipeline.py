@@ -435,7 +435,9 @@ class Pipeline:
         downscale = self.schedule.downscale_at(step)  # coarse-to-fine: the step's level (1 = full size)
         camera, target, extras = self.datamanager.train_item(index, self.device, downscale)
         target = self._target_on(background, target, extras)
-        image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background, visibility_stats)
+        # the keyword only when asked: a model variant's render may take the three arguments alone
+        asked = {"visibility_stats": True} if visibility_stats else {}
+        image, _, depth, info = self.model.render(camera, self.sh_degree_at(step), background, **asked)
         error = None
         if VIEW_ERRORS in self.requires:  # guided exploration: where this view is still wrong
             error = ViewError(index, camera.viewmat, camera.K, target, (image.detach() - target).abs().mean(dim=-1))
