@@ -14,8 +14,8 @@ in the pass that draws each training image, and the cut reads those sums: no pas
 The price is weights from parameters up to one epoch old, which after the set stops growing only the
 optimiser moves; so the window counts only once the strategy no longer grows (a draw at or after
 ``refine_stop_iter``) and only renders at full size (a coarse-to-fine level's pixels weigh less).
-A window that is not whole (a run whose last epoch began before growth ended, or while views were
-held out, or that resumed with another schedule) is not used: the cut renders the views itself.
+Sums that do not hold every training view exactly once (a run whose last epoch began before growth
+ended, or while views were held out) are not used: the cut renders the views itself.
 """
 
 from __future__ import annotations
