@@ -194,6 +194,8 @@ class Pipeline:
         self.scene_extent = float(dm.scene_extent)
         self.background = dm.background.to(device)
         self.model = model_config.setup(*to_device((dm.points, dm.points_rgb), device), seed=seed)
+        # the end-of-run cut needs each Gaussian's compositing weight summed: gsplat's kernels do not
+        self.sums_weights = resolve_backend(model_config.raster, device) != "gsplat"
         self.optim = self._make_optimizer_set()
         self.loss_terms = config.loss_terms()
         strategy_config, notes = strategy_for_views(strategy_config, len(dm.train_cameras), dm.scene_name)
@@ -323,7 +325,7 @@ class Pipeline:
         share = self.strategy.final_cut_share()
         if not self._final_cut_runs():
             return 0, []
-        if resolve_backend(self.model.config.raster, self.device) == "gsplat":
+        if not self.sums_weights:
             return 0, [f"note: the end-of-run cut (--strategy.final-weight-share {share:g}) is off: gsplat's "
                        f"kernels do not sum each Gaussian's compositing weight"]
         totals = final_weights.window_totals(self.strategy_state, self._final_cut_views())
@@ -350,9 +352,8 @@ class Pipeline:
         stops growing (its rows must be the cut's), below full size, or where no cut comes (or
         gsplat's kernels, which do not sum the weights)."""
         batch = self.batch_size
-        if (not self._final_cut_runs() or step < self.strategy.refine_stop_iter
-                or self.schedule.downscale_at(step) != 1
-                or resolve_backend(self.model.config.raster, self.device) == "gsplat"):
+        if (not self._final_cut_runs() or not self.sums_weights or step < self.strategy.refine_stop_iter
+                or self.schedule.downscale_at(step) != 1):
             return [False] * batch
         return self.datamanager.last_epoch_draws(batch, (self.schedule.max_steps - step) * batch)
 
@@ -364,7 +365,7 @@ class Pipeline:
         the progress bar would otherwise spend silent at its last step."""
         if step != self.schedule.max_steps - 1 or not self._final_cut_runs():
             return None
-        if resolve_backend(self.model.config.raster, self.device) == "gsplat":
+        if not self.sums_weights:
             return None  # no cut: the step says so after it
         views = self._final_cut_views()
         summed = final_weights.window_views(self.strategy_state) + sum(self._final_window_draws(step))
