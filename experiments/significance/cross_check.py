@@ -29,7 +29,8 @@ from exploregs_plugin.strategies.count_rule import CHECK_VIEWS, evenly_spread, p
 from exploregs_plugin.strategies.default import CHECKED_SHARES
 from exploregs_plugin.strategies.significance_prune import least_significant
 
-SHARE = 0.003  # the shipped final_weight_share and final_cut_tolerance
+# the shipped final_weight_share and final_cut_tolerance (the run given has its cut off)
+SHARE = 0.003
 TOLERANCE = 0.1
 
 
