@@ -24,6 +24,8 @@ import torch
 
 from cut_criteria import scored
 from exploregs_plugin.model.significance import visibility_cut_order, visibility_totals
+from exploregs_plugin.rasterizer.composite import add_visibility_
+from exploregs_plugin.rasterizer.settings import VISIBILITY_COLUMNS
 from exploregs_plugin.runs.load import load_run
 from exploregs_plugin.strategies.count_rule import CHECK_VIEWS, evenly_spread, paired_deficit
 from exploregs_plugin.strategies.default import CHECKED_SHARES
@@ -35,15 +37,18 @@ TOLERANCE = 0.1
 
 
 def combined(per_view: torch.Tensor, views: list[int]) -> torch.Tensor:
-    """[N, 3] of ``views``: the weight and alpha sums added, the peak the largest."""
-    chosen = per_view[views]
-    return torch.stack([chosen[:, :, 0].sum(0), chosen[:, :, 1].sum(0), chosen[:, :, 2].amax(0)], dim=1)
+    """[N, 3] of ``views`` taken together as the renderer takes views together (``add_visibility_``:
+    the weight and alpha sums added, the peak the largest)."""
+    total = per_view[views[0]].clone()
+    for view in views[1:]:
+        add_visibility_(total, per_view[view])
+    return total
 
 
 def share_rows(totals: torch.Tensor, share: float | None) -> torch.Tensor:
-    """[N] bool: the rows no view of ``totals`` draws, and (``share`` not None) those a cut at
-    ``share`` takes in the order of weight x peak."""
-    undrawn = totals[:, 2] <= 0.0
+    """[N] bool: the rows no view of ``totals`` draws (no alpha, as ``DefaultStrategy.final_cut``
+    reads it), and (``share`` not None) those a cut at ``share`` takes in the order of weight x peak."""
+    undrawn = totals[:, VISIBILITY_COLUMNS.index("alpha")] <= 0.0
     if share is None:
         return undrawn
     weights = totals[:, 0]
