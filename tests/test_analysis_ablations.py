@@ -17,10 +17,19 @@ def _by_name(entries):
     return {e.name: e for e in entries}
 
 
+_BUILT: dict[tuple, TrainerConfig] = {}
+
+
 def _config(run, tmp_path: Path) -> TrainerConfig:
-    entry = BenchEntry(run.name, run.method, run.overrides, run.description)  # as the ablation presets make it
-    spec = BenchSpec(entries=(entry,), scenes=(BenchScene("tiny", "builtin:tiny"),), steps=5)
-    return build_config(spec, spec.scenes[0], entry, 0, tmp_path)
+    """The config eg-bench builds for the entry. Built once per entry for the module (tyro parses an
+    entry's overrides in a few tenths of a second, and the three experiment tests share 27 entries);
+    the key is all an entry is made of, and the run folder is no part of what the tests read."""
+    key = (run.name, run.method, tuple(run.overrides), run.description)
+    if key not in _BUILT:
+        entry = BenchEntry(run.name, run.method, run.overrides, run.description)  # as the ablation presets make it
+        spec = BenchSpec(entries=(entry,), scenes=(BenchScene("tiny", "builtin:tiny"),), steps=5)
+        _BUILT[key] = build_config(spec, spec.scenes[0], entry, 0, tmp_path)
+    return _BUILT[key]
 
 
 def test_branch_ablation_covers_every_subset_once(tmp_path):

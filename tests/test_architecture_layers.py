@@ -10,7 +10,10 @@ Every import counts, including those inside functions and under TYPE_CHECKING.
 from __future__ import annotations
 
 import ast
+import functools
 from pathlib import Path
+
+import pytest
 
 import exploregs_plugin
 
@@ -35,12 +38,21 @@ def _module_name(path: Path, root: Path = PACKAGE.parent) -> str:
     return ".".join(parts)
 
 
+@functools.lru_cache(maxsize=None)
+def _statements(path: Path) -> tuple[ast.stmt, ...]:
+    """The import statements and class definitions of ``path``, at any depth (functions and
+    ``if TYPE_CHECKING:`` included): the only nodes the checks below read. Parsed once per session:
+    every check walks the same ~200 files, and parsing them is about a second of CPU each time."""
+    tree = ast.parse(path.read_text(encoding="utf-8"))
+    return tuple(node for node in ast.walk(tree) if isinstance(node, (ast.Import, ast.ImportFrom, ast.ClassDef)))
+
+
 def _imports(path: Path) -> set[str]:
     """Every exploregs_plugin module ``path`` imports (absolute names)."""
     module = _module_name(path)
     package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
     found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in _statements(path):
         if isinstance(node, ast.ImportFrom):
             if node.level:
                 base = package[: len(package) - (node.level - 1)]
@@ -59,6 +71,7 @@ def _unit(module: str) -> str:
     return parts[1] if len(parts) > 1 else ""
 
 
+@functools.lru_cache(maxsize=None)
 def _graph() -> dict[str, set[str]]:
     return {_module_name(p): _imports(p) for p in sorted(PACKAGE.rglob("*.py"))}
 
@@ -92,31 +105,74 @@ def test_io_knows_formats_only():
             assert {_unit(t) for t in imports} <= {"io", "cameras"}, (module, imports)
 
 
-def test_training_loads_the_viewer_and_tensorboard_only_when_used():
+LAZY_IN_TRAINING = ("viser", "tensorboard", "torch.utils.tensorboard")
+"""The viewer's server and tensorboard: they cost a quarter second and more at every start of eg-train,
+a bench worker or eg-eval, so they load when a viewer or a writer is built."""
+LAZY_IN_HELP = ("pycolmap", "viser", "exploregs_plugin.data.builtin.presets", "exploregs_plugin.data.process.run")
+"""pycolmap, viser and the built-in scenes' generator: they load when a capture is read or posed, a page
+written, a scene made, not when eg-train, eg-process or eg-export --help imports what it prints."""
+IMPORT_PROBES = {
+    "training": (("exploregs_plugin.scripts.train", "exploregs_plugin.bench.worker"), LAZY_IN_TRAINING),
+    "help": (("exploregs_plugin.scripts.train", "exploregs_plugin.scripts.process", "exploregs_plugin.scripts.export"),
+             LAZY_IN_HELP),
+}
+"""Probe name -> (the modules a fresh interpreter imports, the modules that must not load with them)."""
+
+
+@pytest.fixture(scope="module")
+def fresh_imports() -> dict[str, list[str]]:
+    """Probe name -> the forbidden modules that loaded, in a fresh interpreter that imported the probe's
+    modules. One interpreter for every probe: it imports the package and torch (what every probe
+    pays for, about 2 s of CPU, loading none of the forbidden modules) and then forks a child per
+    probe, so each probe's modules are imported into an interpreter that has seen only that much."""
+    import json
+    import subprocess
+    import sys
+
+    probe = f"""
+import json, os, sys
+import exploregs_plugin, torch  # the package first, as it imports itself
+probes = {IMPORT_PROBES!r}
+found = {{"before the probes": sorted(m for _, forbidden in probes.values() for m in forbidden if m in sys.modules)}}
+for name, (modules, forbidden) in probes.items():
+    read, write = os.pipe()
+    pid = os.fork()
+    if pid == 0:  # the child: import, answer, and never run the rest of this script
+        try:
+            os.close(read)
+            for module in modules:
+                __import__(module)
+            os.write(write, json.dumps(sorted(m for m in forbidden if m in sys.modules)).encode())
+        except BaseException:
+            import traceback
+            traceback.print_exc()
+            os._exit(1)
+        os._exit(0)
+    os.close(write)
+    with os.fdopen(read) as answer:
+        text = answer.read()
+    _, status = os.waitpid(pid, 0)
+    found[name] = json.loads(text) if status == 0 else f"the probe failed (exit status {{status}}), see stderr"
+print(json.dumps(found))
+"""
+    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    found = json.loads(out.stdout.strip().splitlines()[-1])
+    assert all(isinstance(v, list) for v in found.values()), (found, out.stderr[-2000:])
+    assert found.pop("before the probes") == []  # the shared start loads none of what a probe looks for
+    return found
+
+
+def test_training_loads_the_viewer_and_tensorboard_only_when_used(fresh_imports):
     # the viewer's server (viser) and tensorboard cost a quarter second and more at every start of
     # eg-train, a bench worker or eg-eval; they load when a viewer or a writer is built
-    import subprocess
-    import sys
-
-    probe = ("import sys, exploregs_plugin.scripts.train, exploregs_plugin.bench.worker; "
-             "print(sorted(m for m in ('viser', 'tensorboard', 'torch.utils.tensorboard') if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.strip() == "[]"
+    assert fresh_imports["training"] == []
 
 
-def test_the_commands_help_loads_no_reader_viewer_or_scene_generator():
+def test_the_commands_help_loads_no_reader_viewer_or_scene_generator(fresh_imports):
     # eg-train, eg-process and eg-export --help import what they print: pycolmap, viser and the
     # built-in scenes' generator load when a capture is read or posed, a page written, a scene made
-    import subprocess
-    import sys
-
-    heavy = ("pycolmap", "viser", "exploregs_plugin.data.builtin.presets", "exploregs_plugin.data.process.run")
-    probe = ("import sys, exploregs_plugin.scripts.train, exploregs_plugin.scripts.process, "
-             f"exploregs_plugin.scripts.export; print(sorted(m for m in {heavy!r} if m in sys.modules))")
-    out = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.strip() == "[]"
+    assert fresh_imports["help"] == []
     # and they still load where used: the lazy names resolve
     from exploregs_plugin import data
     from exploregs_plugin.data import process
@@ -132,7 +188,7 @@ def _module_imports(path: Path, modules: set[str], root: Path = PACKAGE.parent) 
     module = _module_name(path, root)
     package = module.split(".") if path.name == "__init__.py" else module.split(".")[:-1]
     found: set[str] = set()
-    for node in ast.walk(ast.parse(path.read_text())):
+    for node in _statements(path):
         if isinstance(node, ast.ImportFrom):
             base = package[: len(package) - (node.level - 1)] if node.level else []
             name = ".".join(base + ([node.module] if node.module else []))
@@ -205,7 +261,7 @@ def test_no_two_classes_of_the_package_share_a_name():
     # one name, one class: a reader (or an import) never has to ask which SeedSplitStrategy is meant
     defined: dict[str, list[str]] = {}
     for path in sorted(PACKAGE.rglob("*.py")):
-        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        for node in _statements(path):
             if isinstance(node, ast.ClassDef):
                 defined.setdefault(node.name, []).append(str(path.relative_to(PACKAGE)))
     assert {name: where for name, where in defined.items() if len(where) > 1} == {}

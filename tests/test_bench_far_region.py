@@ -36,8 +36,7 @@ def _train(run_dir: Path, seed: int) -> Path:
     from exploregs_plugin.scripts.train import parse_config
 
     parse_config(["exploregs-default", "--data", "builtin:tiny", "--max-steps", "20", "--seed", str(seed), "--quiet",
-                  "--no-tensorboard", "--eval-count", "1", "--num-threads", "1", "--run-dir", str(run_dir),
-                  "--model.raster.backend", "torch"]).setup().train()
+                  "--no-tensorboard", "--eval-count", "1", "--num-threads", "1", "--run-dir", str(run_dir)]).setup().train()
     return run_dir
 
 

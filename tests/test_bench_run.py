@@ -38,42 +38,72 @@ def one_thread_per_run():
         yield
 
 
+def _worker_in_this_process(cmd, stdout, stderr, timeout):
+    """``subprocess.run`` of a run's worker (``python -m exploregs_plugin.bench.worker RUN_DIR``) as
+    a call of the worker's main in this process, on one thread, its output into the run's bench.log
+    as the process's would go."""
+    import contextlib
+    import subprocess
+
+    import torch
+
+    from exploregs_plugin.bench import worker
+
+    assert cmd[1:3] == ["-m", "exploregs_plugin.bench.worker"] and stderr is subprocess.STDOUT, cmd
+    threads = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stdout):
+            returncode = worker.main(cmd[3:])
+    finally:
+        torch.set_num_threads(threads)
+    return subprocess.CompletedProcess(cmd, returncode)
+
+
+def _runner_subprocess(run):
+    """What bench/runner.py reaches as ``subprocess``, with ``run`` in place of subprocess.run."""
+    import subprocess
+    from types import SimpleNamespace
+
+    return SimpleNamespace(run=run, STDOUT=subprocess.STDOUT, TimeoutExpired=subprocess.TimeoutExpired)
+
+
 @pytest.fixture(scope="module")
 def bench(tmp_path_factory, tiny_scene_dir, one_thread_per_run):
+    """The two-run bench, end to end. The ``default`` run starts its worker as the bench does, a real
+    process (what proves that ``python -m exploregs_plugin.bench.worker`` trains a run and reports
+    it); the ``seed`` run's worker is called in this process, which saves an interpreter and a
+    torch import (2-3 s of CPU) and changes nothing the tests read (its folder, metrics and log)."""
+    import subprocess
+
+    from exploregs_plugin.bench import runner
+
+    processes: list[Path] = []
+
+    def default_in_a_process(cmd, stdout, stderr, timeout):
+        if Path(cmd[3]) == run_dir_for(out, "tiny", "default", 0):
+            processes.append(Path(cmd[3]))
+            return subprocess.run(cmd, stdout=stdout, stderr=stderr, timeout=timeout)
+        return _worker_in_this_process(cmd, stdout, stderr, timeout)
+
     out = tmp_path_factory.mktemp("bench")
     logs: list[str] = []
-    payload = run_bench(tiny_spec(), out, RunOptions(log=logs.append), command="eg-bench (test)")
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(runner, "subprocess", _runner_subprocess(default_in_a_process))
+        payload = run_bench(tiny_spec(), out, RunOptions(log=logs.append), command="eg-bench (test)")
+    assert set(processes) == {run_dir_for(out, "tiny", "default", 0)}  # the default run did start a real process
     return out, payload, logs
 
 
 @pytest.fixture()
 def workers_in_this_process(monkeypatch):
-    """The bench starts each run's worker (``python -m exploregs_plugin.bench.worker RUN_DIR``) as a
-    call of the worker's main in this process, on one thread, its output into the run's bench.log
-    as the process's would go: for a test of what the bench decides and records rather than of how
-    a run is started, which saves an interpreter and a torch import per run. The runs of ``bench``
-    start real processes."""
-    import contextlib
-    import subprocess
-    from types import SimpleNamespace
+    """The bench starts each run's worker as a call of the worker's main in this process
+    (``_worker_in_this_process``): for a test of what the bench decides and records rather than of
+    how a run is started, which saves an interpreter and a torch import per run. The ``default``
+    run of ``bench`` starts a real process."""
+    from exploregs_plugin.bench import runner
 
-    import torch
-
-    from exploregs_plugin.bench import runner, worker
-
-    def run(cmd, stdout, stderr, timeout):
-        assert cmd[1:3] == ["-m", "exploregs_plugin.bench.worker"] and stderr is subprocess.STDOUT, cmd
-        threads = torch.get_num_threads()
-        torch.set_num_threads(1)
-        try:
-            with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stdout):
-                returncode = worker.main(cmd[3:])
-        finally:
-            torch.set_num_threads(threads)
-        return subprocess.CompletedProcess(cmd, returncode)
-
-    monkeypatch.setattr(runner, "subprocess", SimpleNamespace(run=run, STDOUT=subprocess.STDOUT,
-                                                              TimeoutExpired=subprocess.TimeoutExpired))
+    monkeypatch.setattr(runner, "subprocess", _runner_subprocess(_worker_in_this_process))
 
 
 def _metrics(out: Path, entry: str) -> dict:
@@ -124,6 +154,17 @@ def test_table_numbers_equal_each_runs_metrics(bench):
     summary = {s["entry"]: s for s in payload["summary"]}
     assert summary["seed"]["paired"]["psnr"]["mean"] == pytest.approx(diff, abs=1e-9)
     assert summary["seed"]["paired"]["psnr"]["n"] == 1
+
+
+def test_a_dry_run_counts_the_finished_runs_of_the_same_config_only(bench):
+    from exploregs_plugin.scripts.bench import describe
+
+    out, _, _ = bench
+    assert "  2 runs already finished in " + str(out) + " are reused" in describe(tiny_spec(), out)
+    # another step count is another config: nothing to reuse (a folder's metrics.json alone is not enough)
+    assert not any("already finished" in line for line in describe(replace(tiny_spec(), steps=STEPS + 1), out))
+    # a folder without metrics.json is unfinished, whatever its config
+    assert not any("already finished" in line for line in describe(tiny_spec(), out / "elsewhere"))
 
 
 def test_rerun_reuses_finished_runs_and_resumes_unfinished(bench, workers_in_this_process):

@@ -36,15 +36,29 @@ from exploregs_plugin.engine.trainer import Trainer
 
 WORKER = Path(__file__).with_name("distributed_worker.py")
 METHODS = ("exploregs-default", "exploregs-seedsplit", "exploregs-mcmc", "exploregs-guided-occlusion")
-STEPS = 60
+STEPS = 20
+"""At 2 views a step (2 ranks, or one process with --batch-size 2) the schedule of tiny_argv
+densifies at steps 3, 6 and 9, resets the opacities at step 6 and stops densifying at step 10, with
+a checkpoint every 5 steps (all kept): every event the comparisons need, in few steps (the densified
+Gaussians are most of a run's cost)."""
 
 
 def tiny_argv(method: str, run_dir: Path, *extra: str, steps: int = STEPS) -> list[str]:
-    """eg-train arguments of a short tiny run with five densifications and an opacity reset."""
+    """eg-train arguments of a short tiny run with three densifications and an opacity reset."""
     return [method, "--data", "builtin:tiny", "--max-steps", str(steps), "--run-dir", str(run_dir),
             "--quiet", "--no-tensorboard", "--eval-count", "1", "--no-save-eval-images", "--num-threads", "1",
-            "--checkpoint-every", "20", "--schedule.min-refine-every", "10", "--schedule.min-reset-every", "40",
-            *extra]
+            "--checkpoint-every", "5", "--keep-checkpoints", "10", "--schedule.min-refine-every", "6",
+            "--schedule.min-reset-every", "12", *extra]
+
+
+METHOD_FLAGS = {"exploregs-mcmc": ("--strategy.min-opacity", "0.05")}
+"""Per method, flags that make its short run take every path the comparisons cover: MCMC relocates
+its dead Gaussians (at or below min-opacity), none of which a run this short has at the default."""
+
+
+def method_argv(method: str, run_dir: Path, *extra: str) -> list[str]:
+    """tiny_argv of a method's run in the comparisons (2 ranks against one process)."""
+    return tiny_argv(method, run_dir, *METHOD_FLAGS.get(method, ()), *extra)
 
 
 def worker_env() -> dict[str, str]:
@@ -73,9 +87,10 @@ def assert_close(a: dict[str, torch.Tensor], b: dict[str, torch.Tensor], rtol: f
 def two_rank_runs(tmp_path_factory, tiny_scene_dir):
     """One torchrun launch: each method at 2 ranks x 1 view, then a run in which rank 1 drifts."""
     root = tmp_path_factory.mktemp("dist")
-    entries = [{"name": m, "argv": tiny_argv(m, root / "runs" / m)} for m in METHODS]
+    entries = [{"name": m, "argv": method_argv(m, root / "runs" / m)} for m in METHODS]
+    # after the densification window (which ends at step 10), before the checkpoint at 15
     entries.append({"name": "drift", "argv": tiny_argv("exploregs-default", root / "runs" / "drift"),
-                    "diverge_at": 32})  # after the last densification (step 30), before the checkpoint at 40
+                    "diverge_at": 11})
     result = torchrun(root / "out", entries)
     assert result.returncode == 0, result.stderr[:6000]
     return root
@@ -89,7 +104,7 @@ def one_process_runs(tmp_path_factory):
 
     def run(method: str):
         if method not in runs:
-            trainer = parse_config(tiny_argv(method, root / method, "--batch-size", "2")).setup()
+            trainer = parse_config(method_argv(method, root / method, "--batch-size", "2")).setup()
             runs[method] = (trainer, trainer.train())
         return runs[method]
 
@@ -194,9 +209,10 @@ def test_two_ranks_equal_one_process_with_two_views(two_rank_runs, one_process_r
     ranks = load_rank(two_rank_runs, method, 0)
     assert ranks["num_gaussians"] == trainer.pipeline.model.num_gaussians
     assert_close(ranks["params"], reference)
-    # the run densified at least twice (and the counts agree)
-    events = {"exploregs-mcmc": "added"}.get(method, "cloned")
-    assert ranks["counts"] == trainer.op_totals and ranks["counts"].get(events, 0) > 0
+    # the run densified at least twice and reset the opacities, or added and relocated Gaussians
+    # (and the counts agree)
+    events = {"exploregs-mcmc": ("added", "relocated")}.get(method, ("cloned", "opacity_reset"))
+    assert ranks["counts"] == trainer.op_totals and all(ranks["counts"].get(e, 0) > 0 for e in events)
     assert trainer.schedule.refine_every * 2 < trainer.schedule.refine_stop - trainer.schedule.refine_start
 
 
@@ -210,10 +226,10 @@ def test_all_ranks_hold_identical_parameters(two_rank_runs, method):
 def test_rank_that_drifts_stops_the_run_at_the_next_checkpoint(two_rank_runs):
     folder = two_rank_runs / "out" / "drift"
     errors = [(folder / f"rank{r}.error").read_text() for r in (0, 1)]
-    assert all("rank(s) [1] differ from rank 0" in e and "step 40" in e for e in errors)
+    assert all("rank(s) [1] differ from rank 0" in e and "step 15" in e for e in errors)
     # the drifted state never reached a checkpoint
     run = two_rank_runs / "runs" / "drift"
-    assert [p.name for p in list_checkpoints(run)] == ["step-0000020.pt"]
+    assert [p.name for p in list_checkpoints(run)] == ["step-0000005.pt", "step-0000010.pt"]
 
 
 def test_two_rank_checkpoint_resumes_in_one_process(two_rank_runs, tmp_path):
@@ -221,9 +237,10 @@ def test_two_rank_checkpoint_resumes_in_one_process(two_rank_runs, tmp_path):
     copy = tmp_path / "resumed"
     (copy / "checkpoints").mkdir(parents=True)
     shutil.copy(source / "config.yml", copy / "config.yml")
-    shutil.copy(source / "checkpoints" / "step-0000020.pt", copy / "checkpoints")
+    # before two densifications and the opacity reset: the resumed run does them
+    shutil.copy(source / "checkpoints" / "step-0000005.pt", copy / "checkpoints")
     trainer = Trainer.from_run(copy, num_devices=1)
-    assert trainer.world.size == 1 and trainer.pipeline.batch_size == 2 and trainer.start_step == 20
+    assert trainer.world.size == 1 and trainer.pipeline.batch_size == 2 and trainer.start_step == 5
     trainer.train()
     assert_close({k: v.detach() for k, v in trainer.pipeline.params.items()},
                  load_rank(two_rank_runs, "exploregs-seedsplit", 0)["params"])

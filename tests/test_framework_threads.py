@@ -24,13 +24,14 @@ PROBE_COMMAND = """
 run_cli("probe", lambda _: print("threads", torch.get_num_threads(), os.environ.get("OMP_WAIT_POLICY")), None)
 """
 PROBE = PROBE_IMPORTS + PROBE_COMMAND
-PROBE_ON_CUE = PROBE_IMPORTS + """
+PROBE_TWICE_ON_CUE = PROBE + """
 import sys
 print("imported", flush=True)
 sys.stdin.readline()
 """ + PROBE_COMMAND
-"""The probe, holding its command until a line on stdin: a competitor started then has to keep its
-CPU busy only while the command measures, not through the seconds of importing torch."""
+"""The probe, then its command again on a line on stdin: a competitor started then has to keep its
+CPU busy only while the second command measures, not through the seconds of importing torch (the
+first command is a command without a competitor, in the same process: one torch import less)."""
 
 
 def probe_environ(**env: str) -> dict[str, str]:
@@ -54,32 +55,46 @@ def test_commands_wait_passively_with_one_thread_per_allowed_cpu():
     assert line == "threads 1 PASSIVE"
     spin = [ln.strip() for ln in runtime.splitlines() if "GOMP_SPINCOUNT" in ln]
     assert spin and set(spin) == {"GOMP_SPINCOUNT = '0'"}, spin  # set before torch loaded its runtime
-    # every CPU allowed: at most as many threads as CPUs (fewer while other processes keep some busy)
-    line, _ = probe()
-    assert line.endswith(" PASSIVE") and 1 <= int(line.split()[1]) <= len(os.sched_getaffinity(0))
+    # every CPU allowed: the test below runs the command on two CPUs before a competitor comes (on a
+    # machine of one CPU the probe above is that command)
+
+
+def ended(proc: subprocess.Popen) -> str:
+    """The end of the stderr of a probe that went wrong, killed first: one that waits for its cue
+    would never close it."""
+    proc.kill()
+    return proc.stderr.read()[-2000:]
 
 
 @pytest.mark.skipif(not hasattr(os, "sched_setaffinity") or len(os.sched_getaffinity(0)) < 2,
                     reason="needs two CPUs and CPU affinity (Linux)")
 def test_a_busy_process_on_one_of_two_cpus_leaves_one_thread():
     a, b = sorted(os.sched_getaffinity(0))[:2]
-    command = subprocess.Popen([sys.executable, "-c", PROBE_ON_CUE], env=probe_environ(), stdin=subprocess.PIPE,
-                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+    command = subprocess.Popen([sys.executable, "-c", PROBE_TWICE_ON_CUE], env=probe_environ(),
+                               stdin=subprocess.PIPE, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                                preexec_fn=lambda: os.sched_setaffinity(0, {a, b}))
     busy = None
     try:
-        assert command.stdout.readline().strip() == "imported", command.stderr.read()[-2000:]
+        # before the competitor, every CPU the command may use is allowed a thread: passive, at most
+        # a thread per CPU (fewer while other processes keep some busy)
+        first = command.stdout.readline().strip()
+        assert first.startswith("threads ") and first.endswith(" PASSIVE"), (first, ended(command))
+        assert 1 <= int(first.split()[1]) <= 2, first
+        assert command.stdout.readline().strip() == "imported", ended(command)
         busy = subprocess.Popen([sys.executable, "-c", "print('spinning', flush=True)\nwhile True: pass"],
                                 stdout=subprocess.PIPE, text=True, preexec_fn=lambda: os.sched_setaffinity(0, {a}))
         assert busy.stdout.readline().strip() == "spinning"
-        out, err = command.communicate("go\n", timeout=120)
+        command.stdin.write("go\n")
+        command.stdin.flush()
+        line = command.stdout.readline().strip()
+        busy.kill()  # the command has measured: no need to spin while it exits
+        out, err = command.communicate(timeout=120)
     finally:
         for proc in (busy, command):
             if proc is not None:
                 proc.kill()
                 proc.wait()
     assert command.returncode == 0, err[-2000:]
-    line = out.strip().splitlines()[-1]
     assert line == "threads 1 PASSIVE"
 
 

@@ -32,9 +32,12 @@ def dynamic_config(method: str, run_dir: Path, **overrides):
 
 
 @pytest.fixture(scope="module")
-def split_run(tmp_path_factory, exploregs_cache):
-    run_dir = tmp_path_factory.mktemp("split-4d")
-    trainer = dynamic_config("exploregs-4d-split", run_dir).setup()
+def seedsplit_run(tmp_path_factory, exploregs_cache):
+    """A whole run of exploregs-4d-seedsplit (random seeding, and random splitting 5 per step): read
+    by the tests below, and the uninterrupted run that a run cut by Ctrl-C and resumed must equal
+    (its folder and trainer are read, never changed)."""
+    run_dir = tmp_path_factory.mktemp("seedsplit-4d")
+    trainer = dynamic_config("exploregs-4d-seedsplit", run_dir).setup()
     metrics = trainer.train()
     return run_dir, trainer, metrics
 
@@ -48,8 +51,8 @@ def test_dynamic_methods_are_registered():
     assert get_method("exploregs-4d-seedsplit").config.pipeline.strategy.splitting.n_split == 5
 
 
-def test_dynamic_run_trains_deforms_and_reports_frames(split_run):
-    run_dir, trainer, metrics = split_run
+def test_dynamic_run_trains_deforms_and_reports_frames(seedsplit_run):
+    run_dir, trainer, metrics = seedsplit_run
     model = trainer.pipeline.model
     assert bool(model.deformation.active)
     # the deformation learned something: the field's last layers left zero
@@ -99,9 +102,8 @@ def test_strategies_change_canonical_gaussians_field_keeps_its_state(tmp_path, e
     assert math.isclose(lrs["grid"] / (d.grid_lr * extent), lrs["mlp"] / (d.mlp_lr * extent), rel_tol=1e-9)
 
 
-def test_checkpoint_and_resume_of_a_dynamic_run_is_bit_identical(tmp_path, exploregs_cache, ctrl_c_after_step):
-    full = dynamic_config("exploregs-4d-seedsplit", tmp_path / "full").setup()
-    full.train()
+def test_checkpoint_and_resume_of_a_dynamic_run_is_bit_identical(tmp_path, seedsplit_run, ctrl_c_after_step):
+    full_dir, full, _ = seedsplit_run  # the same config, trained without a cut
     cut = dynamic_config("exploregs-4d-seedsplit", tmp_path / "cut").setup()
     ctrl_c_after_step.arm(25)
     with pytest.raises(KeyboardInterrupt):
@@ -113,7 +115,7 @@ def test_checkpoint_and_resume_of_a_dynamic_run_is_bit_identical(tmp_path, explo
     resumed.train()
     for (name, a), (_, b) in zip(full.pipeline.trained_tensors(), resumed.pipeline.trained_tensors()):
         assert torch.equal(a, b), name
-    assert json.loads((tmp_path / "full" / "metrics.json").read_text())["psnr"] == \
+    assert json.loads((full_dir / "metrics.json").read_text())["psnr"] == \
         json.loads((tmp_path / "cut" / "metrics.json").read_text())["psnr"]
 
 
@@ -142,10 +144,10 @@ def test_a_checkpoint_from_before_model_parts_loads_its_field(tmp_path, exploreg
         static.pipeline.load_state_dict(old)
 
 
-def test_eg_render_renders_the_test_camera_over_time(split_run, tmp_path):
+def test_eg_render_renders_the_test_camera_over_time(seedsplit_run, tmp_path):
     from exploregs_plugin.scripts.render import RenderArgs, main
 
-    run_dir, _, _ = split_run
+    run_dir, _, _ = seedsplit_run
     out = main(RenderArgs(path=run_dir, out=tmp_path / "test", video=False, device="cpu"))
     assert len(out.frames) == 6
     frames = [np.asarray(Image.open(p), dtype=np.float64) for p in out.frames]
@@ -169,12 +171,12 @@ def test_time_on_a_static_run_is_refused(tmp_path, tiny_scene_dir):
         main(RenderArgs(path=tmp_path / "run", out=tmp_path / "r", video=False, device="cpu", time=0.5))
 
 
-def test_viewer_snapshot_carries_a_copy_of_the_field_and_renders_the_chosen_time(split_run):
+def test_viewer_snapshot_carries_a_copy_of_the_field_and_renders_the_chosen_time(seedsplit_run):
     from exploregs_plugin.viewer.display import render_frame
     from exploregs_plugin.viewer.scene import ViewerScene
     from exploregs_plugin.viewer.snapshot import SnapshotStore
 
-    _, trainer, _ = split_run
+    _, trainer, _ = seedsplit_run
     pipeline = trainer.pipeline
     scene = ViewerScene.from_pipeline(pipeline)
     assert scene.deformation is not None
@@ -202,11 +204,11 @@ def test_viewer_snapshot_carries_a_copy_of_the_field_and_renders_the_chosen_time
     assert ViewerScene.from_params(scene.params()).deformation is None
 
 
-def test_eg_export_writes_the_scene_at_a_time(split_run, tmp_path):
+def test_eg_export_writes_the_scene_at_a_time(seedsplit_run, tmp_path):
     from exploregs_plugin.io.ply import read_ply
     from exploregs_plugin.scripts.export import ExportArgs, main
 
-    run_dir, trainer, _ = split_run
+    run_dir, trainer, _ = seedsplit_run
     model = trainer.pipeline.model
     canonical = main(ExportArgs(path=run_dir, out=tmp_path / "c.ply", frame="normalized", device="cpu"))
     moment = main(ExportArgs(path=run_dir, out=tmp_path / "t.ply", frame="normalized", device="cpu", time=0.8))

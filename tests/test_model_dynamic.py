@@ -93,7 +93,10 @@ def test_field_gradients_match_finite_differences():
         dx, dq, ds = field(m, 0.37)
         return torch.cat([dx, dq, ds], dim=1)
 
-    assert torch.autograd.gradcheck(fn, params, eps=1e-6, atol=1e-5, rtol=1e-4)
+    # fast mode compares the analytical and the numerical Jacobian through random vectors on both
+    # sides (u^T J v), which a wrong entry anywhere moves: the same check of every input's gradient,
+    # without the 2 x 850 evaluations of the whole numerical Jacobian (4.3 s of CPU; 0.15 s)
+    assert torch.autograd.gradcheck(fn, params, eps=1e-6, atol=1e-5, rtol=1e-4, fast_mode=True)
 
 
 def test_field_offsets_are_continuous_in_time():
@@ -102,7 +105,12 @@ def test_field_offsets_are_continuous_in_time():
     means = torch.rand(10, 3, generator=torch.Generator().manual_seed(4), dtype=torch.float64) * 1.6 - 0.8
     ts = torch.linspace(0.0, 1.0, 2001, dtype=torch.float64)
     with torch.no_grad():
-        values = torch.stack([torch.cat(field(means, float(t)), dim=1) for t in ts])  # [T, N, 10]
+        # the 2001 times in one batch of rows (the field's forward, its coordinates taken at each
+        # time): every operator works row by row, and one call costs what 2001 calls cost in overhead
+        q = torch.cat([field.normalized_coords(means, float(t)) for t in ts])
+        values = torch.cat(field.decoder(field.grid(q)), dim=1).reshape(len(ts), len(means), 10)  # [T, N, 10]
+        for i in (0, 737, 2000):  # the batch is what the field gives at each time
+            assert torch.allclose(values[i], torch.cat(field(means, float(ts[i])), dim=1), rtol=1e-12, atol=1e-14)
     steps = (values[1:] - values[:-1]).abs().amax(dim=(1, 2))
     assert float(steps.max()) < 50 * float(steps.median()) + 1e-9  # no jump anywhere
     assert float(steps.max()) < 0.05 * float((values.amax(0) - values.amin(0)).max())

@@ -10,7 +10,8 @@ from exploregs_plugin.cameras import Camera
 from exploregs_plugin.model.gaussians import render_params, rgb_to_sh0
 from exploregs_plugin.rasterizer import RasterSettings
 from exploregs_plugin.runs import load_run
-from exploregs_plugin.model.significance import most_significant, visibility_cut_order, visibility_totals
+from exploregs_plugin.model.significance import (CUT_COLUMNS, add_view_, cut_order, most_significant,
+                                                visibility_cut_order, visibility_totals)
 from exploregs_plugin.runs.simplify import simplify
 
 
@@ -59,9 +60,12 @@ def test_the_peak_is_the_largest_weight_at_one_pixel_over_the_views():
     near, far = _camera(), _camera(focal=25.0)
     one, other = (visibility_totals(params, [c], RasterSettings()) for c in (near, far))
     both = visibility_totals(params, [near, far], RasterSettings())
-    assert both.shape == (2, 3)
+    assert both.shape == (2, 4)
     torch.testing.assert_close(both[:, :2], one[:, :2] + other[:, :2])  # the sums add over the views
     torch.testing.assert_close(both[:, 2], torch.maximum(one[:, 2], other[:, 2]))  # the peak is the larger
+    # the view weight: the summed weight of the view that draws the row most
+    torch.testing.assert_close(one[:, 3], one[:, 0])
+    torch.testing.assert_close(both[:, 3], torch.maximum(one[:, 0], other[:, 0]))
     # the opaque one in front paints the pixel at its centre almost alone; the other's peak is about its
     # opacity, 0.5, at its own centre (the opaque one, 7 pixels away, covers little of it)
     assert 0.9 < float(both[1, 2]) <= RasterSettings().alpha_max
@@ -77,6 +81,20 @@ def test_the_cut_keeps_a_small_opaque_gaussian_over_a_wide_faint_one_that_paints
     assert weight[0] > 2 * weight[1] and peak[1] > 10 * peak[0]
     assert most_significant(weight, 1).tolist() == [True, False]  # the weight alone keeps the faint one
     assert most_significant(visibility_cut_order(totals), 1).tolist() == [False, True]
+
+
+def test_the_cut_keeps_a_gaussian_one_view_needs_over_one_that_paints_as_little_in_each_of_many():
+    # row 0: the side of an object that one photo of a 360-degree capture sees, weight 4 there; row
+    # 1: weight 1 in each of six photos. Summed over the views row 1 paints more (6 against 4), but
+    # removing it costs each photo little; removing row 0 costs its photo four times as much
+    views = [torch.tensor([[4.0, 4.0, 0.5], [1.0, 1.0, 0.5]], dtype=torch.float64)]
+    views += [torch.tensor([[0.0, 0.0, 0.0], [1.0, 1.0, 0.5]], dtype=torch.float64)] * 5
+    totals = torch.zeros(2, len(CUT_COLUMNS), dtype=torch.float64)
+    for view in views:
+        add_view_(totals, view)
+    assert totals.tolist() == [[4.0, 4.0, 0.5, 4.0], [6.0, 6.0, 0.5, 1.0]]
+    assert most_significant(cut_order(totals[:, 0], totals[:, 2]), 1).tolist() == [False, True]  # summed: row 1
+    assert most_significant(visibility_cut_order(totals), 1).tolist() == [True, False]
 
 
 def test_a_gaussian_hidden_behind_an_opaque_one_is_not_significant():

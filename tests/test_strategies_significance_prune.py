@@ -157,7 +157,7 @@ def test_the_end_of_run_cut_removes_the_least_significant_rows_and_says_the_coun
     # row 5: drawn by no training view, so it paints nothing training sees: cut at no cost to the share
     drawn = torch.tensor([3.0, 1.0, 2.0, 1.0, 2.0, 0.0], dtype=torch.float64)
     peaks = torch.tensor([0.5, 0.5, 0.5, 0.5, 0.5, 0.0], dtype=torch.float64)
-    visibility = torch.stack([weights, drawn, peaks], dim=1)
+    visibility = torch.stack([weights, drawn, peaks, weights], dim=1)  # one view's: its weight is the view weight
     assert strategy.final_cut(params, optimizers, state, visibility, step=99) == 3
     assert torch.equal(params["means"].detach(), kept_means)
     assert optimizers["means"].param_groups[0]["params"][0] is params["means"]  # the optimizer follows
@@ -174,7 +174,7 @@ def test_the_end_of_run_cut_spends_its_share_on_faint_rows_and_keeps_a_row_that_
     strategy = DefaultStrategy(final_weight_share=0.1)
     weights = torch.tensor([10.0, 0.6, 5.0, 1.2, 4.0, 0.7], dtype=torch.float64)  # total 21.5: budget 2.15
     peaks = torch.tensor([0.5, 0.9, 0.5, 0.02, 0.5, 0.03], dtype=torch.float64)
-    visibility = torch.stack([weights, torch.ones(6, dtype=torch.float64), peaks], dim=1)
+    visibility = torch.stack([weights, torch.ones(6, dtype=torch.float64), peaks, weights], dim=1)
     kept_means = params["means"].detach()[[0, 1, 2, 4]].clone()
     # by weight alone rows 1 and 5 (0.6 + 0.7) would go; by weight x peak rows 5 and 3 (0.7 + 1.2),
     # and row 1, which paints its pixels almost alone, stays
@@ -196,7 +196,7 @@ def _checked_cut_case(tolerance: float, nan_at: int | None = None, loss_per_shar
     weights = 10.0 ** (4.0 * torch.rand(n, generator=g, dtype=torch.float64))
     drawn = torch.ones(n, dtype=torch.float64)
     weights[-5:], drawn[-5:] = 0.0, 0.0
-    visibility = torch.stack([weights, drawn, torch.ones(n, dtype=torch.float64)], 1)
+    visibility = torch.stack([weights, drawn, torch.ones(n, dtype=torch.float64), weights], 1)
     seen: list[torch.Tensor] = []
 
     def score_without(rows: torch.Tensor) -> list[float]:

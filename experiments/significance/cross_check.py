@@ -23,8 +23,7 @@ import argparse
 import torch
 
 from cut_criteria import scored
-from exploregs_plugin.model.significance import visibility_cut_order, visibility_totals
-from exploregs_plugin.rasterizer.composite import add_visibility_
+from exploregs_plugin.model.significance import VIEW_WEIGHT, add_view_, visibility_cut_order, visibility_totals
 from exploregs_plugin.rasterizer.settings import VISIBILITY_COLUMNS
 from exploregs_plugin.runs.load import load_run
 from exploregs_plugin.strategies.count_rule import CHECK_VIEWS, evenly_spread, paired_deficit
@@ -37,17 +36,18 @@ TOLERANCE = 0.1
 
 
 def combined(per_view: torch.Tensor, views: list[int]) -> torch.Tensor:
-    """[N, 3] of ``views`` taken together as the renderer takes views together (``add_visibility_``:
-    the weight and alpha sums added, the peak the largest)."""
-    total = per_view[views[0]].clone()
-    for view in views[1:]:
-        add_visibility_(total, per_view[view])
+    """[N, 4] of ``views`` taken together as the cut takes views together (``add_view_``: the
+    weight and alpha sums added, the peak the largest, the view weight the largest view's weight)."""
+    total = torch.zeros_like(per_view[views[0]])
+    for view in views:
+        add_view_(total, per_view[view][:, :VIEW_WEIGHT])
     return total
 
 
 def share_rows(totals: torch.Tensor, share: float | None) -> torch.Tensor:
     """[N] bool: the rows no view of ``totals`` draws (no alpha, as ``DefaultStrategy.final_cut``
-    reads it), and (``share`` not None) those a cut at ``share`` takes in the order of weight x peak."""
+    reads it), and (``share`` not None) those a cut at ``share`` takes in the cut's order
+    (``visibility_cut_order``)."""
     undrawn = totals[:, VISIBILITY_COLUMNS.index("alpha")] <= 0.0
     if share is None:
         return undrawn

@@ -1,13 +1,14 @@
 """Which Gaussians can a finished run lose? Cut criteria compared on one run, no fine-tuning.
 
-For a trained run: each Gaussian's compositing weight S = sum alpha T, its alpha sum A and its peak
-P = max alpha T over every training view (one pass, SH degree 0), then the set cut by
+For a trained run: each Gaussian's compositing weight S = sum alpha T, its alpha sum A, its peak
+P = max alpha T and its view weight W = max_views S(view) over every training view (one pass, SH
+degree 0), then the set cut by
 - ``share q``: the end-of-run cut's rule: every row no view drew (A = 0), then in the order of
-  S x P (``cut_order``) the rows whose S adds up to at most q of the total; ``share q by S``: the
+  W x P (``visibility_cut_order``) the rows whose S adds up to at most q of the total; ``share q by S``: the
   same in the order of S; ``before the peak``: the default before 2026-11-29's peak (share 0.001
   in the order of S, the undrawn rows kept),
-- ``kept f``: the fraction f of the rows with the largest S x P, and with the largest S (the choice
-  of ``eg-export --max-gaussians``),
+- ``kept f``: the fraction f of the rows with the largest W x P (the choice of ``eg-export
+  --max-gaussians``), and with the largest S,
 - ``hidden t``: rows whose mean transmittance S / A is below t (drawn, but behind others),
 each scored on the test views (PSNR, LPIPS, and the PSNR of each labelled region, such as the
 built-in scenes' far region) against the whole set.
@@ -31,7 +32,7 @@ from exploregs_plugin.strategies.significance_prune import least_significant
 
 
 def weight_sums(pipeline) -> torch.Tensor:
-    """[N, 3] float64 over every training view: S, A, P (``VISIBILITY_COLUMNS``)."""
+    """[N, 4] float64 over every training view: S, A, P, W (``CUT_COLUMNS``)."""
     params = {k: v.detach() for k, v in pipeline.params.items()}
     return visibility_totals(params, pipeline.datamanager.train_cameras, pipeline.model.config.raster,
                              pipeline.background)

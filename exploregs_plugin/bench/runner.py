@@ -149,7 +149,12 @@ def _config_or_error(spec: BenchSpec, results: Path, scene: BenchScene, entry: B
 
 
 def is_finished(spec: BenchSpec, results: Path, scene: BenchScene, entry: BenchEntry, seed: int) -> bool:
-    """True when the run folder holds metrics.json of this config (it would be reused)."""
+    """True when the run folder holds metrics.json of this config (it would be reused). A folder
+    without metrics.json is unfinished whatever its config, so the config (a parse of the entry's
+    overrides, tenths of a second each: a dry run of a large preset asks for every run) is built
+    only for the folders that have one."""
+    if not (run_dir_for(results, scene.name, entry.name, seed) / METRICS_NAME).is_file():
+        return False
     config = _config_or_error(spec, results, scene, entry, seed)
     if isinstance(config, BenchSpecError):
         return False

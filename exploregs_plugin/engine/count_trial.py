@@ -1,7 +1,7 @@
 """The paired cut that decides a strategy's count during training (MCMC's ``cap_max 'validated'``).
 
 When the strategy asks (:meth:`Strategy.count_trial_due`), the pipeline tries the set cut to each
-candidate count: the rows of largest weight x peak (:func:`exploregs_plugin.model.significance.cut_order`,
+candidate count: the rows of largest weight x peak (:func:`exploregs_plugin.model.significance.visibility_cut_order`,
 over the training views still trained on), fine-tuned ``steps`` steps at the step's learning rates with no
 densification, then scored on every held-out view. Every candidate starts from the same snapshot
 and draws the same views in the same order, so two candidates differ in their count alone: the
@@ -47,7 +47,7 @@ def training_visibility(pipeline: Pipeline) -> Tensor:
 
 def cut_scores(pipeline: Pipeline) -> Tensor:
     """[N] float64: the order in which a cut keeps the rows (the largest first): weight x peak over
-    the training views (:func:`~exploregs_plugin.model.significance.cut_order` of
+    the training views (:func:`~exploregs_plugin.model.significance.visibility_cut_order` of
     :func:`training_visibility`)."""
     return visibility_cut_order(training_visibility(pipeline))
 

@@ -2,8 +2,8 @@
 
 The cut after the last step (:meth:`Strategy.final_cut`) ranks each Gaussian by its visibility
 statistics over every training view: its compositing weight S_j = sum_v sum_p alpha_j T_j, its
-summed alpha (> 0 where some view drew it) and its peak weight
-(:func:`exploregs_plugin.model.significance.visibility_totals`). Rendering every view once more for
+summed alpha (> 0 where some view drew it), its peak weight and its weight in the view that needs it
+most (:func:`exploregs_plugin.model.significance.visibility_totals`). Rendering every view once more for
 them costs one render per view after the last step: on the 252-photo capture at 800 x 533 (220
 training views), 98 s of the cut's 143 s (docs/strategies.md).
 
@@ -25,25 +25,27 @@ from typing import Any
 import torch
 from torch import Tensor
 
-from exploregs_plugin.rasterizer.composite import add_visibility_
-from exploregs_plugin.rasterizer.settings import VISIBILITY_COLUMNS
+from exploregs_plugin.model.significance import CUT_COLUMNS, add_view_
 
 FINAL_WEIGHTS = "final_weights"
 """Key in the strategy's row statistics (``state["stats"]``, so every row operation keeps them in
-step with the rows): [N, 3] float64, the visibility statistics summed over the last epoch's views."""
+step with the rows): [N, 4] float64, the cut's statistics over the last epoch's views (``CUT_COLUMNS``)."""
 FINAL_VIEWS = "final_weight_views"
 """Key in the strategy's state: how many views the sums hold (whole when it equals the training views)."""
 
 
 def add_window_view(state: dict[str, Any], visibility: Tensor) -> None:
     """Add one of the last epoch's training renders (its visibility statistics [N, 3], the rows of
-    the set it was drawn from) to the window's sums, created on first use. A non-finite entry adds
-    nothing (as :func:`exploregs_plugin.strategies.significance_prune.accumulate_weights`)."""
+    the set it was drawn from) to the window's statistics (``add_view_``), created on first use. A
+    non-finite entry adds nothing (as :func:`exploregs_plugin.strategies.significance_prune.accumulate_weights`).
+    Sums of another width (a checkpoint of a version whose window held [N, 3]) take no more views
+    and are never whole: the cut renders the views itself."""
     stats = state["stats"]
     more = visibility.detach().to(torch.float64)
     if FINAL_WEIGHTS not in stats:
-        stats[FINAL_WEIGHTS] = more.new_zeros(more.shape[0], len(VISIBILITY_COLUMNS))
-    add_visibility_(stats[FINAL_WEIGHTS], torch.where(torch.isfinite(more), more, 0.0))
+        stats[FINAL_WEIGHTS] = more.new_zeros(more.shape[0], len(CUT_COLUMNS))
+    if stats[FINAL_WEIGHTS].shape[1] == len(CUT_COLUMNS):
+        add_view_(stats[FINAL_WEIGHTS], torch.where(torch.isfinite(more), more, 0.0))
     state[FINAL_VIEWS] = window_views(state) + 1
 
 
@@ -53,10 +55,11 @@ def window_views(state: dict[str, Any]) -> int:
 
 
 def window_totals(state: dict[str, Any], views: int) -> Tensor | None:
-    """The window's sums [N, 3] where they hold exactly one whole epoch of ``views`` training
+    """The window's statistics [N, 4] where they hold exactly one whole epoch of ``views`` training
     views, else None (the cut then renders them)."""
     sums = state.get("stats", {}).get(FINAL_WEIGHTS)
-    return sums if sums is not None and window_views(state) == views else None
+    whole = sums is not None and sums.shape[1] == len(CUT_COLUMNS) and window_views(state) == views
+    return sums if whole else None
 
 
 def clear_window(state: dict[str, Any]) -> None:

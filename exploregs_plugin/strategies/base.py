@@ -360,8 +360,9 @@ class Strategy:
     def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], visibility: Tensor,
                   step: int, score_without: Any = None) -> int:
         """After the last step, before the final evaluation: remove rows by their visibility
-        statistics over every training view (``visibility`` [N, 3] float64: the summed compositing
-        weight, the summed alpha, > 0 where a view drew the row, and the peak weight; eg-train's
+        statistics over every training view (``visibility`` [N, 4] float64, ``CUT_COLUMNS``: the
+        summed compositing weight, the summed alpha, > 0 where a view drew the row, the peak weight
+        and the weight in the view that draws the row most; eg-train's
         pipeline sums them from the training renders of the run's last whole epoch,
         :mod:`exploregs_plugin.engine.final_weights`, or renders them with
         :func:`exploregs_plugin.model.significance.visibility_totals`). Returns

@@ -242,8 +242,9 @@ class DefaultStrategy(Strategy):
 
     final_weight_share: float = 0.003
     """After the last step, before the final evaluation, remove the Gaussians of least weight x
-    peak (their compositing weight summed over every training view times their largest weight at
-    one pixel) that together painted at most this share of the training views' compositing weight,
+    peak (their compositing weight in the training view that needs them most times their largest
+    weight at one pixel, model/significance.visibility_cut_order) that together painted at most
+    this share of the training views' compositing weight,
     and every Gaussian that no training view draws (summed by the training renders of the run's last
     whole epoch, engine/final_weights.py, or, where the run has none after growth, one pass over the
     training views; the count and why in one line); with final_cut_tolerance, the first share the check tries. Measured on the
