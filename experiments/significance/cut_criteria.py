@@ -4,7 +4,8 @@ For a trained run: each Gaussian's compositing weight S = sum alpha T, its alpha
 P = max alpha T and its view weight W = max_views S(view) over every training view (one pass, SH
 degree 0), then the set cut by
 - ``share q``: the end-of-run cut's rule: every row no view drew (A = 0), then in the order of
-  W x P (``visibility_cut_order``) the rows whose S adds up to at most q of the total; ``share q by S``: the
+  W x P (``visibility_cut_order``) the rows whose S adds up to at most q of the total; ``share q by
+  S x P``: the order before 2026-12-07, and the same count in the order W x P; ``share q by S``: the
   same in the order of S; ``before the peak``: the default before 2026-11-29's peak (share 0.001
   in the order of S, the undrawn rows kept),
 - ``kept f``: the fraction f of the rows with the largest W x P (the choice of ``eg-export
@@ -25,7 +26,8 @@ import copy
 import torch
 
 from exploregs_plugin.evaluation.metrics import evaluate
-from exploregs_plugin.model.significance import most_significant, visibility_cut_order, visibility_totals
+from exploregs_plugin.model.significance import cut_order, most_significant, visibility_cut_order, visibility_totals
+from exploregs_plugin.rasterizer.settings import VISIBILITY_PEAK
 from exploregs_plugin.runs.load import load_run
 from exploregs_plugin.strategies import row_ops
 from exploregs_plugin.strategies.significance_prune import least_significant
@@ -61,9 +63,15 @@ def main(path: str, shares: tuple[float, ...] = (0.001, 0.003, 0.01), fractions:
     print("whole", scored(run, torch.zeros(n, dtype=torch.bool)), flush=True)
     print("undrawn", scored(run, a == 0), flush=True)
     print("before the peak", scored(run, least_significant(s, a, 0.001)), flush=True)
+    summed_order = cut_order(s, totals[:, VISIBILITY_PEAK])  # the cuts' order before 2026-12-07: S x P
     for q in shares:
         print(f"share {q}", scored(run, least_significant(s, every, q, visibility_cut_order(totals))), flush=True)
         print(f"share {q} by S", scored(run, least_significant(s, every, q)), flush=True)
+        by_sum = least_significant(s, every, q, summed_order) | (a == 0)
+        print(f"share {q} by S x P", scored(run, by_sum), flush=True)
+        # the same count in the cuts' order, W x P: which rows, not how many
+        keep = most_significant(torch.where(a == 0, -1.0, visibility_cut_order(totals)), n - int(by_sum.sum()))
+        print(f"  its count by W x P", scored(run, ~keep), flush=True)
     for f in fractions:
         count = max(1, int(f * n))
         print(f"kept {f}", scored(run, ~most_significant(visibility_cut_order(totals), count)), flush=True)
