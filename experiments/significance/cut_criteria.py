@@ -63,18 +63,19 @@ def main(path: str, shares: tuple[float, ...] = (0.001, 0.003, 0.01), fractions:
     print("whole", scored(run, torch.zeros(n, dtype=torch.bool)), flush=True)
     print("undrawn", scored(run, a == 0), flush=True)
     print("before the peak", scored(run, least_significant(s, a, 0.001)), flush=True)
+    order = visibility_cut_order(totals)  # the cuts' order: W x P
     summed_order = cut_order(s, totals[:, VISIBILITY_PEAK])  # the cuts' order before 2026-12-07: S x P
     for q in shares:
-        print(f"share {q}", scored(run, least_significant(s, every, q, visibility_cut_order(totals))), flush=True)
+        print(f"share {q}", scored(run, least_significant(s, every, q, order)), flush=True)
         print(f"share {q} by S", scored(run, least_significant(s, every, q)), flush=True)
         by_sum = least_significant(s, every, q, summed_order) | (a == 0)
         print(f"share {q} by S x P", scored(run, by_sum), flush=True)
         # the same count in the cuts' order, W x P: which rows, not how many
-        keep = most_significant(torch.where(a == 0, -1.0, visibility_cut_order(totals)), n - int(by_sum.sum()))
+        keep = most_significant(torch.where(a == 0, -1.0, order), n - int(by_sum.sum()))
         print(f"  its count by W x P", scored(run, ~keep), flush=True)
     for f in fractions:
         count = max(1, int(f * n))
-        print(f"kept {f}", scored(run, ~most_significant(visibility_cut_order(totals), count)), flush=True)
+        print(f"kept {f}", scored(run, ~most_significant(order, count)), flush=True)
         print(f"kept {f} by S", scored(run, ~most_significant(s, count)), flush=True)
     if not hidden:
         return
