@@ -1,4 +1,5 @@
-"""The end-of-run cut's weights from the last epoch's training renders (engine/final_weights.py)."""
+"""The cuts' weights from the training renders of the epoch before each (engine/final_weights.py): the
+settled cut's after growth, the end-of-run cut's in the last epoch."""
 
 from __future__ import annotations
 
@@ -56,10 +57,10 @@ def _trainer(run_dir, steps: int, **overrides):
     return TrainerConfig(**{**fields, **overrides}).setup()
 
 
-def test_the_cut_reads_each_views_render_of_the_last_epoch_after_growth(tmp_path, monkeypatch):
+def test_each_cut_reads_each_views_render_of_the_epoch_before_it_after_growth(tmp_path, monkeypatch):
     from exploregs_plugin.data.datamanager import DataManager
 
-    marked, seen, notes, read, before = [], [], [], {}, {}
+    marked, seen, notes, read, before = [], [], [], [], []
     real_marks, real_draw = Pipeline._final_window_draws, DataManager.next_train_indices
     real_add, real_note, real_totals, real_cut = (final_weights.add_window_view, Pipeline.final_cut_note,
                                                   final_weights.window_totals, Pipeline._final_cut)
@@ -86,9 +87,9 @@ def test_the_cut_reads_each_views_render_of_the_last_epoch_after_growth(tmp_path
         notes.extend([said] if said else [])
         return said
 
-    def cut(pipeline, step):
-        before["n"] = pipeline.model.num_gaussians
-        return real_cut(pipeline, step)
+    def cut(pipeline, step, last=True):
+        before.append(pipeline.model.num_gaussians)
+        return real_cut(pipeline, step, last=last)
 
     def no_pass(pipeline):
         raise AssertionError("the cut rendered the views again")
@@ -100,15 +101,20 @@ def test_the_cut_reads_each_views_render_of_the_last_epoch_after_growth(tmp_path
     monkeypatch.setattr(Pipeline, "_final_cut", cut)
     monkeypatch.setattr(count_trial, "training_visibility", no_pass)
     monkeypatch.setattr(final_weights, "window_totals",
-                        lambda state, views: read.setdefault("sums", real_totals(state, views)))
-    trainer = _trainer(tmp_path / "run", 40)  # growth stops at step 20; epochs of 8 draws: the last is 32-39
+                        lambda state, views: read.append(real_totals(state, views)) or read[-1])
+    # growth stops at step 24, the settled cut comes before step 32 (2/3 of the run); epochs of 8
+    # draws: the settled cut's is steps 24-31, the end-of-run cut's 40-47
+    trainer = _trainer(tmp_path / "run", 48)
     pipeline = trainer.pipeline
+    assert pipeline.strategy.settled_cut_iter == 32
     metrics = trainer.train()
-    assert [s for s, _, _ in seen] == list(range(32, 40)) and all(ok for _, _, ok in seen), seen
-    assert sorted(i for _, i, _ in seen) == list(range(VIEWS))  # each training view once
-    assert read["sums"] is not None and read["sums"].shape == (before["n"], 4)  # CUT_COLUMNS
-    assert metrics["num_gaussians"] < before["n"]  # it cut
-    assert notes == [f"after step 40: the end-of-run cut weighs the {before['n']:,} Gaussians by their weights in "
+    assert [s for s, _, _ in seen] == [*range(24, 32), *range(40, 48)] and all(ok for _, _, ok in seen), seen
+    assert sorted(i for _, i, _ in seen[:VIEWS]) == sorted(i for _, i, _ in seen[VIEWS:]) == list(range(VIEWS))
+    assert [r.shape for r in read] == [(n, 4) for n in before]  # whole sums of CUT_COLUMNS at both cuts
+    assert metrics["num_gaussians"] < before[1] < before[0]  # both cut
+    assert notes == [f"after step 32: the cut weighs the {before[0]:,} Gaussians by their weights in the last "
+                     f"epoch's renders of the {VIEWS} training views; the rest of the run trains those it keeps",
+                     f"after step 48: the end-of-run cut weighs the {before[1]:,} Gaussians by their weights in "
                      f"the last epoch's renders of the {VIEWS} training views before the final evaluation"]
     state = pipeline.strategy_state
     assert final_weights.FINAL_WEIGHTS not in state["stats"] and final_weights.FINAL_VIEWS not in state
@@ -118,15 +124,22 @@ def test_a_run_whose_last_epoch_began_before_growth_ended_renders_the_views_for_
     passes = []
     real = count_trial.training_visibility
     monkeypatch.setattr(count_trial, "training_visibility", lambda p: passes.append(p.model.num_gaussians) or real(p))
-    trainer = _trainer(tmp_path / "run", 20)  # growth stops at step 10; the last whole epoch is steps 8-15
+    # growth stops at step 10, the settled cut comes before step 13: the epoch before it (8-15) and
+    # the last whole epoch (8-15) began before growth ended
+    trainer = _trainer(tmp_path / "run", 20)
     trainer.train()
-    assert len(passes) == 1
+    assert len(passes) == 2 and passes[1] < passes[0]  # a pass for each cut
     assert final_weights.FINAL_VIEWS not in trainer.pipeline.strategy_state
 
 
 def test_summing_the_weights_changes_no_bit_of_the_run_and_the_sums_are_the_same_on_one_and_two_threads(
         tmp_path, monkeypatch):
-    monkeypatch.setattr(Pipeline, "_final_cut", lambda pipeline, step: (0, []))  # the runs differ only here
+    def no_cut(pipeline, step, last=True):  # the runs differ only here; the settled cut clears its window
+        if not last:
+            final_weights.clear_window(pipeline.strategy_state)
+        return 0, []
+
+    monkeypatch.setattr(Pipeline, "_final_cut", no_cut)
 
     def run(name: str, threads: int = 1):
         trainer = _trainer(tmp_path / name, 40, num_threads=threads)
@@ -135,7 +148,7 @@ def test_summing_the_weights_changes_no_bit_of_the_run_and_the_sums_are_the_same
         return {k: v.detach().clone() for k, v in trainer.pipeline.params.items()}, state
 
     summed, state = run("summed")
-    assert final_weights.window_views(state) == VIEWS  # the window was summed (no cut cleared it)
+    assert final_weights.window_views(state) == VIEWS  # the last epoch's window was summed (no cut read it)
     _, on_two = run("two-threads", threads=2)
     assert torch.equal(final_weights.window_totals(state, VIEWS), final_weights.window_totals(on_two, VIEWS))
     monkeypatch.setattr(Pipeline, "_final_window_draws", lambda pipeline, step: [False] * pipeline.batch_size)
@@ -156,3 +169,27 @@ def test_sums_of_a_checkpoint_whose_window_held_three_columns_are_never_whole():
     for _ in range(2):
         final_weights.add_window_view(fresh, torch.tensor([[1.0, 1.0, 0.75], [0.0, 0.0, 0.0]]))
     assert final_weights.window_totals(fresh, 2).tolist() == [[2.0, 2.0, 0.75, 1.0], [0.0, 0.0, 0.0, 0.0]]
+
+
+def test_a_run_resumed_before_or_after_the_settled_cut_ends_with_the_same_bits(tmp_path):
+    """Checkpoints at step 24 (growth over, inside the settled cut's window: its sums are carried)
+    and at step 32 (just after the settled cut) resume to the uninterrupted run's last bits."""
+    import shutil
+
+    from exploregs_plugin.engine.training_loop import Trainer
+
+    trainer = _trainer(tmp_path / "run", 48, checkpoint_every=8, keep_checkpoints=10)
+    whole = trainer.train()
+    params = {k: v.detach().clone() for k, v in trainer.pipeline.params.items()}
+    assert trainer.pipeline.strategy.settled_cut_iter == 32 and trainer.op_totals["pruned"] > 0
+    for step in (24, 32):
+        copy = tmp_path / f"from-{step}"
+        (copy / "checkpoints").mkdir(parents=True)
+        shutil.copy(tmp_path / "run" / "config.yml", copy / "config.yml")
+        shutil.copy(tmp_path / "run" / "checkpoints" / f"step-{step:07d}.pt", copy / "checkpoints")
+        resumed = Trainer.from_run(copy, quiet=True)
+        assert resumed.start_step == step
+        again = resumed.train()
+        assert again["psnr"] == whole["psnr"] and again["num_gaussians"] == whole["num_gaussians"], step
+        assert all(torch.equal(v.detach(), params[k]) for k, v in resumed.pipeline.params.items()), step
+

@@ -118,9 +118,11 @@ def read_points(trainer: Any) -> set[int]:
 
 
 def refinement_steps(strategy: Any) -> set[int]:
-    """The steps at which a strategy changes the Gaussian set (it must learn the new count)."""
+    """The steps at which a strategy changes the Gaussian set (it must learn the new count): its
+    refinements and, where it makes one, the settled cut's (after step 27 of 40 for Default's)."""
+    settled = strategy.settled_cut_step(STEPS)
     return {s for s in range(STEPS) if strategy.refine_start_iter < s < strategy.refine_stop_iter
-            and s % strategy.refine_every == 0}
+            and s % strategy.refine_every == 0} | ({settled - 1} if settled is not None else set())
 
 
 # Reads of a step outside the log lines and refinements, at most: none, or for Seed+Split one in

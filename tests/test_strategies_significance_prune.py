@@ -289,7 +289,7 @@ def test_a_run_cuts_after_its_last_step_and_evaluates_the_cut_set(tmp_path):
 
     def run(share: float, name: str):
         config = get_method("exploregs-seedsplit").config
-        strategy = replace(config.pipeline.strategy, final_weight_share=share)
+        strategy = replace(config.pipeline.strategy, final_weight_share=share, settled_cut_iter=0)  # the last cut alone
         config = replace(config, data="builtin:tiny", max_steps=12, run_dir=tmp_path / name, eval_count=1,
                          tensorboard=False, save_eval_images=False, quiet=True, num_threads=1,
                          pipeline=replace(config.pipeline, strategy=strategy))
@@ -312,16 +312,35 @@ def test_fields_are_checked():
         DefaultStrategy(prune_weight_share=1.0)
     with pytest.raises(StrategyError, match="grow_grad2d_height"):
         DefaultStrategy(grow_grad2d_height=0)
+    with pytest.raises(StrategyError, match="settled_cut_iter"):
+        DefaultStrategy(settled_cut_iter=-1)
 
 
 def test_a_config_saved_before_the_fields_existed_loads_as_it_trained():
     saved = config_to_dict(SeedSplitStrategy(grow_grad2d_height=720, prune_weight_share=0.01, final_weight_share=0.01,
-                                             final_cut_tolerance=0.5))
+                                             final_cut_tolerance=0.5, settled_cut_iter=900))
     del saved["grow_grad2d_height"], saved["prune_weight_share"], saved["final_weight_share"]
-    del saved["final_cut_tolerance"]
+    del saved["final_cut_tolerance"], saved["settled_cut_iter"]
     loaded = config_from_dict(saved)
     assert loaded.grow_grad2d_height is None and loaded.prune_weight_share == 0.0 and loaded.final_weight_share == 0.0
     assert loaded.final_cut_tolerance == 0.0 and SeedSplitStrategy().final_cut_tolerance == 0.1
+    assert loaded.settled_cut_iter == 0 and SeedSplitStrategy().settled_cut_iter is None
+
+
+def test_the_settled_cut_comes_at_two_thirds_of_the_run_after_growth_and_before_the_last_step():
+    from exploregs_plugin.schedule import ScheduleConfig
+
+    schedule = ScheduleConfig().resolve(1500)
+    strategy = DefaultStrategy().setup(schedule)
+    assert strategy.refine_stop_iter == 750 and strategy.settled_cut_iter == 1000
+    assert strategy.settled_cut_step(1500) == 1000
+    assert DefaultStrategy(settled_cut_iter=1200).setup(schedule).settled_cut_step(1500) == 1200  # the user's step
+    for off in (DefaultStrategy(settled_cut_iter=0),  # the last cut alone
+                DefaultStrategy(settled_cut_iter=750), DefaultStrategy(settled_cut_iter=600),  # growth not over
+                DefaultStrategy(settled_cut_iter=1499), DefaultStrategy(settled_cut_iter=1500),  # the last cut's place
+                DefaultStrategy(final_weight_share=0.0), DefaultStrategy(cap_max=5000)):  # no cut at all
+        assert off.setup(schedule).settled_cut_step(1500) is None, off
+    assert DefaultStrategy(refine_stop_iter=750).settled_cut_step(1500) is None  # no schedule: not filled, no cut
 
 
 def test_the_height_scaled_statistic_is_the_one_at_the_reference_height():

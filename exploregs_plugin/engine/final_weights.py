@@ -1,4 +1,4 @@
-"""The end-of-run cut's weights, summed from the training renders of the run's last epoch.
+"""The cuts' weights, summed from the training renders of the epoch before each.
 
 The cut after the last step (:meth:`Strategy.final_cut`) ranks each Gaussian by its visibility
 statistics over every training view: its compositing weight S_j = sum_v sum_p alpha_j T_j, its
@@ -11,6 +11,8 @@ The run renders every view once per epoch anyway. In its last complete epoch (th
 of the training views that the run's remaining draws finish) the renderer sums the same statistics
 in the pass that draws each training image, and the cut reads those sums: no pass of its own
 (which draws are that epoch's: :meth:`~exploregs_plugin.data.datamanager.DataManager.last_epoch_draws`).
+The settled cut two thirds into the run (``DefaultStrategy.settled_cut_iter``) reads the same sums
+of the whole epoch that ends before it, and drops them; the end-of-run cut then sums its own.
 The price is weights from parameters up to one epoch old, which after the set stops growing only the
 optimiser moves; so the window counts only once the strategy no longer grows (a draw at or after
 ``refine_stop_iter``) and only renders at full size (a coarse-to-fine level's pixels weigh less).
@@ -29,13 +31,13 @@ from exploregs_plugin.model.significance import CUT_COLUMNS, add_view_
 
 FINAL_WEIGHTS = "final_weights"
 """Key in the strategy's row statistics (``state["stats"]``, so every row operation keeps them in
-step with the rows): [N, 4] float64, the cut's statistics over the last epoch's views (``CUT_COLUMNS``)."""
+step with the rows): [N, 4] float64, the next cut's statistics over its window's views (``CUT_COLUMNS``)."""
 FINAL_VIEWS = "final_weight_views"
 """Key in the strategy's state: how many views the sums hold (whole when it equals the training views)."""
 
 
 def add_window_view(state: dict[str, Any], visibility: Tensor) -> None:
-    """Add one of the last epoch's training renders (its visibility statistics [N, 3], the rows of
+    """Add one of a cut's window's training renders (its visibility statistics [N, 3], the rows of
     the set it was drawn from) to the window's statistics (``add_view_``), created on first use. A
     non-finite entry adds nothing (as :func:`exploregs_plugin.strategies.significance_prune.accumulate_weights`).
     Sums of another width (a checkpoint of a version whose window held [N, 3]) take no more views

@@ -274,7 +274,7 @@ class Pipeline:
 
     def _train_step(self, step: int) -> dict[str, Any]:
         self.model.begin_step(step, self.schedule.max_steps)
-        in_window = self._final_window_draws(step)  # before the draw: which of it the end-of-run cut reads
+        in_window = self._final_window_draws(step)  # before the draw: which of it the next cut reads
         indices = self.datamanager.next_train_indices(self.batch_size)  # every rank draws the whole batch
         # the backgrounds too, so that the run's generator advances alike on every rank
         backgrounds = [self._step_background() for _ in indices]
@@ -302,8 +302,9 @@ class Pipeline:
         if trial is not None:  # MCMC's cap_max 'validated', at its last refinement
             count_trial.decide(self, step, trial)
         notes += self._return_held_views(step)
-        if step == self.schedule.max_steps - 1:
-            cut, line = self._final_cut(step)
+        last = step == self.schedule.max_steps - 1
+        if last or step + 1 == self._settled_cut_step():  # the end-of-run cut, or the settled one
+            cut, line = self._final_cut(step, last=last)
             counts = {**(counts or {}), "pruned": (counts or {}).get("pruned", 0) + cut}  # the run's totals balance
             notes += line
         return {
@@ -316,23 +317,25 @@ class Pipeline:
             "notes": notes,
         }
 
-    def _final_cut(self, step: int) -> tuple[int, list[str]]:
-        """After the run's last step, before its final evaluation: the strategy's end-of-run cut by
-        each Gaussian's compositing weight over every training view (one pass without gradients;
+    def _final_cut(self, step: int, last: bool = True) -> tuple[int, list[str]]:
+        """After the run's last step, before its final evaluation (or, ``last`` False, after
+        ``step`` where the strategy's settled cut comes: :meth:`Strategy.settled_cut_step`): the
+        strategy's cut by each Gaussian's compositing weight over every training view (summed by
+        the training renders of the epoch before it, or one pass without gradients;
         :meth:`Strategy.final_cut`); returns the rows removed and the count line it writes. None
         for a dynamic model (its Gaussians move with time) or on gsplat's kernels, which do not sum
-        the weights (a note)."""
+        the weights (a note, after the last step)."""
         share = self.strategy.final_cut_share()
         if not self._final_cut_runs():
             return 0, []
         if not self.sums_weights:
             return 0, [f"note: the end-of-run cut (--strategy.final-weight-share {share:g}) is off: gsplat's "
-                       f"kernels do not sum each Gaussian's compositing weight"]
+                       f"kernels do not sum each Gaussian's compositing weight"] if last else []
         totals = final_weights.window_totals(self.strategy_state, self._final_cut_views())
         if totals is None:  # no whole last epoch after growth ended: render every view once more
             totals = count_trial.training_visibility(self)
         checked = evenly_spread(len(self.datamanager.train_cameras), CHECK_VIEWS)
-        cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals, step,
+        cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals, step, last=last,
                                       score_without=lambda rows: self.view_psnrs(checked, step, without=rows))
         final_weights.clear_window(self.strategy_state)
         return cut, [self.strategy.count_decision(self.strategy_state)]
@@ -346,24 +349,38 @@ class Pipeline:
         held-out view must not choose what is kept; at the last step none is held out)."""
         return len(self.datamanager.train_cameras) - len(self.datamanager.held_out)
 
+    def _settled_cut_step(self) -> int | None:
+        """The count of steps after which the strategy's cut also runs (:meth:`Strategy.settled_cut_step`),
+        where the end-of-run cut runs at all (:meth:`_final_cut_runs`); None: no such cut."""
+        return self.strategy.settled_cut_step(self.schedule.max_steps) if self._final_cut_runs() else None
+
+    def _next_cut(self, step: int) -> int:
+        """The count of steps after which the next cut at or after ``step`` comes: the settled
+        cut's, or the run's (the cut after the last step)."""
+        settled = self._settled_cut_step()
+        return settled if settled is not None and step < settled else self.schedule.max_steps
+
     def _final_window_draws(self, step: int) -> list[bool]:
-        """Which of this step's draws are views of the run's last complete epoch, whose training
-        renders sum the end-of-run cut's weights (:mod:`final_weights`): none before the strategy
-        stops growing (its rows must be the cut's), below full size, or where no cut comes (or
-        gsplat's kernels, which do not sum the weights)."""
+        """Which of this step's draws are views of the complete epoch that ends before the next
+        cut (:meth:`_next_cut`), whose training renders sum that cut's weights
+        (:mod:`final_weights`): none before the strategy stops growing (its rows must be the
+        cut's), below full size, or where no cut comes (or gsplat's kernels, which do not sum the
+        weights)."""
         batch = self.batch_size
         if (not self._final_cut_runs() or not self.sums_weights or step < self.strategy.refine_stop_iter
                 or self.schedule.downscale_at(step) != 1):
             return [False] * batch
-        return self.datamanager.last_epoch_draws(batch, (self.schedule.max_steps - step) * batch)
+        return self.datamanager.last_epoch_draws(batch, (self._next_cut(step) - step) * batch)
 
     def final_cut_note(self, step: int) -> str | None:
-        """The line said before ``step`` when the end-of-run cut comes after it: the cut renders
-        ``CHECK_VIEWS`` training views per share it tries (and, where the run has no whole last epoch
-        of weights after growth, every training view once more), which on a large capture takes
-        minutes (220 views at 800 x 533: about 143 s with the views' pass, docs/strategies.md) that
-        the progress bar would otherwise spend silent at its last step."""
-        if step != self.schedule.max_steps - 1 or not self._final_cut_runs():
+        """The line said before ``step`` when a cut comes after it (the end-of-run cut after the
+        last step, or the settled cut): the cut renders ``CHECK_VIEWS``
+        training views per share it tries (and, where the run has no whole epoch of weights after
+        growth before it, every training view once more), which on a large capture takes minutes
+        (220 views at 800 x 533: about 143 s with the views' pass, docs/strategies.md) that the
+        progress bar would otherwise spend silent."""
+        settled = step + 1 == self._settled_cut_step()
+        if not (settled or step == self.schedule.max_steps - 1) or not self._final_cut_runs():
             return None
         if not self.sums_weights:
             return None  # no cut: the step says so after it
@@ -371,6 +388,9 @@ class Pipeline:
         summed = final_weights.window_views(self.strategy_state) + sum(self._final_window_draws(step))
         how = (f"by their weights in the last epoch's renders of the {views} training views" if summed == views
                else f"over the {views} training views (one render each)")
+        if settled:
+            return (f"after step {step + 1}: the cut weighs the {self.model.num_gaussians:,} Gaussians {how}; the rest "
+                    f"of the run trains those it keeps")
         return (f"after step {step + 1}: the end-of-run cut weighs the {self.model.num_gaussians:,} Gaussians {how} "
                 f"before the final evaluation")
 

@@ -138,6 +138,7 @@ ADDED_FIELDS: dict[str, dict[str, Any]] = {
         "final_weight_share": 0.0,  # no cut after the last step
         "final_cut_tolerance": 0.0,  # the cut at the fixed share alone
         "split_absgrad2d": None,  # splits by the summed gradient alone
+        "settled_cut_iter": 0,  # the cut after the last step only
     },
 }
 """Fields a config class gained after runs were saved without them, by the class that has them

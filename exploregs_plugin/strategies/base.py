@@ -357,9 +357,15 @@ class Strategy:
         :meth:`final_cut` removes after the run's last step (0: none; the base keeps every row)."""
         return 0.0
 
+    def settled_cut_step(self, max_steps: int) -> int | None:
+        """The count of steps after which :meth:`final_cut` also runs once, with ``last=False``, so
+        that the rest of the run trains only the rows it keeps (None: none; the base cuts nothing)."""
+        return None
+
     def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], visibility: Tensor,
-                  step: int, score_without: Any = None) -> int:
-        """After the last step, before the final evaluation: remove rows by their visibility
+                  step: int, score_without: Any = None, last: bool = True) -> int:
+        """After the last step, before the final evaluation (or, with ``last`` False, after
+        ``step`` at :meth:`settled_cut_step`): remove rows by their visibility
         statistics over every training view (``visibility`` [N, 4] float64, ``CUT_COLUMNS``: the
         summed compositing weight, the summed alpha, > 0 where a view drew the row, the peak weight
         and the weight in the view that draws the row most; eg-train's

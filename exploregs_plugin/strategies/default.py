@@ -35,6 +35,7 @@ from .geometry import max_world_scale
 from .requirements import ABSOLUTE_GRADIENT, VISIBILITY_STATS
 from .row_ops import Optimizers, Params, Stats, num_gaussians
 from ..model.significance import cut_order, visibility_cut_order
+from ..schedule import Schedule
 from .significance_prune import (WEIGHT, WEIGHT_PEAK, WEIGHT_STATS, WEIGHT_VIEWS, accumulate_weights,
                                  least_significant, window_follows_reset)
 
@@ -49,6 +50,10 @@ own scenes are 545 to 1080 pixels high)."""
 CHECKED_SHARES = (0.005, 0.01, 0.02, 0.03, 0.05, 0.1)
 """The shares the end-of-run cut tries after ``final_weight_share``, in order, each kept only while
 the training views say the cut costs at most ``final_cut_tolerance`` (steps of about 1.5-2x)."""
+SETTLED_CUT_FRACTION = 2.0 / 3.0
+"""Where ``settled_cut_iter`` falls when left unset: two thirds of the run. Growth stops at half of it
+(``refine_stop_frac``), so the set has had a sixth of the run to settle before its weights judge
+it, and a third is left to train only what is kept (docs/strategies.md)."""
 SIGNIFICANCE_PRUNED, SIGNIFICANCE_NOTE = "significance_pruned", "significance_note"
 """State of the significance prune: the rows it has removed in all, and the line that says the
 count it left at the end of growth, and why ('' before)."""
@@ -250,6 +255,14 @@ class DefaultStrategy(Strategy):
     training views; the count and why in one line); with final_cut_tolerance, the first share the check tries. Measured on the
     re-posed beer and builtin:farside in docs/strategies.md. 0: off. Off too when cap_max is a count
     (the user's), on gsplat's kernels (no weight sums) and for a dynamic model."""
+    settled_cut_iter: int | None = None
+    """After this many steps the checked cut (final_weight_share, final_cut_tolerance) also runs
+    once, after growth has stopped, so that the rest of the run trains only the Gaussians it keeps
+    and the cut after the last step judges a set that has had those steps to take up the slack.
+    None: two thirds of the run (SETTLED_CUT_FRACTION), filled by setup(schedule) like the refine
+    fields (a strategy used without a schedule makes no such cut). 0: the cut after the last step only.
+    No cut here unless it falls after refine_stop_iter and before the last step, nor when
+    final_weight_share is 0 (docs/strategies.md)."""
     final_cut_tolerance: float = 0.1
     """The cut is checked: the rows no training view draws go, then the cut at final_weight_share
     and at each larger share of CHECKED_SHARES in turn while the training views lose at most this
@@ -273,6 +286,8 @@ class DefaultStrategy(Strategy):
             raise StrategyError(f"final_weight_share must be in [0, 1), got {self.final_weight_share}")
         if not self.final_cut_tolerance >= 0.0:
             raise StrategyError(f"final_cut_tolerance must be >= 0 dB, got {self.final_cut_tolerance}")
+        if self.settled_cut_iter is not None and self.settled_cut_iter < 0:
+            raise StrategyError(f"settled_cut_iter must be >= 0 or None, got {self.settled_cut_iter}")
         if self.split_absgrad2d is not None and not self.split_absgrad2d > 0.0:
             raise StrategyError(f"split_absgrad2d must be positive or None, got {self.split_absgrad2d}")
         if self.split_absgrad2d is not None and self.absgrad:
@@ -318,11 +333,22 @@ class DefaultStrategy(Strategy):
     def count_decision(self, state: dict[str, Any]) -> str:
         return super().count_decision(state) or state.get(SIGNIFICANCE_NOTE, "")
 
+    def schedule_defaults(self, schedule: Schedule) -> dict[str, int]:
+        return {**super().schedule_defaults(schedule),
+                "settled_cut_iter": round(SETTLED_CUT_FRACTION * schedule.max_steps)}
+
     def final_cut_share(self) -> float:
         return 0.0 if isinstance(self.cap_max, int) else self.final_weight_share
 
+    def settled_cut_step(self, max_steps: int) -> int | None:
+        step = self.settled_cut_iter
+        if (self.final_cut_share() <= 0.0 or not step or self.refine_stop_iter is None
+                or not self.refine_stop_iter < step < max_steps - 1):
+            return None
+        return step
+
     def final_cut(self, params: Params, optimizers: Optimizers, state: dict[str, Any], visibility: Tensor,
-                  step: int, score_without: ScoreWithout | None = None) -> int:
+                  step: int, score_without: ScoreWithout | None = None, last: bool = True) -> int:
         share = self.final_cut_share()
         if share <= 0.0 or num_gaussians(params) == 0:
             return 0
@@ -339,11 +365,13 @@ class DefaultStrategy(Strategy):
         else:
             cut = least_significant(weights, judged, share, order)
         n = row_ops.remove(params, optimizers, state["stats"], cut)
+        when = f"after the last step ({step + 1})" if last else f"after step {step + 1}, for the rest of the run"
+        off = ("--strategy.final-weight-share 0 keeps them" if last else
+               "--strategy.settled-cut-iter 0 cuts after the last step only")
         which = (f"the {n:,} of least weight x peak, which together painted at most {share:.1%} of the training "
                  f"views' blend weight, were cut" if share > 0.0 else f"the {n:,} that no training view draws were cut")
         state[SIGNIFICANCE_NOTE] = (
-            f"count: {before - n:,} of {before:,} Gaussians kept after the last step ({step + 1}): {which}{checked} "
-            f"(--strategy.final-weight-share 0 keeps them)")
+            f"count: {before - n:,} of {before:,} Gaussians kept {when}: {which}{checked} ({off})")
         return n
 
     def _checked_cut(self, weights: Tensor, judged: Tensor, order: Tensor, undrawn: Tensor, share: float,
