@@ -102,7 +102,7 @@ def test_each_cut_reads_each_views_render_of_the_epoch_before_it_after_growth(tm
     monkeypatch.setattr(count_trial, "training_visibility", no_pass)
     monkeypatch.setattr(final_weights, "window_totals",
                         lambda state, views: read.append(real_totals(state, views)) or read[-1])
-    # growth stops at step 24, the settled cut comes before step 32 (2/3 of the run); epochs of 8
+    # growth stops at step 24, the settled cut comes after 32 steps (2/3 of the run); epochs of 8
     # draws: the settled cut's is steps 24-31, the end-of-run cut's 40-47
     trainer = _trainer(tmp_path / "run", 48)
     pipeline = trainer.pipeline
@@ -124,8 +124,8 @@ def test_a_run_whose_last_epoch_began_before_growth_ended_renders_the_views_for_
     passes = []
     real = count_trial.training_visibility
     monkeypatch.setattr(count_trial, "training_visibility", lambda p: passes.append(p.model.num_gaussians) or real(p))
-    # growth stops at step 10, the settled cut comes before step 13: the epoch before it (8-15) and
-    # the last whole epoch (8-15) began before growth ended
+    # growth stops at step 10, the settled cut comes after 13 steps: the epoch before it (0-7: 8-15
+    # is not whole by then) and the last whole epoch (8-15) began before growth ended
     trainer = _trainer(tmp_path / "run", 20)
     trainer.train()
     assert len(passes) == 2 and passes[1] < passes[0]  # a pass for each cut
@@ -172,17 +172,19 @@ def test_sums_of_a_checkpoint_whose_window_held_three_columns_are_never_whole():
 
 
 def test_a_run_resumed_before_or_after_the_settled_cut_ends_with_the_same_bits(tmp_path):
-    """Checkpoints at step 24 (growth over, inside the settled cut's window: its sums are carried)
+    """Checkpoints at step 28 (inside the settled cut's window, steps 24-31: its sums are carried)
     and at step 32 (just after the settled cut) resume to the uninterrupted run's last bits."""
     import shutil
 
     from exploregs_plugin.engine.training_loop import Trainer
 
-    trainer = _trainer(tmp_path / "run", 48, checkpoint_every=8, keep_checkpoints=10)
+    trainer = _trainer(tmp_path / "run", 48, checkpoint_every=4, keep_checkpoints=12)
     whole = trainer.train()
     params = {k: v.detach().clone() for k, v in trainer.pipeline.params.items()}
     assert trainer.pipeline.strategy.settled_cut_iter == 32 and trainer.op_totals["pruned"] > 0
-    for step in (24, 32):
+    inside = torch.load(tmp_path / "run" / "checkpoints" / "step-0000028.pt", weights_only=False)["strategy_state"]
+    assert inside[final_weights.FINAL_VIEWS] == 4  # steps 24-27 summed
+    for step in (28, 32):
         copy = tmp_path / f"from-{step}"
         (copy / "checkpoints").mkdir(parents=True)
         shutil.copy(tmp_path / "run" / "config.yml", copy / "config.yml")
