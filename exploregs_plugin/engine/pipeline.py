@@ -302,9 +302,8 @@ class Pipeline:
         if trial is not None:  # MCMC's cap_max 'validated', at its last refinement
             count_trial.decide(self, step, trial)
         notes += self._return_held_views(step)
-        last = step == self.schedule.max_steps - 1
-        if last or step + 1 == self._settled_cut_step():  # the end-of-run cut, or the settled one
-            cut, line = self._final_cut(step, last=last)
+        if step + 1 == self._next_cut(step):  # the settled cut, or the end-of-run cut
+            cut, line = self._final_cut(step, last=step + 1 == self.schedule.max_steps)
             counts = {**(counts or {}), "pruned": (counts or {}).get("pruned", 0) + cut}  # the run's totals balance
             notes += line
         return {
@@ -379,9 +378,9 @@ class Pipeline:
         growth before it, every training view once more), which on a large capture takes minutes
         (220 views at 800 x 533: about 143 s with the views' pass, docs/strategies.md) that the
         progress bar would otherwise spend silent."""
-        settled = step + 1 == self._settled_cut_step()
-        if not (settled or step == self.schedule.max_steps - 1) or not self._final_cut_runs():
+        if step + 1 != self._next_cut(step) or not self._final_cut_runs():
             return None
+        settled = step + 1 < self.schedule.max_steps
         if not self.sums_weights:
             return None  # no cut: the step says so after it
         views = self._final_cut_views()
