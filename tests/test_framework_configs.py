@@ -1,6 +1,6 @@
 """Config YAML round trip and the run schedule."""
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import pytest
@@ -29,6 +29,28 @@ def test_yaml_round_trip_keeps_types(tmp_path):
     back = load_config(tmp_path / "config.yml")
     assert back == cfg
     assert isinstance(back.path, Path) and isinstance(back.inner.names, tuple)
+
+
+def test_a_method_config_is_written_and_read_as_pyyamls_safe_dump_and_safe_load_would(tmp_path):
+    """config.yml goes through libyaml where PyYAML has it: the same text as the pure-Python
+    safe_dump, read back to the same data as safe_load (floats of every size, None, paths,
+    tuples, unicode), and a tag outside the safe subset is still refused."""
+    import yaml
+
+    from exploregs_plugin.io.config_files import config_to_dict, read_yaml, yaml_text
+    from exploregs_plugin.method_configs import get_method
+
+    config = get_method("exploregs-seedsplit").config
+    data = config_to_dict(replace(config, data="données/scène 1", seed=2**40, run_dir=Path("/tmp/r"),
+                                  pipeline=replace(config.pipeline, strategy=replace(
+                                      config.pipeline.strategy, final_weight_share=1e-300))))
+    text = yaml_text(data)
+    assert text == yaml.safe_dump(data, sort_keys=False)
+    assert read_yaml(text) == yaml.safe_load(text) == data
+    save_config(replace(config, seed=3), tmp_path / "config.yml")
+    assert load_config(tmp_path / "config.yml") == replace(config, seed=3)
+    with pytest.raises(yaml.YAMLError):
+        read_yaml("!!python/object/apply:os.system ['true']\n")
 
 
 def test_yaml_errors_name_the_problem(tmp_path):

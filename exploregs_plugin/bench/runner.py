@@ -122,10 +122,10 @@ def same_config(run_dir: Path, config: Any) -> bool:
     """Whether the run folder was made for ``config`` (its bench_job.yml matches, see configs_match)."""
     import yaml
 
-    from exploregs_plugin.io.config_files import config_to_dict, upgraded
+    from exploregs_plugin.io.config_files import config_to_dict, read_yaml, upgraded
 
     try:
-        old = yaml.safe_load((Path(run_dir) / JOB_NAME).read_text())
+        old = read_yaml((Path(run_dir) / JOB_NAME).read_text())
     except (OSError, yaml.YAMLError):
         return False
     return isinstance(old, dict) and configs_match(comparable(upgraded(old)), comparable(config_to_dict(config)))

@@ -68,8 +68,10 @@ def read_spec_file(path: Path) -> dict[str, Any]:
     else:
         import yaml
 
+        from exploregs_plugin.io.config_files import read_yaml
+
         try:
-            data = yaml.safe_load(text)
+            data = read_yaml(text)
         except yaml.YAMLError as err:
             raise BenchSpecError(f"spec file {path}: not valid YAML: {err}") from err
     if not isinstance(data, dict):

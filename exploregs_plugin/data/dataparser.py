@@ -18,6 +18,7 @@ from pathlib import Path
 import yaml
 
 from exploregs_plugin.io.checkpoint import CHECKPOINT_DIR, RUN_CONFIG
+from exploregs_plugin.io.config_files import read_yaml
 
 from .builtin.presets import ensure_builtin
 from .colmap import read_colmap
@@ -41,7 +42,7 @@ def another_commands_input(path: Path) -> str | None:
     if not (run / RUN_CONFIG).is_file():
         return None
     try:
-        data = yaml.safe_load((run / RUN_CONFIG).read_text())["pipeline"]["datamanager"]["data"]
+        data = read_yaml((run / RUN_CONFIG).read_text())["pipeline"]["datamanager"]["data"]
     except (OSError, yaml.YAMLError, KeyError, TypeError):
         data = f"the dataset named in {run / RUN_CONFIG}"
     return (f"an eg-train run, not a dataset: it trained on {data} "
