@@ -116,6 +116,13 @@ def test_each_cut_reads_each_views_render_of_the_epoch_before_it_after_growth(tm
                      f"epoch's renders of the {VIEWS} training views; the rest of the run trains those it keeps",
                      f"after step 48: the end-of-run cut weighs the {before[1]:,} Gaussians by their weights in "
                      f"the last epoch's renders of the {VIEWS} training views before the final evaluation"]
+    # metrics.json keeps each cut's line; count_decision is the last
+    lines = metrics["cut_lines"]
+    assert len(lines) == 2 and metrics["count_decision"] == lines[1]
+    assert lines[0].startswith(f"count: {before[1]:,} of {before[0]:,} Gaussians kept after step 32, for the rest "
+                               f"of the run: ")
+    assert lines[1].startswith(f"count: {metrics['num_gaussians']:,} of {before[1]:,} Gaussians kept after the last "
+                               f"step (48): ")
     state = pipeline.strategy_state
     assert final_weights.FINAL_WEIGHTS not in state["stats"] and final_weights.FINAL_VIEWS not in state
 
@@ -193,5 +200,6 @@ def test_a_run_resumed_before_or_after_the_settled_cut_ends_with_the_same_bits(t
         assert resumed.start_step == step
         again = resumed.train()
         assert again["psnr"] == whole["psnr"] and again["num_gaussians"] == whole["num_gaussians"], step
+        assert again["cut_lines"] == whole["cut_lines"] and len(whole["cut_lines"]) == 2, step  # kept in the checkpoint
         assert all(torch.equal(v.detach(), params[k]) for k, v in resumed.pipeline.params.items()), step
 

@@ -300,7 +300,8 @@ def test_a_run_cuts_after_its_last_step_and_evaluates_the_cut_set(tmp_path):
     whole, n_whole = run(0.0, "whole")
     assert n_cut == cut["num_gaussians"] < n_whole == whole["num_gaussians"]
     assert cut["count_decision"].startswith(f"count: {n_cut:,} of {n_whole:,} Gaussians kept after the last step (12)")
-    assert not whole.get("count_decision")
+    assert not whole.get("count_decision") and "cut_lines" not in whole
+    assert cut["cut_lines"] == [cut["count_decision"]]  # the one cut's line
 
 
 def test_fields_are_checked():

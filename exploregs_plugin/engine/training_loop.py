@@ -260,6 +260,9 @@ class Trainer:
         decision = self.pipeline.strategy.count_decision(self.pipeline.strategy_state)
         if decision:
             metrics["count_decision"] = decision
+        cut_lines = self.pipeline.strategy.cut_lines(self.pipeline.strategy_state)
+        if cut_lines:
+            metrics["cut_lines"] = cut_lines
         if self.world.is_main:
             write_metrics_json(self.run_dir / METRICS_NAME, metrics)
         return metrics

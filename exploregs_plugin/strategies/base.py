@@ -352,6 +352,12 @@ class Strategy:
         for a strategy without such a rule)."""
         return state.get(COUNT_NOTE, "") if self.cap_max == VALIDATED else ""
 
+    def cut_lines(self, state: dict[str, Any]) -> list[str]:
+        """The line of each cut :meth:`final_cut` made so far, in order (the settled cut's, then the
+        end-of-run cut's); metrics.json keeps them (``cut_lines``), where ``count_decision`` holds
+        the last. The base cuts nothing."""
+        return []
+
     def final_cut_share(self) -> float:
         """The share of the training views' compositing weight whose least significant Gaussians
         :meth:`final_cut` removes after the run's last step (0: none; the base keeps every row)."""

@@ -57,6 +57,9 @@ it, and a third is left to train only what is kept (docs/strategies.md)."""
 SIGNIFICANCE_PRUNED, SIGNIFICANCE_NOTE = "significance_pruned", "significance_note"
 """State of the significance prune: the rows it has removed in all, and the line that says the
 count it left at the end of growth, and why ('' before)."""
+CUT_NOTES = "cut_notes"
+"""The strategy state's list of the cuts' lines (:meth:`DefaultStrategy.cut_lines`); a checkpoint
+made before it holds none."""
 
 
 # ---------------------------------------------------------------------------- pure functions
@@ -333,6 +336,9 @@ class DefaultStrategy(Strategy):
     def count_decision(self, state: dict[str, Any]) -> str:
         return super().count_decision(state) or state.get(SIGNIFICANCE_NOTE, "")
 
+    def cut_lines(self, state: dict[str, Any]) -> list[str]:
+        return list(state.get(CUT_NOTES, ()))
+
     def schedule_defaults(self, schedule: Schedule) -> dict[str, int]:
         return {**super().schedule_defaults(schedule),
                 "settled_cut_iter": round(SETTLED_CUT_FRACTION * schedule.max_steps)}
@@ -372,6 +378,7 @@ class DefaultStrategy(Strategy):
                  f"views' blend weight, were cut" if share > 0.0 else f"the {n:,} that no training view draws were cut")
         state[SIGNIFICANCE_NOTE] = (
             f"count: {before - n:,} of {before:,} Gaussians kept {when}: {which}{checked} ({off})")
+        state.setdefault(CUT_NOTES, []).append(state[SIGNIFICANCE_NOTE])
         return n
 
     def _checked_cut(self, weights: Tensor, judged: Tensor, order: Tensor, undrawn: Tensor, share: float,
