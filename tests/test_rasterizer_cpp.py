@@ -67,7 +67,7 @@ def test_float64_image_and_every_gradient_agree_with_torch(seed, n, size):
     bg = torch.tensor([0.2, 0.5, 0.9], dtype=F64)
     got, got_g, pairs = _outputs_and_grads(scene, replace(CPP, visibility_stats=True), F64, background=bg)
     ref, ref_g, ref_pairs = _outputs_and_grads(scene, replace(TORCH, visibility_stats=True), F64, background=bg)
-    assert pairs == ref_pairs > 0
+    assert 0.5 * ref_pairs < pairs < ref_pairs  # the compiled binning leaves out the tiles the ellipses miss
     assert torch.equal(got["radii"], ref["radii"]) and torch.equal(got["visible"], ref["visible"])
     for name in ("image", "alpha", "depth", "visibility"):
         assert _rel(got[name], ref[name]) <= 1e-10, name

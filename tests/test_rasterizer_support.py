@@ -79,7 +79,10 @@ def test_a_floored_determinant_or_a_nan_keeps_the_sigma_box():
 
 def _render(scene, settings, sigma_box: bool, monkeypatch):
     """Image, alpha, depth, pair count and every gradient; ``sigma_box``: composite with the
-    sigma_radius box (``radii``) instead of the narrowed support."""
+    sigma_radius box (``radii``) instead of the narrowed support. The compiled path bins every tile
+    of the box (the tiles its ellipse misses are the subject of the test below)."""
+    real_bins = rasterize_module.CppBins
+    monkeypatch.setattr(rasterize_module, "CppBins", lambda *args: real_bins(*args[:7]))
     for name in ("_composite_visible", "_composite_compiled"):  # the torch and the compiled path
         def composite(proj, *args, real=getattr(rasterize_module, name)):
             if sigma_box:
@@ -125,3 +128,78 @@ def test_the_compiled_projection_narrows_as_the_torch_one_does():
         # log and sqrt may round differently in C++: a ceil may land one pixel apart, rarely
         differ = (got.support[vis] != ref.support[vis]).any(-1)
         assert float((got.support[vis] - ref.support[vis]).abs().max()) <= 1 and int(differ.sum()) <= 3
+
+
+def _composite_both_ways(means2d, conics, opac, feats, support, depths, width, height, dtype, settings):
+    """Image, visibility statistics, every input's gradient and the pair count of the compiled
+    compositor, binned with every tile of the support box and with the tiles the ellipse reaches."""
+    from exploregs_plugin.rasterizer.cpp_backend import CppBins, composite_cpp
+
+    weights = torch.randn(height, width, feats.shape[1] + 1, generator=torch.Generator().manual_seed(9)).to(dtype)
+    results = []
+    for culled in (False, True):
+        leaves = [t.detach().to(dtype).clone().requires_grad_() for t in (means2d, conics, opac, feats)]
+        extra = (leaves[1].detach(), leaves[2].detach(), settings.alpha_min) if culled else ()
+        bins = CppBins(leaves[0].detach(), support.to(dtype), depths.to(dtype), width, height, settings.tile_size,
+                       None, *extra)
+        out, visibility = composite_cpp(*leaves, support.to(dtype), bins, settings, 2)
+        (out * weights).sum().backward()
+        results.append(([out.detach(), visibility, *(t.grad for t in leaves), leaves[0].absgrad], bins))
+    return results
+
+
+@needs_cpp
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_tiles_of_the_box_that_the_ellipse_misses_are_left_out_and_nothing_changes(dtype):
+    """A tile of a Gaussian's support box whose pixel centres all lie outside its ellipse
+    q <= 2 ln(o / alpha_min) would add exact zeros: binned without it, the compiled compositor gives
+    the same image, statistics and gradients bit for bit, from fewer pairs. Elongated and rotated
+    Gaussians, faint ones, ones fainter than alpha_min, and axis-aligned ones whose ellipse reaches
+    the first pixel centre of the next tile by a relative 1e-4 to 1e-7 in q, short of it or past it."""
+    g = torch.Generator().manual_seed(12)
+    width, height, ts = 64, 48, 8
+    n = 600
+    abc = _covariances(n, g)
+    det = abc[:, 0] * abc[:, 2] - abc[:, 1] ** 2
+    conics = torch.stack([abc[:, 2], -abc[:, 1], abc[:, 0]], -1) / det[:, None]
+    opac = torch.exp(torch.rand(n, generator=g, dtype=torch.float64) * math.log(ALPHA_MIN / 1.2)).clamp(max=0.99)
+    means2d = torch.rand(n, 2, generator=g, dtype=torch.float64) * torch.tensor([width, height])
+    # at the tile edge: mean (x0 - d, y0) with y0 a pixel row, B = 0 and q at the centre (x0, y0) of
+    # the next tile's first column = t (1 + eps): the pixel paints (eps < 0) or just misses
+    edge, must_keep = [], []  # (row, tile) pairs that hold a pixel where alpha >= alpha_min
+    for i, eps in enumerate([-1e-4, -1e-5, -1e-6, -1e-7, 1e-7, 1e-6, 1e-4] * 6):
+        a_cov = float(torch.exp(torch.rand(1, generator=g) * 4.0))  # sigma 1 to 7.4 px
+        o = float(0.02 + 0.9 * torch.rand(1, generator=g))
+        t = 2 * math.log(o / ALPHA_MIN)
+        tile_x, row = 1 + i % 6, 1 + (i // 6) % 5
+        x0, y0 = tile_x * ts + 0.5, row * ts + 0.5
+        edge.append((x0 - math.sqrt(t * (1 + eps) * a_cov), y0, 1 / a_cov, 1 / (0.5 * a_cov), o))
+        if eps < 0:
+            must_keep.append((n + i, row * (width // ts) + tile_x))
+    edge = torch.tensor(edge, dtype=torch.float64)
+    means2d = torch.cat([means2d, edge[:, :2]])
+    conics = torch.cat([conics, torch.stack([edge[:, 2], torch.zeros(len(edge), dtype=torch.float64), edge[:, 3]], -1)])
+    opac = torch.cat([opac, edge[:, 4]])
+    var = torch.stack([conics[:, 2], conics[:, 0]], -1) / (conics[:, 0] * conics[:, 2] - conics[:, 1] ** 2)[:, None]
+    box = torch.ceil(3.0 * torch.sqrt(var))
+    m = len(opac)
+    # the narrowed box for half of the rows, the sigma box (wider than the ellipse) for the others
+    support = torch.where((torch.arange(m) % 2 == 0)[:, None],
+                          opacity_support(box, var, opac, torch.ones(m, dtype=torch.bool), ALPHA_MIN), box)
+    support[n:] = 4.0 * torch.sqrt(var[n:])  # the edge rows: a box that holds the next tile's column
+    feats = torch.rand(m, 4, generator=g, dtype=torch.float64)
+    depths = torch.rand(m, generator=g, dtype=torch.float64)
+    settings = RasterSettings(backend="cpp", tile_size=ts, absgrad=True, visibility_stats=True)
+    (box_out, box_bins), (cull_out, cull_bins) = _composite_both_ways(
+        means2d, conics, opac, feats, support, depths, width, height, dtype, settings)
+    assert cull_bins.n_pairs < 0.9 * box_bins.n_pairs and box_out[0][..., 3].max() > 0.5
+    for got, ref in zip(cull_out, box_out):
+        assert torch.equal(got, ref)
+    off, pairs = cull_bins.tile_offsets, cull_bins.pair_gauss
+    for row, tile in must_keep:
+        assert (pairs[off[tile]:off[tile + 1]] == row).any(), (row, tile)
+    # rows fainter than alpha_min (the first n rows hold some) paint nothing: each keeps at most the
+    # tiles around its mean that the margin holds
+    faint = torch.nonzero(opac[:n] < ALPHA_MIN * 0.99).squeeze(1)
+    kept, boxed = cull_bins.gauss_count[faint], box_bins.gauss_count[faint]
+    assert len(faint) >= 10 and (kept <= 4).all() and kept.sum() < 0.5 * boxed.sum()

@@ -31,10 +31,14 @@ def _thresholds(s: RasterSettings) -> tuple[float, float, float]:
 
 class CppBins:
     """Tile-Gaussian pairs made by the C++ binning (front to back within each tile) of the rows
-    where ``visible`` holds (every row when it is None)."""
+    where ``visible`` holds (every row when it is None). Given the rows' ``conics``, ``opacities``
+    and the settings' ``alpha_min``, a row takes only the tiles of its support box that hold a
+    pixel centre where its alpha may reach ``alpha_min`` (the others would add exact zeros: the
+    same image and gradients, fewer pairs); without them, every tile of the box."""
 
     def __init__(self, means2d: Tensor, support: Tensor, depths: Tensor, width: int, height: int, tile_size: int,
-                 visible: Tensor | None = None):
+                 visible: Tensor | None = None, conics: Tensor | None = None, opacities: Tensor | None = None,
+                 alpha_min: float = 0.0):
         # pairs are made front to back: the kernel sorts the drawn rows by depth (stable, ties by
         # row: the order of torch.argsort(depths, stable=True) restricted to them)
         if visible is None:
@@ -42,8 +46,10 @@ class CppBins:
         # no detach: the binning reads the values only, and records nothing for autograd
         m2, sup = means2d.contiguous(), _as_dtype(support, means2d.dtype).contiguous()
         z = _as_dtype(depths, means2d.dtype).contiguous()
+        if conics is not None:
+            conics, opacities = conics.contiguous(), opacities.contiguous()
         self.tile_offsets, self.pair_gauss, self.pair_slot, self.gauss_first, self.gauss_count = extension().bin_tiles(
-            m2, sup, z, visible.contiguous(), width, height, tile_size)
+            m2, sup, z, visible.contiguous(), conics, opacities, alpha_min, width, height, tile_size)
         self.width, self.height, self.tile_size = width, height, tile_size
 
     @property

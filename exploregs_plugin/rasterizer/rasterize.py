@@ -290,7 +290,8 @@ def _composite_compiled(proj, means, means_sh, sh_coeffs, colors, degree, camera
     else:  # the branch ablation's SH path, or a camera with a gradient: torch's SH of every row
         rgb = sh_colors(_joined(sh_coeffs), src, camera_center, degree)
     feats = torch.cat([rgb, proj.depths[:, None]], -1)  # [N, 4]
-    bins = CppBins(proj.means2d, proj.support, proj.depths, width, height, settings.tile_size, proj.visible)
+    bins = CppBins(proj.means2d, proj.support, proj.depths, width, height, settings.tile_size, proj.visible,
+                   proj.conics, proj.opacities, settings.alpha_min)
     img, visibility = composite_cpp(proj.means2d, proj.conics, proj.opacities, feats, proj.support, bins, settings,
                                     threads)
     return img, visibility, bins.n_pairs

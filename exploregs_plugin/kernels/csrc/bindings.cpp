@@ -7,11 +7,13 @@
 #include <torch/csrc/utils/pybind.h>
 
 #include <cstdint>
+#include <optional>
 #include <vector>
 
 // composite_cpu.cpp
 std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor depths, at::Tensor visible,
-                                  int64_t width, int64_t height, int64_t tile_size);
+                                  std::optional<at::Tensor> conics, std::optional<at::Tensor> opacities,
+                                  double alpha_min, int64_t width, int64_t height, int64_t tile_size);
 std::vector<at::Tensor> composite_forward(at::Tensor means2d, at::Tensor conics, at::Tensor opacities,
                                           at::Tensor feats, at::Tensor support, at::Tensor tile_offsets,
                                           at::Tensor pair_gauss, at::Tensor pair_slot, int64_t width,

@@ -32,6 +32,7 @@
 #include <cstring>
 #include <limits>
 #include <type_traits>
+#include <optional>
 #include <vector>
 
 namespace {
@@ -108,23 +109,20 @@ struct Bins {
   at::Tensor gauss_count;   // [M] int64: its number of tiles
 };
 
-// Tile range of one Gaussian: the tiles whose pixels may have centres inside its support box,
-// widened by 1e-3 px so that rounding never drops a tile (the compositor tests every pixel).
+// Pixel range of one Gaussian: the pixels whose centres may lie inside its support box, widened
+// by 1e-3 px so that rounding never drops one (the compositor tests every pixel); its tiles are
+// those this range reaches.
 template <typename scalar_t>
-inline void tile_rect(scalar_t mx, scalar_t my, scalar_t rx, scalar_t ry, int64_t width, int64_t height,
-                      int64_t ts, int64_t& tx0, int64_t& ty0, int64_t& tx1, int64_t& ty1) {
+inline void pixel_rect(scalar_t mx, scalar_t my, scalar_t rx, scalar_t ry, int64_t width, int64_t height,
+                       int64_t& x0, int64_t& y0, int64_t& x1, int64_t& y1) {
   auto clampi = [](scalar_t v, int64_t top) -> int64_t {
     v = std::min(std::max(v, scalar_t(0)), scalar_t(top));
     return static_cast<int64_t>(v);
   };
-  const int64_t x0 = clampi(std::ceil(mx - rx - scalar_t(0.5) - scalar_t(1e-3)), width - 1);
-  const int64_t y0 = clampi(std::ceil(my - ry - scalar_t(0.5) - scalar_t(1e-3)), height - 1);
-  const int64_t x1 = clampi(std::floor(mx + rx - scalar_t(0.5) + scalar_t(1e-3)), width - 1);
-  const int64_t y1 = clampi(std::floor(my + ry - scalar_t(0.5) + scalar_t(1e-3)), height - 1);
-  tx0 = x0 / ts;
-  ty0 = y0 / ts;
-  tx1 = x1 / ts;
-  ty1 = y1 / ts;
+  x0 = clampi(std::ceil(mx - rx - scalar_t(0.5) - scalar_t(1e-3)), width - 1);
+  y0 = clampi(std::ceil(my - ry - scalar_t(0.5) - scalar_t(1e-3)), height - 1);
+  x1 = clampi(std::floor(mx + rx - scalar_t(0.5) + scalar_t(1e-3)), width - 1);
+  y1 = clampi(std::floor(my + ry - scalar_t(0.5) + scalar_t(1e-3)), height - 1);
 }
 
 // Unsigned keys that order floats as their values do (IEEE 754: flip every bit of a negative
@@ -173,14 +171,80 @@ std::vector<int64_t> depth_order(const scalar_t* depth, const bool* vis, int64_t
   return order;
 }
 
+// Where a Gaussian's alpha can reach alpha_min: pixel centres d (from its mean) with
+// q(d) = A dx^2 + 2 B dx dy + C dy^2 <= t = 2 ln(o / alpha_min). A tile of its support box whose
+// pixel centres all lie outside that ellipse adds exact zeros to every sum the compositor makes
+// (the pair is skipped at each pixel), so it is left out of the bins: the same bits, fewer pairs.
+// The test errs to keeping: the smallest q over the rectangle of the tile's centres in the box,
+// in double, must exceed t by a margin that covers the compositor's float rounding of q (at most
+// a few ulp of each of its terms, which sum to at most 2 kappa q for a condition number kappa of
+// the conic) and of exp; a conic that is not positive definite, or too ill-conditioned for that
+// bound, keeps the whole box.
+struct Ellipse {
+  double A, B, C, mx, my, t;  // conic, mean, threshold scaled by the rounding margin
+  bool test;                  // false: keep every tile of the box
+};
+
+constexpr double CULL_REL_ROUNDING = 2e-6;  // bound of the float rounding of q, per unit of kappa q
+constexpr double CULL_MARGIN_Q = 2e-2;      // and an absolute margin on t (exp, o * exp, alpha_min)
+constexpr double CULL_KAPPA_MAX = 1e5;      // past this, 2e-6 kappa reaches 0.2: keep the box
+
+template <typename scalar_t>
+inline Ellipse ellipse_of(const scalar_t* con, scalar_t opacity, scalar_t alpha_min, scalar_t mx, scalar_t my) {
+  const double A = con[0], B = con[1], C = con[2], o = opacity, amin = alpha_min;
+  Ellipse e{A, B, C, double(mx), double(my), 0.0, false};
+  const double half_sum = 0.5 * (A + C), root = std::sqrt(0.25 * (A - C) * (A - C) + B * B);
+  const double lo = half_sum - root, hi = half_sum + root;  // eigenvalues of the conic
+  if (!(std::isfinite(A) && std::isfinite(B) && std::isfinite(C) && std::isfinite(o)) || !(lo > 0.0) ||
+      !(hi < CULL_KAPPA_MAX * lo))
+    return e;
+  const double rounding = CULL_REL_ROUNDING * (hi / lo);
+  // o <= alpha_min: t <= 0, and only tiles holding q <= margin stay (o exp(-q/2) < alpha_min elsewhere)
+  const double t = o > 0.0 ? 2.0 * std::log(o / amin) : -std::numeric_limits<double>::infinity();
+  e.t = (std::max(t, 0.0) + CULL_MARGIN_Q) / (1.0 - rounding);
+  e.test = true;
+  return e;
+}
+
+// Smallest q over the rectangle [x0, x1] x [y0, y1] of offsets from the mean (a positive definite
+// conic): 0 where it holds the mean, else the least of its four edges' minima (q is convex).
+inline double rect_qmin(const Ellipse& e, double x0, double x1, double y0, double y1) {
+  if (x0 <= 0.0 && 0.0 <= x1 && y0 <= 0.0 && 0.0 <= y1) return 0.0;
+  double best = std::numeric_limits<double>::infinity();
+  for (const double y : {y0, y1}) {
+    const double x = std::min(std::max(-e.B * y / e.A, x0), x1);
+    best = std::min(best, e.A * x * x + 2.0 * e.B * x * y + e.C * y * y);
+  }
+  for (const double x : {x0, x1}) {
+    const double y = std::min(std::max(-e.B * x / e.C, y0), y1);
+    best = std::min(best, e.A * x * x + 2.0 * e.B * x * y + e.C * y * y);
+  }
+  return best;
+}
+
+// Whether tile (tx, ty) holds a pixel centre of the box's pixel range [px0, px1] x [py0, py1]
+// where the Gaussian may reach alpha_min.
+inline bool tile_reached(const Ellipse& e, int64_t tx, int64_t ty, int64_t ts, int64_t px0, int64_t py0,
+                         int64_t px1, int64_t py1) {
+  if (!e.test) return true;
+  const double x0 = double(std::max(tx * ts, px0)) + 0.5 - e.mx, x1 = double(std::min(tx * ts + ts - 1, px1)) + 0.5 - e.mx;
+  const double y0 = double(std::max(ty * ts, py0)) + 0.5 - e.my, y1 = double(std::min(ty * ts + ts - 1, py1)) + 0.5 - e.my;
+  return rect_qmin(e, x0, x1, y0, y1) <= e.t;
+}
+
+// conics and opacities undefined: every tile of the support box (the reference's binning).
 template <typename scalar_t>
 Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Tensor& depths,
-              const at::Tensor& visible, int64_t width, int64_t height, int64_t ts) {
+              const at::Tensor& visible, const at::Tensor& conics, const at::Tensor& opacities, double alpha_min,
+              int64_t width, int64_t height, int64_t ts) {
   const int64_t m = means2d.size(0);
   const int64_t tiles_x = (width + ts - 1) / ts, tiles_y = (height + ts - 1) / ts, n_tiles = tiles_x * tiles_y;
   const auto* mean = means2d.data_ptr<scalar_t>();
   const auto* sup = support.data_ptr<scalar_t>();
   const bool* vis = visible.data_ptr<bool>();
+  const bool cull = conics.defined();
+  const scalar_t* con = cull ? conics.data_ptr<scalar_t>() : nullptr;
+  const scalar_t* opa = cull ? opacities.data_ptr<scalar_t>() : nullptr;
   const std::vector<int64_t> drawn = depth_order<scalar_t>(depths.data_ptr<scalar_t>(), vis, m);
   const int64_t n_drawn = static_cast<int64_t>(drawn.size());
   Bins b;
@@ -190,20 +254,27 @@ Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Te
   auto* off = b.tile_offsets.data_ptr<int64_t>();
   auto* first = b.gauss_first.data_ptr<int64_t>();
   auto* count = b.gauss_count.data_ptr<int64_t>();
-  std::vector<int64_t> rect(4 * m);
-  int64_t total = 0;
-  for (int64_t k = 0; k < n_drawn; ++k) {  // making order: Gaussians front to back
+  // each drawn row's tiles in making order (row-major), the rows front to back
+  std::vector<int32_t> tiles;
+  tiles.reserve(4 * n_drawn);
+  const scalar_t amin = scalar_t(alpha_min);  // the compositor compares in scalar_t
+  for (int64_t k = 0; k < n_drawn; ++k) {
     const int64_t g = drawn[k];
-    int64_t* r = &rect[4 * g];
-    tile_rect<scalar_t>(mean[2 * g], mean[2 * g + 1], sup[2 * g], sup[2 * g + 1], width, height, ts, r[0], r[1],
-                        r[2], r[3]);
-    first[g] = total;
-    count[g] = (r[2] - r[0] + 1) * (r[3] - r[1] + 1);
-    total += count[g];
-    for (int64_t ty = r[1]; ty <= r[3]; ++ty)
-      for (int64_t tx = r[0]; tx <= r[2]; ++tx) off[ty * tiles_x + tx + 1] += 1;
+    const scalar_t mx = mean[2 * g], my = mean[2 * g + 1], rx = sup[2 * g], ry = sup[2 * g + 1];
+    int64_t px0, py0, px1, py1;
+    pixel_rect<scalar_t>(mx, my, rx, ry, width, height, px0, py0, px1, py1);
+    const Ellipse e = cull ? ellipse_of<scalar_t>(con + 3 * g, opa[g], amin, mx, my) : Ellipse{0, 0, 0, 0, 0, 0, false};
+    first[g] = static_cast<int64_t>(tiles.size());
+    for (int64_t ty = py0 / ts; ty <= py1 / ts; ++ty)
+      for (int64_t tx = px0 / ts; tx <= px1 / ts; ++tx)
+        if (tile_reached(e, tx, ty, ts, px0, py0, px1, py1)) {
+          tiles.push_back(static_cast<int32_t>(ty * tiles_x + tx));
+          off[ty * tiles_x + tx + 1] += 1;
+        }
+    count[g] = static_cast<int64_t>(tiles.size()) - first[g];
   }
   for (int64_t t = 0; t < n_tiles; ++t) off[t + 1] += off[t];
+  const int64_t total = static_cast<int64_t>(tiles.size());
   b.pair_gauss = eg::empty_cpu({total}, at::kInt);
   b.pair_slot = eg::empty_cpu({total}, at::kLong);
   auto* pg = b.pair_gauss.data_ptr<int32_t>();
@@ -211,14 +282,11 @@ Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Te
   std::vector<int64_t> cursor(off, off + n_tiles);
   for (int64_t k = 0; k < n_drawn; ++k) {  // front to back, so every tile's list is in depth order
     const int64_t g = drawn[k];
-    const int64_t* r = &rect[4 * g];
-    int64_t slot = first[g];
-    for (int64_t ty = r[1]; ty <= r[3]; ++ty)
-      for (int64_t tx = r[0]; tx <= r[2]; ++tx) {
-        const int64_t j = cursor[ty * tiles_x + tx]++;
-        pg[j] = static_cast<int32_t>(g);
-        ps[j] = slot++;
-      }
+    for (int64_t slot = first[g]; slot < first[g] + count[g]; ++slot) {
+      const int64_t j = cursor[tiles[slot]]++;
+      pg[j] = static_cast<int32_t>(g);
+      ps[j] = slot;
+    }
   }
   return b;
 }
@@ -615,19 +683,33 @@ void sum_pairs_impl(const scalar_t* r, const int64_t* first, const int64_t* coun
 }  // namespace
 
 // Binning of the rows where `visible` [M] (bool) holds, front to back by `depths` [M] (ties by
-// row; the other rows are not sorted): returns (tile_offsets [T+1], pair_gauss [P] int32,
+// row; the other rows are not sorted), each with the tiles of its support box where, given its
+// `conics` and `opacities`, its alpha may reach `alpha_min` (without them: every tile of the box):
+// returns (tile_offsets [T+1], pair_gauss [P] int32,
 // pair_slot [P], gauss_first [M], gauss_count [M], zero for a row not drawn). The rasterizer passes
 // every projected row, so the compositor reads full-size tensors and no visible subset is gathered.
 std::vector<at::Tensor> bin_tiles(at::Tensor means2d, at::Tensor support, at::Tensor depths, at::Tensor visible,
-                                     int64_t width, int64_t height, int64_t tile_size) {
+                                  std::optional<at::Tensor> conics, std::optional<at::Tensor> opacities,
+                                  double alpha_min, int64_t width, int64_t height, int64_t tile_size) {
   TORCH_CHECK(means2d.is_contiguous() && support.is_contiguous() && depths.is_contiguous() && visible.is_contiguous(),
               "bin_tiles: contiguous");
   TORCH_CHECK(visible.scalar_type() == at::kBool && visible.numel() == means2d.size(0) &&
                   depths.numel() == means2d.size(0) && depths.scalar_type() == means2d.scalar_type(),
               "bin_tiles: one bool and one depth (of the means' dtype) per row");
+  TORCH_CHECK(conics.has_value() == opacities.has_value(), "bin_tiles: conics and opacities together, or neither");
+  at::Tensor con, opa;  // undefined: the whole box
+  if (conics.has_value()) {
+    con = *conics;
+    opa = *opacities;
+    TORCH_CHECK(con.is_contiguous() && opa.is_contiguous() && con.scalar_type() == means2d.scalar_type() &&
+                    opa.scalar_type() == means2d.scalar_type() && con.numel() == 3 * means2d.size(0) &&
+                    opa.numel() == means2d.size(0),
+                "bin_tiles: contiguous conics [M, 3] and opacities [M] of the means' dtype");
+    TORCH_CHECK(alpha_min > 0.0, "bin_tiles: alpha_min > 0");
+  }
   Bins b;
   AT_DISPATCH_FLOATING_TYPES(means2d.scalar_type(), "bin_tiles", [&] {
-    b = bin_impl<scalar_t>(means2d, support, depths, visible, width, height, tile_size);
+    b = bin_impl<scalar_t>(means2d, support, depths, visible, con, opa, alpha_min, width, height, tile_size);
   });
   return {b.tile_offsets, b.pair_gauss, b.pair_slot, b.gauss_first, b.gauss_count};
 }
