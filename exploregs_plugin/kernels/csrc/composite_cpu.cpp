@@ -31,8 +31,8 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
-#include <type_traits>
 #include <optional>
+#include <type_traits>
 #include <vector>
 
 namespace {
@@ -255,7 +255,7 @@ Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Te
   auto* first = b.gauss_first.data_ptr<int64_t>();
   auto* count = b.gauss_count.data_ptr<int64_t>();
   // each drawn row's tiles in making order (row-major), the rows front to back
-  std::vector<int32_t> tiles;
+  std::vector<int64_t> tiles;
   tiles.reserve(4 * n_drawn);
   const scalar_t amin = scalar_t(alpha_min);  // the compositor compares in scalar_t
   for (int64_t k = 0; k < n_drawn; ++k) {
@@ -268,7 +268,7 @@ Bins bin_impl(const at::Tensor& means2d, const at::Tensor& support, const at::Te
     for (int64_t ty = py0 / ts; ty <= py1 / ts; ++ty)
       for (int64_t tx = px0 / ts; tx <= px1 / ts; ++tx)
         if (tile_reached(e, tx, ty, ts, px0, py0, px1, py1)) {
-          tiles.push_back(static_cast<int32_t>(ty * tiles_x + tx));
+          tiles.push_back(ty * tiles_x + tx);
           off[ty * tiles_x + tx + 1] += 1;
         }
     count[g] = static_cast<int64_t>(tiles.size()) - first[g];
