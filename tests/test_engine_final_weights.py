@@ -102,24 +102,24 @@ def test_each_cut_reads_each_views_render_of_the_epoch_before_it_after_growth(tm
     monkeypatch.setattr(count_trial, "training_visibility", no_pass)
     monkeypatch.setattr(final_weights, "window_totals",
                         lambda state, views: read.append(real_totals(state, views)) or read[-1])
-    # growth stops at step 24, the settled cut comes after 32 steps (2/3 of the run); epochs of 8
-    # draws: the settled cut's is steps 24-31, the end-of-run cut's 40-47
+    # growth stops at step 24, the settled cut comes after 38 steps (0.8 of the run); epochs of 8
+    # draws: the settled cut's is steps 24-31 (the last whole one before it), the end-of-run cut's 40-47
     trainer = _trainer(tmp_path / "run", 48)
     pipeline = trainer.pipeline
-    assert pipeline.strategy.settled_cut_iter == 32
+    assert pipeline.strategy.settled_cut_iter == 38
     metrics = trainer.train()
     assert [s for s, _, _ in seen] == [*range(24, 32), *range(40, 48)] and all(ok for _, _, ok in seen), seen
     assert sorted(i for _, i, _ in seen[:VIEWS]) == sorted(i for _, i, _ in seen[VIEWS:]) == list(range(VIEWS))
     assert [r.shape for r in read] == [(n, 4) for n in before]  # whole sums of CUT_COLUMNS at both cuts
     assert metrics["num_gaussians"] < before[1] < before[0]  # both cut
-    assert notes == [f"after step 32: the cut weighs the {before[0]:,} Gaussians by their weights in the last "
+    assert notes == [f"after step 38: the cut weighs the {before[0]:,} Gaussians by their weights in the last "
                      f"epoch's renders of the {VIEWS} training views; the rest of the run trains those it keeps",
                      f"after step 48: the end-of-run cut weighs the {before[1]:,} Gaussians by their weights in "
                      f"the last epoch's renders of the {VIEWS} training views before the final evaluation"]
     # metrics.json keeps each cut's line; count_decision is the last
     lines = metrics["cut_lines"]
     assert len(lines) == 2 and metrics["count_decision"] == lines[1]
-    assert lines[0].startswith(f"count: {before[1]:,} of {before[0]:,} Gaussians kept after step 32, for the rest "
+    assert lines[0].startswith(f"count: {before[1]:,} of {before[0]:,} Gaussians kept after step 38, for the rest "
                                f"of the run: ")
     assert lines[1].startswith(f"count: {metrics['num_gaussians']:,} of {before[1]:,} Gaussians kept after the last "
                                f"step (48): ")
@@ -131,8 +131,8 @@ def test_a_run_whose_last_epoch_began_before_growth_ended_renders_the_views_for_
     passes = []
     real = count_trial.training_visibility
     monkeypatch.setattr(count_trial, "training_visibility", lambda p: passes.append(p.model.num_gaussians) or real(p))
-    # growth stops at step 10, the settled cut comes after 13 steps: the epoch before it (0-7: 8-15
-    # is not whole by then) and the last whole epoch (8-15) began before growth ended
+    # growth stops at step 10, the settled cut comes after 16 steps: the last whole epoch before it
+    # (8-15) and the last whole epoch before the end (8-15 too) began before growth ended
     trainer = _trainer(tmp_path / "run", 20)
     trainer.train()
     assert len(passes) == 2 and passes[1] < passes[0]  # a pass for each cut
@@ -180,7 +180,7 @@ def test_sums_of_a_checkpoint_whose_window_held_three_columns_are_never_whole():
 
 def test_a_run_resumed_before_or_after_the_settled_cut_ends_with_the_same_bits(tmp_path):
     """Checkpoints at step 28 (inside the settled cut's window, steps 24-31: its sums are carried)
-    and at step 32 (just after the settled cut) resume to the uninterrupted run's last bits."""
+    and at step 40 (after the settled cut, after step 38) resume to the uninterrupted run's last bits."""
     import shutil
 
     from exploregs_plugin.engine.training_loop import Trainer
@@ -188,10 +188,10 @@ def test_a_run_resumed_before_or_after_the_settled_cut_ends_with_the_same_bits(t
     trainer = _trainer(tmp_path / "run", 48, checkpoint_every=4, keep_checkpoints=12)
     whole = trainer.train()
     params = {k: v.detach().clone() for k, v in trainer.pipeline.params.items()}
-    assert trainer.pipeline.strategy.settled_cut_iter == 32 and trainer.op_totals["pruned"] > 0
+    assert trainer.pipeline.strategy.settled_cut_iter == 38 and trainer.op_totals["pruned"] > 0
     inside = torch.load(tmp_path / "run" / "checkpoints" / "step-0000028.pt", weights_only=False)["strategy_state"]
     assert inside[final_weights.FINAL_VIEWS] == 4  # steps 24-27 summed
-    for step in (28, 32):
+    for step in (28, 40):
         copy = tmp_path / f"from-{step}"
         (copy / "checkpoints").mkdir(parents=True)
         shutil.copy(tmp_path / "run" / "config.yml", copy / "config.yml")

@@ -180,8 +180,8 @@ def test_configs_saved_with_flat_strategy_fields_load_into_the_operators(tmp_pat
     strategy = config_from_dict(_with_strategy("exploregs-seedsplit", OLD_SEEDSPLIT)).pipeline.strategy
     assert strategy == SeedSplitStrategy(grow_grad2d=0.0012, budget="cpu-small", splitting=RandomSplitting(),
                                          seeding=RandomSeeding(n_seed=10, every=700, box_mode="cameras"),
-                                         final_weight_share=0.0, final_cut_tolerance=0.0,
-                                         settled_cut_iter=0)  # saved before the end-of-run cut: as it trained
+                                         final_weight_share=0.0, final_cut_tolerance=0.0, settled_cut_iter=0,
+                                         settled_cut_frac=2.0 / 3.0, settled_cut_tolerance=None)  # as it trained
     mcmc = config_from_dict(_with_strategy("exploregs-mcmc-ray", OLD_MCMC_RAY)).pipeline.strategy
     assert mcmc == MCMCStrategy(noise=PositionNoise(mode="ray", lr=1000.0))
     # the raw upgrade (what the bench compares a finished run's job file with) is the same move

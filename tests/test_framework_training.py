@@ -637,14 +637,14 @@ def test_progress_shows_elapsed_and_eta_and_the_total_includes_evaluation(tmp_pa
     assert [ln.split()[1] for ln in steps] == ["10/20", "20/20"]
     assert all(re.search(r"  elapsed \d+:\d\d  ETA \d+:\d\d$", ln) for ln in steps), steps
     assert steps[-1].endswith("ETA 0:00")
-    # each cut, which renders training views, is said before it: the settled cut after step 13
-    # (2/3 of the run), the end-of-run cut after the last step
-    said = [i for i, ln in enumerate(lines) if ln.startswith(("after step 13: the cut weighs the ",
+    # each cut, which renders training views, is said before it: the settled cut after step 16
+    # (0.8 of the run), the end-of-run cut after the last step
+    said = [i for i, ln in enumerate(lines) if ln.startswith(("after step 16: the cut weighs the ",
                                                               "after step 20: the end-of-run cut weighs the "))]
     counts = [i for i, ln in enumerate(lines) if ln.startswith("count: ")]
     assert len(said) == len(counts) == 2, lines
     assert lines.index(steps[-2]) < said[0] < counts[0] < said[1] < lines.index(steps[-1]) < counts[1], lines
-    for at, count, kept in zip(said, counts, ("after step 13, for the rest of the run", "after the last step (20)")):
+    for at, count, kept in zip(said, counts, ("after step 16, for the rest of the run", "after the last step (20)")):
         weighed = re.search(r"weighs the ([\d,]+) Gaussians over the (\d+) training views", lines[at])
         assert f" of {weighed.group(1)} Gaussians kept {kept}" in lines[count], lines[count]
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())

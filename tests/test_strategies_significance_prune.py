@@ -183,7 +183,8 @@ def test_the_end_of_run_cut_spends_its_share_on_faint_rows_and_keeps_a_row_that_
     assert torch.equal(params["means"].detach(), kept_means)
 
 
-def _checked_cut_case(tolerance: float, nan_at: int | None = None, loss_per_share: float = 10.0):
+def _checked_cut_case(tolerance: float, nan_at: int | None = None, loss_per_share: float = 10.0,
+                      last: bool = True, settled_tolerance: float | None = 0.3):
     """A 300-row set whose weights span four decades (the last 5 rows drawn by no view), cut by
     Default's end-of-run rule with a check that scores 6 views: each view loses ``loss_per_share``
     dB per unit of blend-weight share removed, times (1 + v / 10) on view v, and every view scores
@@ -206,9 +207,9 @@ def _checked_cut_case(tolerance: float, nan_at: int | None = None, loss_per_shar
         removed = float(weights[rows].sum() / weights.sum())
         return [30.0 - loss_per_share * removed * (1.0 + v / 10.0) for v in range(6)]
 
-    strategy = DefaultStrategy(final_cut_tolerance=tolerance)
+    strategy = DefaultStrategy(final_cut_tolerance=tolerance, settled_cut_tolerance=settled_tolerance)
     state = strategy.initialize_state()
-    strategy.final_cut(params, optimizers, state, visibility, step=99, score_without=score_without)
+    strategy.final_cut(params, optimizers, state, visibility, step=99, score_without=score_without, last=last)
     return params["means"].shape[0], strategy.count_decision(state), seen, visibility
 
 
@@ -254,6 +255,20 @@ def test_the_checked_cut_is_off_at_tolerance_0_and_refuses_a_share_whose_views_s
     assert len(seen_all) == 2 + len(CHECKED_SHARES) and kept_all == int((~ladder[-1]).sum())
     assert note_all.endswith("--strategy.final-cut-tolerance); the largest share tried "
                              "(--strategy.final-weight-share 0 keeps them)")
+
+
+def test_the_settled_cut_is_checked_with_its_own_tolerance():
+    """The settled cut (training follows it) takes each share its views lose at most
+    settled_cut_tolerance on; the cut after the last step keeps final_cut_tolerance; None: the
+    settled cut checked as the last."""
+    _, ladder = _ladder(_checked_cut_case(tolerance=0.1)[3])
+    strict = _checked_cut_case(tolerance=0.1, last=True, settled_tolerance=1e6)
+    loose = _checked_cut_case(tolerance=0.1, last=False, settled_tolerance=1e6)
+    same = _checked_cut_case(tolerance=0.1, last=False, settled_tolerance=None)
+    assert strict[0] > loose[0] == int((~ladder[-1]).sum())  # every share passes at 1e6 dB
+    assert same[0] == strict[0] and same[2] and all(torch.equal(a, b) for a, b in zip(same[2], strict[2]))
+    assert "(at most 1e+06, --strategy.settled-cut-tolerance)" in loose[1]
+    assert "for the rest of the run" in loose[1] and "(at most 0.1, --strategy.final-cut-tolerance)" in same[1]
 
 
 def test_the_checks_renders_are_the_run_without_those_rows(tmp_path):
@@ -315,26 +330,43 @@ def test_fields_are_checked():
         DefaultStrategy(grow_grad2d_height=0)
     with pytest.raises(StrategyError, match="settled_cut_iter"):
         DefaultStrategy(settled_cut_iter=-1)
+    for frac in (0.0, 1.0, float("nan")):
+        with pytest.raises(StrategyError, match="settled_cut_frac"):
+            DefaultStrategy(settled_cut_frac=frac)
+    with pytest.raises(StrategyError, match="settled_cut_tolerance"):
+        DefaultStrategy(settled_cut_tolerance=-0.1)
 
 
 def test_a_config_saved_before_the_fields_existed_loads_as_it_trained():
     saved = config_to_dict(SeedSplitStrategy(grow_grad2d_height=720, prune_weight_share=0.01, final_weight_share=0.01,
-                                             final_cut_tolerance=0.5, settled_cut_iter=900))
+                                             final_cut_tolerance=0.5, settled_cut_iter=900, settled_cut_frac=0.5,
+                                             settled_cut_tolerance=1.0))
     del saved["grow_grad2d_height"], saved["prune_weight_share"], saved["final_weight_share"]
-    del saved["final_cut_tolerance"], saved["settled_cut_iter"]
+    del saved["final_cut_tolerance"], saved["settled_cut_iter"], saved["settled_cut_frac"], saved["settled_cut_tolerance"]
     loaded = config_from_dict(saved)
     assert loaded.grow_grad2d_height is None and loaded.prune_weight_share == 0.0 and loaded.final_weight_share == 0.0
     assert loaded.final_cut_tolerance == 0.0 and SeedSplitStrategy().final_cut_tolerance == 0.1
     assert loaded.settled_cut_iter == 0 and SeedSplitStrategy().settled_cut_iter is None
+    # saved between the settled cut and its own fraction and tolerance: two thirds, checked as the last
+    saved = config_to_dict(SeedSplitStrategy())
+    del saved["settled_cut_frac"], saved["settled_cut_tolerance"]
+    loaded = config_from_dict(saved)
+    assert loaded.settled_cut_iter is None and loaded.settled_cut_frac == 2.0 / 3.0
+    assert loaded.settled_cut_tolerance is None and loaded._cut_tolerance(last=False) == (
+        0.1, "--strategy.final-cut-tolerance")
+    from exploregs_plugin.schedule import ScheduleConfig
+
+    assert loaded.setup(ScheduleConfig().resolve(1500)).settled_cut_step(1500) == 1000
 
 
-def test_the_settled_cut_comes_at_two_thirds_of_the_run_after_growth_and_before_the_last_step():
+def test_the_settled_cut_comes_at_four_fifths_of_the_run_after_growth_and_before_the_last_step():
     from exploregs_plugin.schedule import ScheduleConfig
 
     schedule = ScheduleConfig().resolve(1500)
     strategy = DefaultStrategy().setup(schedule)
-    assert strategy.refine_stop_iter == 750 and strategy.settled_cut_iter == 1000
-    assert strategy.settled_cut_step(1500) == 1000
+    assert strategy.refine_stop_iter == 750 and strategy.settled_cut_iter == 1200
+    assert strategy.settled_cut_step(1500) == 1200
+    assert DefaultStrategy(settled_cut_frac=2.0 / 3.0).setup(schedule).settled_cut_step(1500) == 1000
     assert DefaultStrategy(settled_cut_iter=1200).setup(schedule).settled_cut_step(1500) == 1200  # the user's step
     for off in (DefaultStrategy(settled_cut_iter=0),  # the last cut alone
                 DefaultStrategy(settled_cut_iter=750), DefaultStrategy(settled_cut_iter=600),  # growth not over

@@ -11,7 +11,7 @@ The run renders every view once per epoch anyway. In its last complete epoch (th
 of the training views that the run's remaining draws finish) the renderer sums the same statistics
 in the pass that draws each training image, and the cut reads those sums: no pass of its own
 (which draws are that epoch's: :meth:`~exploregs_plugin.data.datamanager.DataManager.last_epoch_draws`).
-The settled cut two thirds into the run (``DefaultStrategy.settled_cut_iter``) reads the same sums
+The settled cut (``DefaultStrategy.settled_cut_iter``, 0.8 of the run) reads the same sums
 of the whole epoch that ends before it, and drops them; the end-of-run cut then sums its own.
 The price is weights from parameters up to one epoch old, which after the set stops growing only the
 optimiser moves; so the window counts only once the strategy no longer grows (a draw at or after

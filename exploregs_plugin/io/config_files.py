@@ -157,6 +157,8 @@ ADDED_FIELDS: dict[str, dict[str, Any]] = {
         "final_cut_tolerance": 0.0,  # the cut at the fixed share alone
         "split_absgrad2d": None,  # splits by the summed gradient alone
         "settled_cut_iter": 0,  # the cut after the last step only
+        "settled_cut_frac": 2.0 / 3.0,  # where an unset settled_cut_iter fell
+        "settled_cut_tolerance": None,  # the settled cut checked as the end-of-run cut
     },
 }
 """Fields a config class gained after runs were saved without them, by the class that has them
