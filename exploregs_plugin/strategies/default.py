@@ -48,8 +48,9 @@ REFERENCE_HEIGHT = 720
 """The image height (pixels) at which Default's threshold is 3DGS's 0.0002 (beer's capture; 3DGS's
 own scenes are 545 to 1080 pixels high)."""
 CHECKED_SHARES = (0.005, 0.01, 0.02, 0.03, 0.05, 0.1)
-"""The shares the end-of-run cut tries after ``final_weight_share``, in order, each kept only while
-the training views say the cut costs at most ``final_cut_tolerance`` (steps of about 1.5-2x)."""
+"""The shares the checked cuts try after ``final_weight_share``, in order, each kept only while
+the training views say the cut costs at most its tolerance (``final_cut_tolerance`` after the last
+step, ``settled_cut_tolerance`` for the settled cut; steps of about 1.5-2x)."""
 SIGNIFICANCE_PRUNED, SIGNIFICANCE_NOTE = "significance_pruned", "significance_note"
 """State of the significance prune: the rows it has removed in all, and the line that says the
 count it left at the end of growth, and why ('' before)."""
