@@ -152,7 +152,7 @@ def test_reset_opacity_and_size_prune_timing():
     big = (torch.exp(params["scales"].detach()).max(-1).values > 0.1)
     faint = torch.sigmoid(params["opacities"].detach()) < 0.005
     counts = s.step_post_backward(params, optimizers, state, 10, zero_info())  # before first reset
-    assert counts["pruned"] == int(faint.sum()) and counts["opacity_reset"] == 0
+    assert counts["pruned"] == int(faint.sum()) and counts["opacity_reset"] == 0 and "pruned_too_big" not in counts
     n_before = params["means"].shape[0]
     counts = s.step_post_backward(params, optimizers, state, 30, zero_info())  # reset step
     assert counts["opacity_reset"] == 1
@@ -160,6 +160,7 @@ def test_reset_opacity_and_size_prune_timing():
     assert params["means"].shape[0] == n_before  # opacities were clamped to 0.01 >= 0.005: kept
     counts = s.step_post_backward(params, optimizers, state, 40, zero_info())  # after reset: size prune on
     assert counts["pruned"] == int((big & ~faint).sum()) > 0
+    assert counts["pruned_too_big"] == int((big & ~faint).sum())  # said apart, for the collapse watch's restart
     assert torch.all(torch.exp(params["scales"].detach()).max(-1).values <= 0.1)
     # Past refine_stop nothing happens at all.
     n = params["means"].shape[0]

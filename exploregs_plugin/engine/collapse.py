@@ -11,7 +11,12 @@ PSNR varies less) it follows the running mean of the PSNR itself. An opacity res
 every Gaussian nearly transparent on purpose, and the PSNR drop for a while) starts it afresh, and
 so does a refinement that removes a large share of the set: on ``beer`` at the full schedule the
 first refinement after the first opacity reset (step 3100, where the world-size prune starts) made
-the training PSNR fall 11 dB below the views' records in a healthy run.
+the training PSNR fall 11 dB below the views' records in a healthy run. A world-size prune starts
+it afresh whatever its share: on ``beer`` at ``--data-factor 4`` (Default, seed 2, 1500 steps) the
+refinement at step 300 removed 261 rows over the size limit of 5542 (and 66 faint ones, 5.9% in
+all), the training PSNR fell from about 23 to 7-10 dB for twenty steps and the watch stopped a run
+that, without it, ends at 27.25 dB with the other seeds (a row larger than a tenth of the scene
+paints much of every view that sees it).
 """
 
 from __future__ import annotations
@@ -26,10 +31,12 @@ RESTART_PRUNED_SHARE = 0.1
 
 
 def deliberate_setback(counts: dict[str, int], num_gaussians: int) -> bool:
-    """Whether a step's strategy events set the renders back on purpose: an opacity reset, or a
-    prune of at least RESTART_PRUNED_SHARE of the set (``num_gaussians``: the count after it)."""
+    """Whether a step's strategy events set the renders back on purpose: an opacity reset, a prune
+    of rows over the world-size limit (``pruned_too_big``, any number), or a prune of at least
+    RESTART_PRUNED_SHARE of the set (``num_gaussians``: the count after it)."""
     pruned = int(counts.get("pruned", 0))
-    return bool(counts.get("opacity_reset", 0)) or pruned >= RESTART_PRUNED_SHARE * max(num_gaussians + pruned, 1)
+    return (bool(counts.get("opacity_reset", 0)) or int(counts.get("pruned_too_big", 0)) > 0
+            or pruned >= RESTART_PRUNED_SHARE * max(num_gaussians + pruned, 1))
 
 
 class CollapseError(RuntimeError):

@@ -93,6 +93,10 @@ def _counting_classes() -> tuple[type, type]:
             return n_dupli, n_split
 
         def _prune_gs(self, params, optimizers, state, step):  # noqa: ANN001
+            if step > self.reset_every:  # gsplat's world-size prune, on after its first reset: said
+                # apart, as our Default says it, for the collapse watch (collapse.deliberate_setback)
+                too_big = params["scales"].detach().exp().max(dim=-1).values > self.prune_scale3d * state["scene_scale"]
+                self.counts["pruned_too_big"] = int(too_big.sum())
             n_prune = super()._prune_gs(params, optimizers, state, step)
             self.counts["pruned"] = int(n_prune)
             # after the refine block only an opacity reset replaces params["opacities"]

@@ -571,6 +571,10 @@ class DefaultStrategy(Strategy):
             max_size = self.size_prune_factor(step) * state["scene_scale"]
         mask = prune_mask(params["opacities"].detach(), params["scales"].detach(), self.prune_opa, max_size)
         extra, counts = self.extra_prune(params, state, step)
+        if max_size is not None:
+            # said apart: a row over the world-size limit paints a large part of any view that sees
+            # it, so even a few removed set the renders back on purpose (collapse.deliberate_setback)
+            counts = {**counts, "pruned_too_big": int((max_world_scale(params["scales"].detach()) > max_size).sum())}
         if extra is not None:
             mask = mask | extra
         return {**counts, "pruned": row_ops.remove(params, optimizers, state["stats"], mask)}
