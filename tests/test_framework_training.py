@@ -618,7 +618,7 @@ def test_the_collapse_watch_judges_a_view_against_its_own_record():
     assert deliberate_setback({"pruned": 200, "opacity_reset": 0}, 1000) and deliberate_setback({"opacity_reset": 1}, 5)
     assert not deliberate_setback({"pruned": 50}, 1000) and not deliberate_setback({}, 0)
     # and so does any prune of rows over the world-size limit (each paints much of a view): beer's
-    # Default seed 2 lost 261 of 5542 that way and fell 15 dB below its records for twenty steps
+    # Default seed 2 lost 261 of 5542 that way and fell over 10 dB below its records for twenty steps
     assert deliberate_setback({"pruned": 50, "pruned_too_big": 1}, 1000)
     assert not deliberate_setback({"pruned": 50, "pruned_too_big": 0}, 1000)
     # a view's loss grown tenfold over its own lowest is one too
