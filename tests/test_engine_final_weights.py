@@ -11,7 +11,7 @@ from exploregs_plugin.data.datamanager import in_last_epoch
 from exploregs_plugin.engine import count_trial, final_weights
 from exploregs_plugin.engine.pipeline import Pipeline
 from exploregs_plugin.engine.trainer import TrainerConfig
-from exploregs_plugin.model.significance import visibility_totals
+from exploregs_plugin.model.significance import add_view_, visibility_totals
 from exploregs_plugin.schedule import ScheduleConfig
 
 VIEWS = 8  # builtin:tiny's training views
@@ -74,13 +74,14 @@ def test_each_cut_reads_each_views_render_of_the_epoch_before_it_after_growth(tm
         marked.append(indices)
         return indices
 
-    def add(state, visibility):  # the view of the step, rendered with the parameters it was drawn with
+    def add(state, visibility, view):  # the view of the step, rendered with the parameters it was drawn with
         step, (index,) = marked[-2], marked[-1]
         params = {k: v.detach() for k, v in pipeline.params.items()}  # before the step's optimiser step
         fresh = visibility_totals(params, [pipeline.datamanager.train_cameras[index]], pipeline.model.config.raster,
                                   pipeline.background)
-        seen.append((step, index, torch.allclose(visibility.double(), fresh[:, :3], rtol=1e-5, atol=1e-6)))
-        real_add(state, visibility)
+        seen.append((step, index, torch.allclose(visibility.double(), fresh[:, :3], rtol=1e-5, atol=1e-6)
+                     and view == index))
+        real_add(state, visibility, view)
 
     def note(pipeline, step):
         said = real_note(pipeline, step)
@@ -127,16 +128,52 @@ def test_each_cut_reads_each_views_render_of_the_epoch_before_it_after_growth(tm
     assert final_weights.FINAL_WEIGHTS not in state["stats"] and final_weights.FINAL_VIEWS not in state
 
 
-def test_a_run_whose_last_epoch_began_before_growth_ended_renders_the_views_for_the_cut(tmp_path, monkeypatch):
-    passes = []
-    real = count_trial.training_visibility
-    monkeypatch.setattr(count_trial, "training_visibility", lambda p: passes.append(p.model.num_gaussians) or real(p))
-    # growth stops at step 10, the settled cut comes after 16 steps: the last whole epoch before it
-    # (8-15) and the last whole epoch before the end (8-15 too) began before growth ended
+def test_a_window_opened_inside_its_epoch_renders_only_the_views_it_lacks(tmp_path, monkeypatch):
+    """Growth stops at step 10 and the settled cut comes after 16 steps: its epoch (draws 8-15) began
+    before growth ended, so its window holds the draws of steps 10-15 and the cut renders the two
+    views drawn at steps 8 and 9; the end-of-run cut's epoch (16-23) does not end within the run, so
+    it renders every view."""
+    from exploregs_plugin.data.datamanager import DataManager
+
+    passes, partial, drawn, real_draw = [], [], [], DataManager.next_train_indices
+    real_pass, real_partial = count_trial.training_visibility, count_trial.views_visibility
+    monkeypatch.setattr(count_trial, "training_visibility", lambda p: passes.append(p.model.num_gaussians) or real_pass(p))
+    monkeypatch.setattr(count_trial, "views_visibility", lambda p, views: partial.append(list(views)) or real_partial(p, views))
+    monkeypatch.setattr(DataManager, "next_train_indices", lambda dm, count: drawn.extend(real_draw(dm, count)) or drawn[-count:])
     trainer = _trainer(tmp_path / "run", 20)
     trainer.train()
-    assert len(passes) == 2 and passes[1] < passes[0]  # a pass for each cut
+    assert len(drawn) == 20 and sorted(drawn[8:16]) == list(range(VIEWS))  # steps 8-15: one epoch
+    assert partial[0] == sorted(drawn[8:10])  # the settled cut rendered only what its window lacked
+    assert len(passes) == 1  # the end-of-run cut: a whole pass
     assert final_weights.FINAL_VIEWS not in trainer.pipeline.strategy_state
+    assert final_weights.FINAL_SEEN not in trainer.pipeline.strategy_state
+
+
+def test_a_completed_window_holds_each_view_once_as_a_pass_would():
+    """Sums of some views completed with the render of the others equal the sums of them all
+    (the same statistics per view), and a window that cannot name its views is not completed."""
+    per_view = [torch.tensor([[s, s, p], [0.5 * s, s, 0.5 * p]], dtype=torch.float64)
+                for s, p in ((1.0, 0.25), (3.0, 0.5), (2.0, 0.75), (0.5, 0.125))]
+    whole = {"stats": {}}
+    for i, view in enumerate(per_view):
+        final_weights.add_window_view(whole, view, i)
+    part = {"stats": {}}
+    for i in (2, 0):
+        final_weights.add_window_view(part, per_view[i], i)
+    assert final_weights.missing_views(part, 4) == [1, 3] and final_weights.window_totals(part, 4) is None
+    rendered = torch.zeros(2, 4, dtype=torch.float64)  # as visibility_totals sums the views it renders
+    for i in (1, 3):
+        add_view_(rendered, per_view[i])
+    final_weights.complete_window(part, rendered, [1, 3])
+    assert torch.equal(final_weights.window_totals(part, 4), final_weights.window_totals(whole, 4))
+    assert final_weights.missing_views(part, 4) == []
+    unnamed = {"stats": {}}
+    final_weights.add_window_view(unnamed, per_view[0])  # a checkpoint's sums that do not name their views
+    assert final_weights.missing_views(unnamed, 4) is None
+    twice = {"stats": {}}
+    for i in (1, 1):
+        final_weights.add_window_view(twice, per_view[i], i)
+    assert final_weights.missing_views(twice, 4) is None
 
 
 def test_summing_the_weights_changes_no_bit_of_the_run_and_the_sums_are_the_same_on_one_and_two_threads(
@@ -203,3 +240,26 @@ def test_a_run_resumed_before_or_after_the_settled_cut_ends_with_the_same_bits(t
         assert again["cut_lines"] == whole["cut_lines"] and len(whole["cut_lines"]) == 2, step  # kept in the checkpoint
         assert all(torch.equal(v.detach(), params[k]) for k, v in resumed.pipeline.params.items()), step
 
+
+
+def test_a_run_resumed_inside_a_window_opened_inside_its_epoch_ends_with_the_same_bits(tmp_path):
+    """The 20-step run above: a checkpoint at step 12 holds the settled cut's window of steps 10
+    and 11 with the views it names; resumed, the cut renders the same lacking views and the run
+    ends with the uninterrupted run's bits."""
+    import shutil
+
+    from exploregs_plugin.engine.training_loop import Trainer
+
+    trainer = _trainer(tmp_path / "run", 20, checkpoint_every=4, keep_checkpoints=12)
+    whole = trainer.train()
+    params = {k: v.detach().clone() for k, v in trainer.pipeline.params.items()}
+    inside = torch.load(tmp_path / "run" / "checkpoints" / "step-0000012.pt", weights_only=False)["strategy_state"]
+    assert inside[final_weights.FINAL_VIEWS] == 2 and len(inside[final_weights.FINAL_SEEN]) == 2
+    copy = tmp_path / "from-12"
+    (copy / "checkpoints").mkdir(parents=True)
+    shutil.copy(tmp_path / "run" / "config.yml", copy / "config.yml")
+    shutil.copy(tmp_path / "run" / "checkpoints" / "step-0000012.pt", copy / "checkpoints")
+    resumed = Trainer.from_run(copy, quiet=True)
+    again = resumed.train()
+    assert again["cut_lines"] == whole["cut_lines"] and again["num_gaussians"] == whole["num_gaussians"]
+    assert all(torch.equal(v.detach(), params[k]) for k, v in resumed.pipeline.params.items())

@@ -649,7 +649,7 @@ def test_progress_shows_elapsed_and_eta_and_the_total_includes_evaluation(tmp_pa
     assert len(said) == len(counts) == 2, lines
     assert lines.index(steps[-2]) < said[0] < counts[0] < said[1] < lines.index(steps[-1]) < counts[1], lines
     for at, count, kept in zip(said, counts, ("after step 16, for the rest of the run", "after the last step (20)")):
-        weighed = re.search(r"weighs the ([\d,]+) Gaussians over the (\d+) training views", lines[at])
+        weighed = re.search(r"weighs the ([\d,]+) Gaussians (over|by their weights in) ", lines[at])
         assert f" of {weighed.group(1)} Gaussians kept {kept}" in lines[count], lines[count]
     metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
     assert metrics["wall_seconds"] > metrics["train_seconds"] > 0

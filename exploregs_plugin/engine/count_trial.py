@@ -35,12 +35,16 @@ class HoldingStrategy(Strategy):
 
 
 def training_visibility(pipeline: Pipeline) -> Tensor:
-    """[N, 3] float64: each Gaussian's compositing weight and alpha, summed over the training views
-    that are still trained on (a held-out view must not choose what is kept), and its peak weight;
-    one pass."""
-    dm = pipeline.datamanager
-    held = set(dm.held_out)
-    cameras = [camera for i, camera in enumerate(dm.train_cameras) if i not in held]
+    """[N, 4] float64 (``CUT_COLUMNS``): each Gaussian's compositing weight and alpha, summed over the
+    training views that are still trained on (a held-out view must not choose what is kept), its
+    peak weight and its weight in the view that needs it most; one pass."""
+    held = set(pipeline.datamanager.held_out)
+    return views_visibility(pipeline, [i for i in range(len(pipeline.datamanager.train_cameras)) if i not in held])
+
+
+def views_visibility(pipeline: Pipeline, indices: list[int]) -> Tensor:
+    """:func:`training_visibility` over these training views only (one render each)."""
+    cameras = [pipeline.datamanager.train_cameras[i] for i in indices]
     params = {k: v.detach() for k, v in pipeline.params.items()}
     return visibility_totals(params, cameras, pipeline.model.config.raster, pipeline.background)
 

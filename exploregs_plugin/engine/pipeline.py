@@ -284,9 +284,9 @@ class Pipeline:
         views = [self._train_view(step, indices[p], backgrounds[p], p == mine.start, totals, any(in_window))
                  for p in mine]
         views = self._step_observations(views, totals)
-        for view, counted in zip(views, in_window):  # every view of the global batch, on every rank
+        for view, counted, index in zip(views, in_window, indices):  # every view of the global batch, on every rank
             if counted:
-                final_weights.add_window_view(self.strategy_state, view.visibility)
+                final_weights.add_window_view(self.strategy_state, view.visibility, index)
         self.nonfinite.loss(step, totals)
         means_lr = self._optimizer_step(step)
         self.check_finite(step)
@@ -330,8 +330,13 @@ class Pipeline:
         if not self.sums_weights:
             return 0, [f"note: the end-of-run cut (--strategy.final-weight-share {share:g}) is off: gsplat's "
                        f"kernels do not sum each Gaussian's compositing weight"] if last else []
-        totals = final_weights.window_totals(self.strategy_state, self._final_cut_views())
-        if totals is None:  # no whole last epoch after growth ended: render every view once more
+        views = self._final_cut_views()
+        totals = final_weights.window_totals(self.strategy_state, views)
+        missing = None if self.datamanager.held_out else final_weights.missing_views(self.strategy_state, views)
+        if totals is None and missing:  # the window opened inside its epoch: render the views it lacks
+            final_weights.complete_window(self.strategy_state, count_trial.views_visibility(self, missing), missing)
+            totals = final_weights.window_totals(self.strategy_state, views)
+        if totals is None:  # no window after growth ended: render every view once more
             totals = count_trial.training_visibility(self)
         checked = evenly_spread(len(self.datamanager.train_cameras), CHECK_VIEWS)
         cut = self.strategy.final_cut(self.params, self.optimizers, self.strategy_state, totals, step, last=last,
@@ -374,8 +379,8 @@ class Pipeline:
     def final_cut_note(self, step: int) -> str | None:
         """The line said before ``step`` when a cut comes after it (the end-of-run cut after the
         last step, or the settled cut): the cut renders ``CHECK_VIEWS``
-        training views per share it tries (and, where the run has no whole epoch of weights after
-        growth before it, every training view once more), which on a large capture takes minutes
+        training views per share it tries (and, where its window holds part of an epoch, the views it
+        lacks; where it has none, every training view once more), which on a large capture takes minutes
         (220 views at 800 x 533: about 143 s with the views' pass, docs/strategies.md) that the
         progress bar would otherwise spend silent."""
         if step + 1 != self._next_cut(step) or not self._final_cut_runs():
@@ -385,7 +390,12 @@ class Pipeline:
             return None  # no cut: the step says so after it
         views = self._final_cut_views()
         summed = final_weights.window_views(self.strategy_state) + sum(self._final_window_draws(step))
+        completes = summed > 0 and not self.datamanager.held_out and (
+            final_weights.window_views(self.strategy_state) == 0
+            or final_weights.missing_views(self.strategy_state, views) is not None)
         how = (f"by their weights in the last epoch's renders of the {views} training views" if summed == views
+               else f"by their weights in the last epoch's renders of {summed} of the {views} training views "
+                    f"and one render of each of the other {views - summed}" if completes
                else f"over the {views} training views (one render each)")
         if settled:
             return (f"after step {step + 1}: the cut weighs the {self.model.num_gaussians:,} Gaussians {how}; the rest "

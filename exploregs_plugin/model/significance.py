@@ -45,6 +45,14 @@ def add_view_(totals: Tensor, view: Tensor) -> Tensor:
     return totals
 
 
+def add_totals_(totals: Tensor, more: Tensor) -> Tensor:
+    """``totals`` [N, 4] (``CUT_COLUMNS``) with the totals ``more`` [N, 4] of other views taken in, in
+    place: the sums added, the peak and the view weight the larger (each a maximum over views)."""
+    add_visibility_(totals[:, :VIEW_WEIGHT], more[:, :VIEW_WEIGHT])
+    torch.maximum(totals[:, VIEW_WEIGHT], more[:, VIEW_WEIGHT], out=totals[:, VIEW_WEIGHT])
+    return totals
+
+
 @torch.no_grad()
 def visibility_totals(params: Mapping[str, Tensor], cameras: Iterable[Camera], settings: RasterSettings | None,
                       background: Tensor | None = None) -> Tensor:
