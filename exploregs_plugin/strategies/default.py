@@ -184,14 +184,16 @@ def limit_growth(clone: Tensor, split: Tensor, score: Tensor, room: int) -> tupl
     return clone & keep, split & keep
 
 
-def prune_mask(
+def prune_masks(
     opacity_logits: Tensor, log_scales: Tensor, min_opacity: float, max_world_size: float | None
-) -> Tensor:
-    """Gaussians to prune: sigmoid(opacity) < min_opacity, or max scale > max_world_size."""
+) -> tuple[Tensor, Tensor | None]:
+    """Gaussians to prune: (sigmoid(opacity) < min_opacity or max scale > max_world_size, the
+    latter alone; None without a size limit)."""
     mask = torch.sigmoid(opacity_logits.flatten()) < min_opacity
-    if max_world_size is not None:
-        mask |= max_world_scale(log_scales) > max_world_size
-    return mask
+    if max_world_size is None:
+        return mask, None
+    too_big = max_world_scale(log_scales) > max_world_size
+    return mask | too_big, too_big
 
 
 ScoreWithout = Callable[[Tensor], Sequence[float]]
@@ -569,12 +571,12 @@ class DefaultStrategy(Strategy):
         max_size = None
         if step > self.reset_every:
             max_size = self.size_prune_factor(step) * state["scene_scale"]
-        mask = prune_mask(params["opacities"].detach(), params["scales"].detach(), self.prune_opa, max_size)
+        mask, too_big = prune_masks(params["opacities"].detach(), params["scales"].detach(), self.prune_opa, max_size)
         extra, counts = self.extra_prune(params, state, step)
-        if max_size is not None:
+        if too_big is not None:
             # said apart: a row over the world-size limit paints a large part of any view that sees
             # it, so even a few removed set the renders back on purpose (collapse.deliberate_setback)
-            counts = {**counts, "pruned_too_big": int((max_world_scale(params["scales"].detach()) > max_size).sum())}
+            counts = {**counts, "pruned_too_big": int(too_big.sum())}
         if extra is not None:
             mask = mask | extra
         return {**counts, "pruned": row_ops.remove(params, optimizers, state["stats"], mask)}
