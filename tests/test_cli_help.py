@@ -97,3 +97,49 @@ def test_eg_process_help_says_its_input_is_required(capsys, monkeypatch):
     text = _help(capsys, monkeypatch, lambda: parse_args(["--help"]))
     assert "(default: )" not in text
     assert "Never written to. (required)" in " ".join(text.replace("│", " ").split())
+
+
+def _undocumented_fields(config, seen: set[int] | None = None) -> list[str]:
+    """``Class.field`` for every field of ``config`` and the dataclasses it holds that no class of
+    its MRO documents with a docstring (docstring_parser's attribute docstrings, the reader tyro
+    asks first)."""
+    import dataclasses
+
+    import docstring_parser
+
+    seen = set() if seen is None else seen
+    if id(config) in seen:
+        return []
+    seen.add(id(config))
+    cls, missing = type(config), []
+    documented = {param.arg_name for klass in cls.__mro__ if klass.__module__ != "builtins"
+                  for param in docstring_parser.parse_from_object(klass).params if param.description}
+    for field in dataclasses.fields(config):
+        if field.name not in documented:
+            missing.append(f"{cls.__qualname__}.{field.name}")
+        value = getattr(config, field.name)
+        if dataclasses.is_dataclass(value) and not isinstance(value, type):
+            missing += _undocumented_fields(value, seen)
+    return missing
+
+
+def test_every_setting_of_every_method_and_strategy_has_a_docstring():
+    """A setting without a docstring has no help line, and tyro then looks for a comment by
+    tokenizing the source of its whole class, on every parse (it clears its caches after each):
+    four nested configs without one (the schedule, the datamanager, the model, the optimizer)
+    made every eg-train parse read and tokenize the trainer's and the pipeline's modules, about
+    a third of a parse's time."""
+    from dataclasses import replace
+
+    from exploregs_plugin.method_configs import all_methods
+    from exploregs_plugin.strategies.registry import available_strategies
+
+    def ours(kind: type) -> bool:  # not a plug-in's
+        return kind.__module__.startswith("exploregs_plugin.")
+
+    configs = [method.config for method in all_methods().values() if ours(type(method.config.pipeline.strategy))]
+    base = configs[0]
+    configs += [replace(base, pipeline=replace(base.pipeline, strategy=strategy()))
+                for strategy in available_strategies().values() if ours(strategy)]
+    missing = sorted({name for config in configs for name in _undocumented_fields(config)})
+    assert missing == []

@@ -129,8 +129,11 @@ class PipelineConfig:
     """Everything a training step needs: data, model, optimizer, densification strategy, loss."""
 
     datamanager: DataManagerConfig = field(default_factory=DataManagerConfig)
+    """Which dataset to load and how."""
     model: GaussianModelConfig = field(default_factory=GaussianModelConfig)
+    """How the Gaussian set is initialised and rendered."""
     optim: OptimizerConfig = field(default_factory=OptimizerConfig)
+    """3DGS learning rates (Kerbl et al. 2023 reference values)."""
     strategy: Any = field(default_factory=DefaultStrategy)
     """Densification / exploration strategy (its fields are set with --strategy.NAME)."""
     ssim_lambda: float = 0.2

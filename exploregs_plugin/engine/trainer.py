@@ -41,6 +41,7 @@ class TrainerConfig:
     """Where parameters, optimizer and strategy state live and rendering runs: auto (CUDA when
     available, else CPU), cpu, cuda or cuda:N."""
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    """Fractions of the run at which the 3DGS events happen."""
     machine: MachineConfig = field(default_factory=MachineConfig)
     """Data-parallel training over several processes and machines (--machine.*; docs/scale.md)."""
     pipeline: Annotated[PipelineConfig, tyro.conf.arg(name="")] = field(default_factory=PipelineConfig)

@@ -69,9 +69,13 @@ class DeformationConfig:
     """Initial learning rate of the planes (x scene extent): ten times 4DGS's 1.6e-3, as a CPU run
     makes about a tenth of its updates (docs/dynamic.md measures 1x, 3x and 10x)."""
     grid_lr_final: float = 1.6e-3
+    """The planes' learning rate at the end of the run (x scene extent), reached by exponential
+    decay from ``grid_lr`` after the deformation is switched on: a tenth of it, as in 4DGS."""
     mlp_lr: float = 1.6e-3
     """Initial learning rate of the decoder (x scene extent): ten times 4DGS's 1.6e-4."""
     mlp_lr_final: float = 1.6e-4
+    """The decoder's learning rate at the end of the run (x scene extent), reached by exponential
+    decay from ``mlp_lr`` after the deformation is switched on: a tenth of it, as in 4DGS."""
     plane_tv_weight: float = 2e-4
     """Total variation of the space planes (4DGS on DyNeRF: 2e-4)."""
     time_smoothness_weight: float = 1e-3
