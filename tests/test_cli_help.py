@@ -3,6 +3,7 @@ where unset has a meaning to say."""
 
 from __future__ import annotations
 
+import functools
 import re
 
 import pytest
@@ -99,24 +100,27 @@ def test_eg_process_help_says_its_input_is_required(capsys, monkeypatch):
     assert "Never written to. (required)" in " ".join(text.replace("│", " ").split())
 
 
-def _undocumented_fields(config, seen: set[int] | None = None) -> list[str]:
-    """``Class.field`` for every field of ``config`` and the dataclasses it holds that no class of
-    its MRO documents with a docstring (docstring_parser's attribute docstrings, the reader tyro
-    asks first)."""
-    import dataclasses
-
+@functools.lru_cache(maxsize=None)
+def _documented(cls: type) -> frozenset[str]:
+    """The fields of ``cls`` that a class of its MRO documents with a docstring (docstring_parser's
+    attribute docstrings, the reader tyro asks first; it parses the class's source)."""
     import docstring_parser
 
-    seen = set() if seen is None else seen
+    return frozenset(param.arg_name for klass in cls.__mro__ if klass.__module__ != "builtins"
+                     for param in docstring_parser.parse_from_object(klass).params if param.description)
+
+
+def _undocumented_fields(config, seen: set[int]) -> list[str]:
+    """``Class.field`` for every field of ``config`` and of the dataclasses it holds that has no
+    docstring."""
+    import dataclasses
+
     if id(config) in seen:
         return []
     seen.add(id(config))
-    cls, missing = type(config), []
-    documented = {param.arg_name for klass in cls.__mro__ if klass.__module__ != "builtins"
-                  for param in docstring_parser.parse_from_object(klass).params if param.description}
+    missing = [f"{type(config).__qualname__}.{field.name}" for field in dataclasses.fields(config)
+               if field.name not in _documented(type(config))]
     for field in dataclasses.fields(config):
-        if field.name not in documented:
-            missing.append(f"{cls.__qualname__}.{field.name}")
         value = getattr(config, field.name)
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             missing += _undocumented_fields(value, seen)
@@ -141,5 +145,6 @@ def test_every_setting_of_every_method_and_strategy_has_a_docstring():
     base = configs[0]
     configs += [replace(base, pipeline=replace(base.pipeline, strategy=strategy()))
                 for strategy in available_strategies().values() if ours(strategy)]
-    missing = sorted({name for config in configs for name in _undocumented_fields(config)})
+    seen: set[int] = set()
+    missing = sorted({name for config in configs for name in _undocumented_fields(config, seen)})
     assert missing == []
