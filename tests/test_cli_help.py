@@ -132,7 +132,7 @@ def test_every_setting_of_every_method_and_strategy_has_a_docstring():
     tokenizing the source of its whole class, on every parse (it clears its caches after each):
     four nested configs without one (the schedule, the datamanager, the model, the optimizer)
     made every eg-train parse read and tokenize the trainer's and the pipeline's modules, about
-    a third of a parse's time."""
+    half of a parse's time (docs/training.md, "Startup")."""
     from dataclasses import replace
 
     from exploregs_plugin.method_configs import all_methods
