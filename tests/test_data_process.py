@@ -984,14 +984,23 @@ def test_bundle_adjustment_gets_the_threads_unless_deterministic(mapper, tmp_pat
     import pycolmap
 
     seen = []
+
+    def threads_of(options) -> set[int]:  # every num_threads in the options, nested groups included
+        found = {options.num_threads} if hasattr(options, "num_threads") else set()
+        for name in dir(options):
+            if not name.startswith("_") and type(getattr(options, name)).__name__.endswith("Options"):
+                found |= threads_of(getattr(options, name))
+        return found
+
     for name in ("global_mapping", "incremental_mapping"):
         monkeypatch.setattr(pycolmap, name, lambda *a, options, **k: seen.append(
-            (options.num_threads, options.random_seed, options.mapper.num_threads)) or {})
+            (threads_of(options), options.random_seed, options.mapper.num_threads)) or {})
     for deterministic in (False, True):
         sfm.map_scene(tmp_path / "db", tmp_path, tmp_path / "out", mapper, 2, deterministic, lambda n: None)
-    # the pipeline (bundle adjustment) on every thread given, or on one for the same bits; the
-    # mapper inside always on the threads given; RANSAC seeded either way
-    assert seen == [(2, 0, 2), (1, 0, 2)]
+    # the pipeline and every solver in it (the mapper, the global mapper's bundle adjustment) on
+    # the threads given, or all on one for the same bits (with the pipeline alone on one, the model
+    # of two threads now and then differed from that of one); RANSAC seeded either way
+    assert seen == [({2}, 0, 2), ({1}, 0, 1)]
 
 
 def test_a_capture_that_skips_is_a_gap_not_a_fold(processed):

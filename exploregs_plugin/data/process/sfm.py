@@ -147,17 +147,19 @@ def map_scene(database: Path, image_dir: Path, out_dir: Path, mapper: Mapper, th
     """Every model the mapper finds, written to ``out_dir/<index>``; ``on_registered(n)`` reports
     the images the incremental mapper registers (the global one reports nothing until done).
 
-    ``deterministic``: the pipeline, which runs bundle adjustment, on one thread. Bundle
-    adjustment's sums on several threads come in a varying order: on two threads 12 photos gave
-    444, 505 or 710 points from run to run (incremental), or the same points at other bits
-    (global). On one thread the model is the same bits for any ``threads``; the mapper inside
-    keeps ``threads``. Off by default: it is speed the user pays for and does not see."""
+    ``deterministic``: the pipeline and every solver inside it (the mapper, the global mapper's
+    bundle adjustment in Ceres) on one thread. Bundle adjustment's sums on several threads come in
+    a varying order: on two threads 12 photos gave 444, 505 or 710 points from run to run
+    (incremental), or the same points at other bits (global); with the pipeline alone on one thread
+    the solvers inside it still ran on ``threads``, and now and then (two test runs in about a
+    dozen) the model of two threads differed from that of one. On one thread throughout the model
+    is the same bits for any ``threads``. Off by default: it is speed the user pays for and does not
+    see."""
     out_dir.mkdir(parents=True, exist_ok=True)
     pycolmap.set_random_seed(0)  # the same capture gives the same model (up to thread order)
     pipeline = pycolmap.GlobalPipelineOptions() if mapper == "global" else pycolmap.IncrementalPipelineOptions()
-    options = with_threads(pipeline, threads)
+    options = with_threads(pipeline, 1 if deterministic else threads)
     options.random_seed = 0
-    options.num_threads = 1 if deterministic else threads
     if mapper == "global":
         return pycolmap.global_mapping(database, image_dir, out_dir, options=options)
     return pycolmap.incremental_mapping(database, image_dir, out_dir, options=options,
