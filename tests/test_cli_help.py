@@ -118,9 +118,10 @@ def _undocumented_fields(config, seen: set[int]) -> list[str]:
     if id(config) in seen:
         return []
     seen.add(id(config))
-    missing = [f"{type(config).__qualname__}.{field.name}" for field in dataclasses.fields(config)
-               if field.name not in _documented(type(config))]
+    missing = []
     for field in dataclasses.fields(config):
+        if field.name not in _documented(type(config)):
+            missing.append(f"{type(config).__qualname__}.{field.name}")
         value = getattr(config, field.name)
         if dataclasses.is_dataclass(value) and not isinstance(value, type):
             missing += _undocumented_fields(value, seen)

@@ -986,11 +986,7 @@ def test_bundle_adjustment_gets_the_threads_unless_deterministic(mapper, tmp_pat
     seen = []
 
     def threads_of(options) -> set[int]:  # every num_threads in the options, nested groups included
-        found = {options.num_threads} if hasattr(options, "num_threads") else set()
-        for name in dir(options):
-            if not name.startswith("_") and type(getattr(options, name)).__name__.endswith("Options"):
-                found |= threads_of(getattr(options, name))
-        return found
+        return {group.num_threads for group in sfm.option_groups(options) if hasattr(group, "num_threads")}
 
     for name in ("global_mapping", "incremental_mapping"):
         monkeypatch.setattr(pycolmap, name, lambda *a, options, **k: seen.append(

@@ -39,15 +39,23 @@ def colmap_logs(verbose: bool) -> Iterator[None]:
         log.minloglevel, log.logtostderr = before
 
 
-def with_threads(options, threads: int, depth: int = 4):
-    """``options`` with every ``num_threads`` in it, nested option groups included, set to
-    ``threads`` (pycolmap's -1 means every core, which a shared machine does not have)."""
-    if hasattr(options, "num_threads"):
-        options.num_threads = threads
+def option_groups(options, depth: int = 4) -> list:
+    """``options`` and the option groups nested in it (pycolmap's ``...Options`` attributes), down to
+    ``depth`` levels."""
+    groups = [options]
     if depth > 0:
         for name in dir(options):
             if not name.startswith("_") and type(getattr(options, name)).__name__.endswith("Options"):
-                with_threads(getattr(options, name), threads, depth - 1)
+                groups += option_groups(getattr(options, name), depth - 1)
+    return groups
+
+
+def with_threads(options, threads: int):
+    """``options`` with every ``num_threads`` in it, nested option groups included, set to
+    ``threads`` (pycolmap's -1 means every core, which a shared machine does not have)."""
+    for group in option_groups(options):
+        if hasattr(group, "num_threads"):
+            group.num_threads = threads
     return options
 
 
